@@ -1,0 +1,1 @@
+"""Input/output: images, time synchronisation, message conversions (and later: bags)."""

@@ -1,0 +1,116 @@
+"""ROS-free data types exchanged between the stages (mirrors of the rfm_msgs messages)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rfm_core.geometry import BOX_DIM, gravity_aligned_rotation
+
+__all__ = ['CameraIntrinsics', 'FrameObservations']
+
+
+@dataclass(frozen=True)
+class CameraIntrinsics:
+    """Pinhole intrinsics (pixels) of an image of ``width`` x ``height`` pixels."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self):
+        values = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(values)) or self.fx <= 0 or self.fy <= 0:
+            raise ValueError(f'intrinsics need finite fx, fy > 0 (got fx={self.fx}, fy={self.fy}, '
+                             f'cx={self.cx}, cy={self.cy}); is camera_info calibrated?')
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f'image size must be positive, got {self.width}x{self.height}')
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """The 3x3 camera matrix K."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+
+def _empty_f32(*shape):
+    return np.zeros(shape, dtype=np.float32)
+
+
+@dataclass
+class FrameObservations:
+    """The detections of one image (rfm_msgs/FrameDetections without ROS types).
+
+    ``boxes`` (N, 7) and ``scores`` (N,) are required; the other per-box fields may be left
+    empty (unknown). ``boxes`` are in the frame's gravity-aligned camera frame
+    (:func:`rfm_core.geometry.gravity_aligned_rotation` of ``gravity_cam``), so they have a
+    yaw only; ``gravity_cam`` is the unit "down" direction in the camera optical frame.
+    """
+
+    stamp_ns: int
+    frame_id: str
+    intrinsics: CameraIntrinsics
+    gravity_cam: np.ndarray
+    boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, BOX_DIM)))
+    scores: np.ndarray = field(default_factory=lambda: _empty_f32(0))
+    labels: list = field(default_factory=list)
+    embeddings: np.ndarray = field(default_factory=lambda: _empty_f32(0, 0))
+    boxes_2d: np.ndarray = field(default_factory=lambda: _empty_f32(0, 4))
+    visibility: np.ndarray = field(default_factory=lambda: _empty_f32(0))
+    object_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    corner_descriptors: np.ndarray | None = None   #: (N, 8, D) or None
+    backend: str = ''
+
+    def __post_init__(self):
+        g = np.asarray(self.gravity_cam, dtype=np.float64).reshape(-1)
+        norm = np.linalg.norm(g) if g.size == 3 else 0.0
+        if g.size != 3 or not np.isfinite(norm) or norm < 1e-6:
+            raise ValueError(f'gravity must be a finite non-zero 3-vector, got {self.gravity_cam!r}')
+        self.gravity_cam = g / norm
+        self.boxes = np.asarray(self.boxes, dtype=np.float64).reshape(-1, BOX_DIM)
+        n = len(self.boxes)
+        if not np.all(np.isfinite(self.boxes)):
+            raise ValueError('boxes contain NaN or inf')
+        if np.any(self.boxes[:, 3:6] < 0):
+            raise ValueError('box sizes must be non-negative')
+        self.scores = np.asarray(self.scores, dtype=np.float32).reshape(-1)
+        self.embeddings = np.asarray(self.embeddings, dtype=np.float32)
+        if self.embeddings.size == 0:
+            self.embeddings = self.embeddings.reshape(n, 0)
+        self.boxes_2d = np.asarray(self.boxes_2d, dtype=np.float32).reshape(-1, 4)
+        self.visibility = np.asarray(self.visibility, dtype=np.float32).reshape(-1)
+        self.object_ids = np.asarray(self.object_ids, dtype=np.int64).reshape(-1)
+        self.labels = list(self.labels)
+        # Optional per-box fields may be left empty: fill them with "unknown".
+        if n and not self.labels:
+            self.labels = [''] * n
+        if n and self.embeddings.shape[0] == 0:
+            self.embeddings = _empty_f32(n, 0)
+        if n and len(self.boxes_2d) == 0:
+            self.boxes_2d = _empty_f32(n, 4)
+        if n and len(self.visibility) == 0:
+            self.visibility = np.full(n, -1.0, dtype=np.float32)
+        if n and len(self.object_ids) == 0:
+            self.object_ids = np.full(n, -1, dtype=np.int64)
+        for name, value in (('scores', self.scores), ('labels', self.labels),
+                            ('embeddings', self.embeddings), ('boxes_2d', self.boxes_2d),
+                            ('visibility', self.visibility), ('object_ids', self.object_ids)):
+            if len(value) != n:
+                raise ValueError(f'{name} has {len(value)} entries for {n} boxes')
+        if self.embeddings.ndim != 2:
+            raise ValueError(f'embeddings must be (N, D), got shape {self.embeddings.shape}')
+        if self.corner_descriptors is not None:
+            cd = np.asarray(self.corner_descriptors, dtype=np.float32)
+            if cd.ndim != 3 or cd.shape[:2] != (n, 8):
+                raise ValueError(f'corner_descriptors must be (N, 8, D), got {cd.shape}')
+            self.corner_descriptors = cd
+
+    def __len__(self) -> int:
+        return len(self.boxes)
+
+    @property
+    def rotation_aligned_from_camera(self) -> np.ndarray:
+        """R (3, 3) with p_aligned = R p_camera (see gravity_aligned_rotation)."""
+        return gravity_aligned_rotation(self.gravity_cam)
