@@ -272,3 +272,31 @@ def test_iou_matches_monte_carlo_volume_estimate():
     estimate = np.array([monte_carlo_iou(x, y, rng) for x, y in zip(a, b)])
     assert np.count_nonzero(exact > 0.05) >= 15              # the sample has real overlaps
     np.testing.assert_allclose(exact, estimate, atol=1e-2)
+
+
+def reference_giou(a, b):
+    """GIoU with the enclosing footprint from scipy's ConvexHull (Qhull)."""
+    from scipy.spatial import ConvexHull
+    iou = iou_3d_paired(a, b)[0]
+    inter_union = box_volume(a) + box_volume(b)
+    union = inter_union / (1 + iou)          # from IoU = I / U and I + U = Va + Vb
+    pts = np.concatenate([bev_corners(a), bev_corners(b)])
+    hull = ConvexHull(pts).volume             # area in 2D
+    height = max(a[2] + a[5] / 2, b[2] + b[5] / 2) - min(a[2] - a[5] / 2, b[2] - b[5] / 2)
+    enclosing = hull * height
+    return iou - (enclosing - union) / enclosing
+
+
+def test_giou_matches_qhull_including_near_degenerate_pairs():
+    rng = np.random.default_rng(9)
+    pairs = [(random_boxes(rng, 1)[0], random_boxes(rng, 1)[0]) for _ in range(60)]
+    for yaw in (0.0, 1e-12, 1e-7, np.pi / 2 - 1e-12):
+        for offset in ([0, 1, 0], [1, 0, 0], [1, 1, 0], [0.3, 1, 0.2], [0, 0, 0]):
+            a = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0])
+            b = a.copy()
+            b[:3] += offset
+            b[6] = yaw
+            pairs.append((a, b))
+    got = np.array([giou_3d_paired(a, b)[0] for a, b in pairs])
+    want = np.array([reference_giou(a, b) for a, b in pairs])
+    np.testing.assert_allclose(got, want, atol=1e-9)

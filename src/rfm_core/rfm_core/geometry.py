@@ -415,14 +415,27 @@ def _convex_hull_area(points) -> np.ndarray:
         best_pt = p[rows, best]
         for j in range(k):
             to_best, to_j = best_pt - c, p[:, j] - c
-            turn = _cross2(to_best, to_j)
-            scale = np.maximum(np.linalg.norm(to_best, axis=1), tol)
-            farther = np.sum(to_j * to_j, axis=1) > np.sum(to_best * to_best, axis=1)
-            better = (turn < -tol * scale) | ((np.abs(turn) <= tol * scale) & farther)
+            len_best, len_j = np.linalg.norm(to_best, axis=1), np.linalg.norm(to_j, axis=1)
+            turn = _cross2(to_best, to_j)             # len_best x (distance of j from the line)
+            collinear = np.abs(turn) <= tol * np.maximum(len_best, tol)
+            ahead = np.sum(to_best * to_j, axis=1) > 0
+            better = ((turn < -tol * len_best) | (collinear & ahead & (len_j > len_best))
+                      | (len_best < tol))             # never stay on a copy of the current point
+            better &= len_j >= tol
             best = np.where(better, j, best)
             best_pt = p[rows, best]
-        area += np.where(done, 0.0, _cross2(c, best_pt))
-        done |= np.linalg.norm(best_pt - start_pt, axis=1) < tol
+        # The walk closes when it reaches the start or passes it: the farthest-collinear
+        # rule may step over a start lying (within tolerance) on the last edge.
+        edge, to_start = best_pt - c, start_pt - c
+        edge_len = np.linalg.norm(edge, axis=1)
+        along = np.sum(edge * to_start, axis=1)
+        passes_start = ((np.linalg.norm(to_start, axis=1) >= tol)
+                        & (np.abs(_cross2(edge, to_start)) <= tol * np.maximum(edge_len, tol))
+                        & (along >= 0) & (along <= edge_len ** 2))
+        closes = passes_start | (np.linalg.norm(best_pt - start_pt, axis=1) < tol)
+        end_pt = np.where(closes[:, None], start_pt, best_pt)
+        area += np.where(done, 0.0, _cross2(c, end_pt))
+        done |= closes
         current = best
     return np.maximum(0.5 * area, 0.0)
 

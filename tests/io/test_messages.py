@@ -1,0 +1,117 @@
+"""rfm_core.io.messages: core types <-> rfm_msgs / geometry_msgs."""
+import numpy as np
+import pytest
+
+pytest.importorskip('rfm_msgs.msg')
+
+from rfm_core.geometry import (  # noqa: E402
+    Pose4, box_corners, gravity_aligned_rotation, matrix_from_quaternion,
+)
+from rfm_core.io.messages import (  # noqa: E402
+    frame_detections_from_msg, frame_detections_to_msg, matrix_to_pose, ns_to_stamp,
+    pose4_to_pose, pose_to_matrix, pose_to_pose4, stamp_to_ns,
+)
+from rfm_core.observations import CameraIntrinsics, FrameObservations  # noqa: E402
+
+
+def make_observations(rng, n=4, gravity=(0.1, 0.95, -0.2)):
+    return FrameObservations(
+        stamp_ns=1_700_000_000_123_456_789,
+        frame_id='camera_color_optical_frame',
+        intrinsics=CameraIntrinsics(500.0, 505.0, 320.5, 240.5, 640, 480),
+        gravity_cam=np.array(gravity),
+        boxes=np.c_[rng.uniform(-2, 2, (n, 3)), rng.uniform(0.2, 2, (n, 3)),
+                    rng.uniform(-3, 3, n)],
+        scores=rng.uniform(0, 1, n),
+        labels=[f'class{i}' for i in range(n)],
+        embeddings=rng.normal(size=(n, 16)),
+        boxes_2d=rng.uniform(0, 400, (n, 4)),
+        visibility=rng.uniform(0, 1, n),
+        object_ids=np.arange(n) + 10,
+        corner_descriptors=rng.normal(size=(n, 8, 3)),
+        backend='ground_truth',
+    )
+
+
+def test_stamps_round_trip():
+    assert stamp_to_ns(ns_to_stamp(1_700_000_000_999_999_999)) == 1_700_000_000_999_999_999
+
+
+def test_pose_conversions_round_trip():
+    rng = np.random.default_rng(0)
+    m = np.eye(4)
+    m[:3, :3] = matrix_from_quaternion(rng.normal(size=4))
+    m[:3, 3] = rng.normal(size=3)
+    np.testing.assert_allclose(pose_to_matrix(matrix_to_pose(m)), m, atol=1e-12)
+    p = Pose4(-2.0, (1.0, 2.0, 3.0))
+    back = pose_to_pose4(pose4_to_pose(p))
+    assert back.angle_to(p) < 1e-12 and np.allclose(back.t, p.t)
+
+
+def test_frame_detections_round_trip_preserves_everything():
+    obs = make_observations(np.random.default_rng(1))
+    msg = frame_detections_to_msg(obs)
+    assert msg.header.frame_id == obs.frame_id and len(msg.detections) == 4
+    back = frame_detections_from_msg(msg)
+    assert back.stamp_ns == obs.stamp_ns and back.backend == 'ground_truth'
+    assert back.intrinsics == obs.intrinsics
+    np.testing.assert_allclose(back.gravity_cam, obs.gravity_cam, atol=1e-12)
+    # boxes may come back with the equivalent yaw; compare corners as sets
+    for a, b in zip(back.boxes, obs.boxes):
+        ca, cb = box_corners(a), box_corners(b)
+        np.testing.assert_allclose(ca[np.lexsort(ca.T)], cb[np.lexsort(cb.T)], atol=1e-6)
+    np.testing.assert_allclose(back.scores, obs.scores, rtol=1e-6)
+    assert back.labels == obs.labels
+    np.testing.assert_allclose(back.embeddings, obs.embeddings, rtol=1e-6)
+    np.testing.assert_allclose(back.corner_descriptors, obs.corner_descriptors, rtol=1e-6)
+    np.testing.assert_allclose(back.boxes_2d, obs.boxes_2d, rtol=1e-6)
+    np.testing.assert_array_equal(back.object_ids, obs.object_ids)
+
+
+def test_boxes_are_published_in_the_camera_optical_frame():
+    obs = make_observations(np.random.default_rng(2), n=1, gravity=(0.0, 1.0, 0.0))
+    obs.boxes[0] = [3.0, 0.5, -0.2, 1.0, 2.0, 0.5, 0.0]  # 3 m ahead, 0.5 m left, 0.2 m down
+    det = frame_detections_to_msg(obs).detections[0]
+    np.testing.assert_allclose([det.pose.position.x, det.pose.position.y, det.pose.position.z],
+                               [-0.5, 0.2, 3.0], atol=1e-12)
+    # box's local z (vertical) points "up" = -y in the optical frame
+    rot = pose_to_matrix(det.pose)[:3, :3]
+    np.testing.assert_allclose(rot[:, 2], [0, -1, 0], atol=1e-12)
+    assert gravity_aligned_rotation(obs.gravity_cam) @ rot[:, 2] == pytest.approx([0, 0, 1])
+
+
+def test_invalid_messages_raise_clear_errors():
+    msg = frame_detections_to_msg(make_observations(np.random.default_rng(3)))
+    msg.fx = 0.0
+    with pytest.raises(ValueError, match='fx'):
+        frame_detections_from_msg(msg)
+    msg = frame_detections_to_msg(make_observations(np.random.default_rng(3)))
+    msg.gravity.x = msg.gravity.y = msg.gravity.z = 0.0
+    with pytest.raises(ValueError, match='gravity'):
+        frame_detections_from_msg(msg)
+    msg = frame_detections_to_msg(make_observations(np.random.default_rng(3)))
+    msg.detections[1].embedding = [1.0, 2.0]
+    with pytest.raises(ValueError, match='embeddings of different lengths'):
+        frame_detections_from_msg(msg)
+    msg = frame_detections_to_msg(make_observations(np.random.default_rng(3)))
+    msg.detections[0].pose.orientation.w = 0.0
+    msg.detections[0].pose.orientation.x = 0.0
+    msg.detections[0].pose.orientation.y = 0.0
+    msg.detections[0].pose.orientation.z = 0.0
+    with pytest.raises(ValueError, match='quaternion'):
+        frame_detections_from_msg(msg)
+    msg = frame_detections_to_msg(make_observations(np.random.default_rng(3)))
+    msg.detections[2].size.x = -1.0
+    with pytest.raises(ValueError, match='size'):
+        frame_detections_from_msg(msg)
+
+
+def test_observations_validate_lengths_and_fill_optional_fields():
+    intr = CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 640, 480)
+    obs = FrameObservations(0, 'cam', intr, [0, 1, 0], boxes=np.zeros((2, 7)), scores=[0.5, 0.6])
+    assert obs.labels == ['', ''] and obs.embeddings.shape == (2, 0)
+    assert list(obs.object_ids) == [-1, -1] and list(obs.visibility) == [-1, -1]
+    with pytest.raises(ValueError, match='scores has 1 entries for 2 boxes'):
+        FrameObservations(0, 'cam', intr, [0, 1, 0], boxes=np.zeros((2, 7)), scores=[0.5])
+    with pytest.raises(ValueError, match='image size'):
+        CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 0, 480)

@@ -1,0 +1,49 @@
+"""The node packages install `ros2 run`-style executables that start real nodes."""
+import os
+import signal
+import subprocess
+import time
+
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+from ament_index_python.packages import get_package_prefix  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+EXECUTABLES = [('rfm_detector_node', 'detector', 'detector'),
+               ('rfm_matcher_node', 'matcher', 'matcher'),
+               ('rfm_mapper_node', 'mapper', 'mapper')]
+
+
+def executable(package, name):
+    path = os.path.join(get_package_prefix(package), 'lib', package, name)
+    assert os.access(path, os.X_OK), f'{path} is not an executable'
+    return path
+
+
+def test_nodes_start_join_the_graph_and_stop_on_sigint():
+    procs = [subprocess.Popen([executable(pkg, exe)], stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+             for pkg, exe, _ in EXECUTABLES]
+    rclpy.init()
+    observer = rclpy.create_node('rfm_graph_observer')
+    try:
+        wanted = {node for _, _, node in EXECUTABLES}
+        deadline = time.monotonic() + 30
+        seen = set()
+        while time.monotonic() < deadline and not wanted <= seen:
+            rclpy.spin_once(observer, timeout_sec=0.2)
+            seen = set(observer.get_node_names())
+            for p in procs:
+                assert p.poll() is None, p.stdout.read()
+        assert wanted <= seen, f'nodes not discovered: {wanted - seen}'
+    finally:
+        observer.destroy_node()
+        rclpy.try_shutdown()
+        for p in procs:
+            p.send_signal(signal.SIGINT)
+        outputs = [p.communicate(timeout=15)[0] for p in procs]
+    for p, out in zip(procs, outputs):
+        assert p.returncode == 0, out
+        assert 'ready' in out
