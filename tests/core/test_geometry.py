@@ -291,7 +291,8 @@ def test_giou_matches_qhull_including_near_degenerate_pairs():
     rng = np.random.default_rng(9)
     pairs = [(random_boxes(rng, 1)[0], random_boxes(rng, 1)[0]) for _ in range(60)]
     for yaw in (0.0, 1e-12, 1e-7, np.pi / 2 - 1e-12):
-        for offset in ([0, 1, 0], [1, 0, 0], [1, 1, 0], [0.3, 1, 0.2], [0, 0, 0]):
+        for offset in ([0, 1, 0], [1, 0, 0], [1, 1, 0], [0.3, 1, 0.2], [0, 0, 0], [0, -2, 0],
+                       [2, 0.5, 0], [-1, 0, 0.5]):
             a = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0])
             b = a.copy()
             b[:3] += offset

@@ -29,6 +29,7 @@ UNIT = np.array([0.0, 0.0, 0.0, 1.0, 1.0, 1.0, 0.0])
 # touching boxes with nearly collinear footprint edges (once broke the hull walk)
 @example(UNIT, np.array([0.0, -1.0, 0.0, 1.0, 1.0, 1.0, 1e-12]))
 @example(UNIT, np.array([0.0, -1.0, 0.0, 1.0, 1.0, 2.0, 1e-12]))
+@example(UNIT, np.array([0.0, -2.0, 0.0, 1.0, 1.0, 1.0, 1e-12]))
 def test_giou_is_bounded_and_below_iou(a, b):
     g = giou_3d_paired(a, b)[0]
     assert -1.0 <= g <= 1.0

@@ -31,13 +31,18 @@ def test_nodes_start_join_the_graph_and_stop_on_sigint():
     try:
         wanted = {node for _, _, node in EXECUTABLES}
         deadline = time.monotonic() + 30
-        seen = set()
-        while time.monotonic() < deadline and not wanted <= seen:
+        ready = set()
+        while time.monotonic() < deadline and ready != wanted:
             rclpy.spin_once(observer, timeout_sec=0.2)
-            seen = set(observer.get_node_names())
             for p in procs:
                 assert p.poll() is None, p.stdout.read()
-        assert wanted <= seen, f'nodes not discovered: {wanted - seen}'
+            # A node is fully up once its parameter services (created last) are visible.
+            for name in wanted - ready:
+                if name in observer.get_node_names():
+                    services = observer.get_service_names_and_types_by_node(name, '/')
+                    if any(s.endswith('/get_parameters') for s, _ in services):
+                        ready.add(name)
+        assert ready == wanted, f'nodes not up: {wanted - ready}'
     finally:
         observer.destroy_node()
         rclpy.try_shutdown()
@@ -46,4 +51,3 @@ def test_nodes_start_join_the_graph_and_stop_on_sigint():
         outputs = [p.communicate(timeout=15)[0] for p in procs]
     for p, out in zip(procs, outputs):
         assert p.returncode == 0, out
-        assert 'ready' in out

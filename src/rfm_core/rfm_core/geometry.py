@@ -395,49 +395,35 @@ def _convex_intersection_area(pa, pb) -> np.ndarray:
 def _convex_hull_area(points) -> np.ndarray:
     """Areas (P,) of the convex hulls of point sets (P, K, 2), K small (e.g. 8).
 
-    Gift wrapping, vectorised over P: start at the lowest (x, y) point and repeatedly step
-    to the point with every other point on its left (the farthest one among collinear
-    candidates) until back at the start; the hull is walked counter-clockwise and its area
-    summed with the shoelace formula. At most K steps of K candidates each.
+    Andrew's monotone chain, vectorised over P: points sorted by (x, y) build the lower
+    chain, the reversed order the upper chain, each with a stack that pops while the last
+    turn is not strictly counter-clockwise. Rounding can only keep or drop nearly collinear
+    points, which changes the area by a rounding-sized amount; the walk always ends.
     """
     p = np.asarray(points, dtype=np.float64)
     n, k = p.shape[:2]
     rows = np.arange(n)
-    tol = _LENGTH_TOL
-    start = np.lexsort((p[..., 1], p[..., 0]), axis=-1)[:, 0]
-    start_pt = p[rows, start]
-    current = start
-    area = np.zeros(n)
-    done = np.zeros(n, dtype=bool)
-    for _ in range(k):
-        c = p[rows, current]
-        best = (current + 1) % k
-        best_pt = p[rows, best]
+    order = np.lexsort((p[..., 1], p[..., 0]), axis=-1)
+    p = np.take_along_axis(p, order[..., None], axis=1)
+
+    def chain_area(pts):
+        stack = np.zeros_like(pts)
+        size = np.zeros(n, dtype=np.int64)
         for j in range(k):
-            to_best, to_j = best_pt - c, p[:, j] - c
-            len_best, len_j = np.linalg.norm(to_best, axis=1), np.linalg.norm(to_j, axis=1)
-            turn = _cross2(to_best, to_j)             # len_best x (distance of j from the line)
-            collinear = np.abs(turn) <= tol * np.maximum(len_best, tol)
-            ahead = np.sum(to_best * to_j, axis=1) > 0
-            better = ((turn < -tol * len_best) | (collinear & ahead & (len_j > len_best))
-                      | (len_best < tol))             # never stay on a copy of the current point
-            better &= len_j >= tol
-            best = np.where(better, j, best)
-            best_pt = p[rows, best]
-        # The walk closes when it reaches the start or passes it: the farthest-collinear
-        # rule may step over a start lying (within tolerance) on the last edge.
-        edge, to_start = best_pt - c, start_pt - c
-        edge_len = np.linalg.norm(edge, axis=1)
-        along = np.sum(edge * to_start, axis=1)
-        passes_start = ((np.linalg.norm(to_start, axis=1) >= tol)
-                        & (np.abs(_cross2(edge, to_start)) <= tol * np.maximum(edge_len, tol))
-                        & (along >= 0) & (along <= edge_len ** 2))
-        closes = passes_start | (np.linalg.norm(best_pt - start_pt, axis=1) < tol)
-        end_pt = np.where(closes[:, None], start_pt, best_pt)
-        area += np.where(done, 0.0, _cross2(c, end_pt))
-        done |= closes
-        current = best
-    return np.maximum(0.5 * area, 0.0)
+            q = pts[:, j]
+            for _ in range(k):
+                a = stack[rows, np.maximum(size - 2, 0)]
+                b = stack[rows, np.maximum(size - 1, 0)]
+                pop = (size >= 2) & (_cross2(b - a, q - a) <= 0)
+                if not np.any(pop):
+                    break
+                size -= pop
+            stack[rows, size] = q
+            size += 1
+        links = _cross2(stack[:, :-1], stack[:, 1:])           # h_i x h_(i+1)
+        return np.sum(np.where(np.arange(k - 1) < (size - 1)[:, None], links, 0.0), axis=1)
+
+    return np.maximum(0.5 * (chain_area(p) + chain_area(p[:, ::-1])), 0.0)
 
 
 def _iou_terms(a, b):

@@ -16,13 +16,15 @@ class DetectorNode(Node):
 
 def main(args=None):
     rclpy.init(args=args)
-    node = DetectorNode()
+    node = None
     try:
+        node = DetectorNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
 
 

@@ -16,13 +16,15 @@ class MapperNode(Node):
 
 def main(args=None):
     rclpy.init(args=args)
-    node = MapperNode()
+    node = None
     try:
+        node = MapperNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
 
 

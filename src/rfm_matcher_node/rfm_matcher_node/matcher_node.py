@@ -16,13 +16,15 @@ class MatcherNode(Node):
 
 def main(args=None):
     rclpy.init(args=args)
-    node = MatcherNode()
+    node = None
     try:
+        node = MatcherNode()
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        node.destroy_node()
+        if node is not None:
+            node.destroy_node()
         rclpy.try_shutdown()
 
 
