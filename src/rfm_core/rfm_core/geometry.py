@@ -40,7 +40,7 @@ __all__ = [
     'BOX_DIM', 'CORNER_SIGNS', 'Pose4', 'wrap_angle', 'yaw_matrix', 'box_corners',
     'bev_corners', 'box_volume', 'boxes_from_oriented', 'oriented_from_boxes',
     'gravity_from_accelerometer', 'gravity_aligned_rotation', 'quaternion_from_matrix',
-    'matrix_from_quaternion', 'kabsch_4dof', 'iou_3d', 'iou_3d_paired', 'giou_3d',
+    'matrix_from_quaternion', 'kabsch_4dof', 'convex_hull_area', 'iou_3d', 'iou_3d_paired', 'giou_3d',
     'giou_3d_paired',
 ]
 
@@ -392,8 +392,8 @@ def _convex_intersection_area(pa, pb) -> np.ndarray:
     return np.where(count >= 3, np.maximum(area, 0.0), 0.0)
 
 
-def _convex_hull_area(points) -> np.ndarray:
-    """Areas (P,) of the convex hulls of point sets (P, K, 2), K small (e.g. 8).
+def convex_hull_area(points) -> np.ndarray:
+    """Areas (P,) of the convex hulls of 2D point sets (P, K, 2), K small (e.g. 8).
 
     Andrew's monotone chain, vectorised over P: points sorted by (x, y) build the lower
     chain, the reversed order the upper chain, each with a stack that pops while the last
@@ -496,7 +496,7 @@ def giou_3d_paired(a, b) -> np.ndarray:
     both boxes: GIoU = IoU - (C - U) / C.
     """
     inter, union, height = _iou_terms(a, b)
-    hull = _convex_hull_area(np.concatenate([bev_corners(a), bev_corners(b)], axis=1))
+    hull = convex_hull_area(np.concatenate([bev_corners(a), bev_corners(b)], axis=1))
     enclosing = np.maximum(hull * height, union)
     iou = np.clip(_ratio(inter, union), 0.0, 1.0)
     return np.clip(iou - _ratio(enclosing - union, enclosing), -1.0, 1.0)

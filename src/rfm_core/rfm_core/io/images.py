@@ -1,12 +1,11 @@
 """sensor_msgs/Image <-> numpy, without cv_bridge.
 
 Reading works on any object with the fields of sensor_msgs/Image (``height``, ``width``,
-``encoding``, ``is_bigendian``, ``step``, ``data``), so it needs no ROS. Writing builds a
-real ``sensor_msgs.msg.Image`` and therefore needs ROS.
+``encoding``, ``is_bigendian``, ``step``, ``data``), so it needs no ROS. Writing builds the
+message with a factory of :mod:`rfm_core.io.messages` (rclpy by default).
 """
 from __future__ import annotations
 
-import array
 import sys
 
 import numpy as np
@@ -97,14 +96,16 @@ def depth_to_meters(msg) -> np.ndarray:
     return depth
 
 
-def numpy_to_image(pixels, encoding: str, header=None, step: int | None = None):
-    """Encode an array as a ``sensor_msgs.msg.Image`` (needs ROS).
+def numpy_to_image(pixels, encoding: str, header=None, step: int | None = None, make=None):
+    """Encode an array as a sensor_msgs/Image.
 
     ``pixels`` is (H, W) or (H, W, C) matching ``encoding``. ``step`` may exceed the packed
-    row size to produce padded rows (as some drivers do).
+    row size to produce padded rows (as some drivers do). ``make`` is a message factory of
+    :mod:`rfm_core.io.messages` (default: rclpy messages, which needs ROS).
     """
-    from sensor_msgs.msg import Image  # noqa: PLC0415 - ROS is optional for rfm_core
+    from rfm_core.io.messages import ROS, header as make_header  # noqa: PLC0415
 
+    make = ROS if make is None else make
     if encoding not in ENCODINGS:
         raise ImageFormatError(f"unsupported image encoding '{encoding}'")
     scalar, channels = ENCODINGS[encoding]
@@ -118,16 +119,11 @@ def numpy_to_image(pixels, encoding: str, header=None, step: int | None = None):
     step = row_bytes if step is None else int(step)
     if step < row_bytes:
         raise ImageFormatError(f'step {step} < row size {row_bytes}')
-    rows = arr.reshape(height, row_bytes // arr.itemsize).view(np.uint8).reshape(height, row_bytes)
+    rows = arr.reshape(height, -1).view(np.uint8).reshape(height, row_bytes)
     if step > row_bytes:
         rows = np.concatenate([rows, np.zeros((height, step - row_bytes), np.uint8)], axis=1)
-    msg = Image()
-    if header is not None:
-        msg.header = header
-    msg.height, msg.width, msg.encoding = height, width, encoding
-    msg.is_bigendian = sys.byteorder == 'big'
-    msg.step = step
-    data = array.array('B')
-    data.frombytes(rows.tobytes())
-    msg.data = data
-    return msg
+    return make('sensor_msgs/msg/Image',
+                header=header if header is not None else make_header(make, 0, ''),
+                height=height, width=width, encoding=encoding,
+                is_bigendian=int(sys.byteorder == 'big'), step=step,
+                data=make.uint8_array(rows))

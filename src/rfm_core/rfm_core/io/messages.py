@@ -1,8 +1,10 @@
 """Conversions between rfm_core types and ROS messages.
 
 Functions that *read* messages only use their fields, so they work on any object shaped
-like the message (and in tests without ROS). Functions that *build* messages import the
-message classes lazily: rfm_core itself stays importable without ROS.
+like the message (rclpy messages, rosbags messages, test doubles). Functions that *build*
+messages take a factory ``make``: :data:`ROS` builds rclpy messages (imported lazily, so
+rfm_core stays importable without ROS), :class:`BagMessages` builds ``rosbags`` messages
+for writing bags without ROS. Builders always pass every field, as rosbags requires.
 """
 from __future__ import annotations
 
@@ -17,7 +19,8 @@ from rfm_core.geometry import (
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 
 __all__ = [
-    'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
+    'ROS', 'RosMessages', 'BagMessages', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
+    'camera_info_msg', 'imu_msg', 'object_map_msg', 'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg',
 ]
@@ -25,16 +28,144 @@ __all__ = [
 _NS = 1_000_000_000
 
 
+class RosMessages:
+    """Builds messages as rclpy message objects (needs ROS): ``make('pkg/msg/Type', **fields)``."""
+
+    def __call__(self, typename: str, **fields):
+        import importlib  # noqa: PLC0415
+        package, kind, name = typename.split('/')
+        return getattr(importlib.import_module(f'{package}.{kind}'), name)(**fields)
+
+    @staticmethod
+    def uint8_array(values: np.ndarray):
+        out = array.array('B')
+        out.frombytes(np.ascontiguousarray(values, dtype=np.uint8).tobytes())
+        return out
+
+    @staticmethod
+    def float32_array(values) -> array.array:
+        return float32_array(values)
+
+
+class BagMessages:
+    """Builds messages as ``rosbags`` typestore objects (no ROS needed), for bag writing."""
+
+    def __init__(self, typestore):
+        self.typestore = typestore
+
+    def __call__(self, typename: str, **fields):
+        return self.typestore.types[typename](**fields)
+
+    @staticmethod
+    def uint8_array(values: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(values, dtype=np.uint8).reshape(-1)
+
+    @staticmethod
+    def float32_array(values) -> np.ndarray:
+        return np.ascontiguousarray(values, dtype=np.float32).reshape(-1)
+
+
+ROS = RosMessages()
+
+
+def header(make, stamp_ns: int, frame_id: str):
+    """std_msgs/Header."""
+    ns = int(stamp_ns)
+    return make('std_msgs/msg/Header',
+                stamp=make('builtin_interfaces/msg/Time', sec=ns // _NS, nanosec=ns % _NS),
+                frame_id=frame_id)
+
+
+def _vector3(make, v):
+    return make('geometry_msgs/msg/Vector3', x=float(v[0]), y=float(v[1]), z=float(v[2]))
+
+
+def _pose(make, matrix):
+    m = np.asarray(matrix, dtype=np.float64)
+    q = quaternion_from_matrix(m[:3, :3])
+    return make('geometry_msgs/msg/Pose',
+                position=make('geometry_msgs/msg/Point', x=float(m[0, 3]), y=float(m[1, 3]),
+                              z=float(m[2, 3])),
+                orientation=make('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]),
+                                 z=float(q[2]), w=float(q[3])))
+
+
+def pose_stamped_msg(matrix, stamp_ns: int, frame_id: str, make=ROS):
+    """geometry_msgs/PoseStamped of a 4x4 pose."""
+    return make('geometry_msgs/msg/PoseStamped', header=header(make, stamp_ns, frame_id),
+                pose=_pose(make, matrix))
+
+
+def transform_stamped_msg(matrix, stamp_ns: int, parent: str, child: str, make=ROS):
+    """geometry_msgs/TransformStamped: ``matrix`` maps child-frame points into ``parent``."""
+    m = np.asarray(matrix, dtype=np.float64)
+    q = quaternion_from_matrix(m[:3, :3])
+    return make('geometry_msgs/msg/TransformStamped', header=header(make, stamp_ns, parent),
+                child_frame_id=child,
+                transform=make('geometry_msgs/msg/Transform',
+                               translation=_vector3(make, m[:3, 3]),
+                               rotation=make('geometry_msgs/msg/Quaternion', x=float(q[0]),
+                                             y=float(q[1]), z=float(q[2]), w=float(q[3]))))
+
+
+def camera_info_msg(intrinsics: CameraIntrinsics, stamp_ns: int, frame_id: str, make=ROS):
+    """sensor_msgs/CameraInfo of an undistorted pinhole camera."""
+    k = intrinsics.matrix
+    p = np.zeros((3, 4))
+    p[:, :3] = k
+    return make('sensor_msgs/msg/CameraInfo', header=header(make, stamp_ns, frame_id),
+                height=int(intrinsics.height), width=int(intrinsics.width),
+                distortion_model='plumb_bob', d=np.zeros(5, dtype=np.float64),
+                k=k.reshape(-1).astype(np.float64), r=np.eye(3).reshape(-1),
+                p=p.reshape(-1), binning_x=0, binning_y=0,
+                roi=make('sensor_msgs/msg/RegionOfInterest', x_offset=0, y_offset=0, height=0,
+                         width=0, do_rectify=False))
+
+
+def imu_msg(linear_acceleration, angular_velocity, stamp_ns: int, frame_id: str,
+            accel_sigma: float = 0.02, gyro_sigma: float = 0.002, make=ROS):
+    """sensor_msgs/Imu without orientation (covariance[0] = -1, as drivers without a filter do)."""
+    orientation_cov = np.zeros(9)
+    orientation_cov[0] = -1.0
+    return make('sensor_msgs/msg/Imu', header=header(make, stamp_ns, frame_id),
+                orientation=make('geometry_msgs/msg/Quaternion', x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=orientation_cov,
+                angular_velocity=_vector3(make, angular_velocity),
+                angular_velocity_covariance=np.eye(3).reshape(-1) * gyro_sigma ** 2,
+                linear_acceleration=_vector3(make, linear_acceleration),
+                linear_acceleration_covariance=np.eye(3).reshape(-1) * accel_sigma ** 2)
+
+
+def object_map_msg(boxes, labels, ids, stamp_ns: int, frame_id: str = 'map', scores=None,
+                   revision: int = 0, make=ROS):
+    """rfm_msgs/ObjectMap of boxes (N, 7) in ``frame_id`` (a gravity-aligned, z-up frame)."""
+    centers, rotations, sizes = oriented_from_boxes(np.asarray(boxes).reshape(-1, 7))
+    scores = np.ones(len(centers)) if scores is None else np.asarray(scores)
+    objects = []
+    for i in range(len(centers)):
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = rotations[i], centers[i]
+        objects.append(make(
+            'rfm_msgs/msg/MapObject', id=int(ids[i]), pose=_pose(make, m),
+            size=_vector3(make, sizes[i]), score=float(scores[i]), label=labels[i],
+            class_names=[labels[i]] if labels[i] else [],
+            class_probabilities=make.float32_array([1.0] if labels[i] else []),
+            embedding=make.float32_array([]),
+            observation_keyframe_ids=np.zeros(0, dtype=np.uint64),
+            observation_indices=np.zeros(0, dtype=np.uint32)))
+    return make('rfm_msgs/msg/ObjectMap', header=header(make, stamp_ns, frame_id),
+                revision=int(revision), objects=objects)
+
+
 def stamp_to_ns(stamp) -> int:
     """builtin_interfaces/Time -> integer nanoseconds."""
     return int(stamp.sec) * _NS + int(stamp.nanosec)
 
 
-def ns_to_stamp(ns: int):
+def ns_to_stamp(ns: int, make=None):
     """Integer nanoseconds -> builtin_interfaces/Time."""
-    from builtin_interfaces.msg import Time  # noqa: PLC0415
     ns = int(ns)
-    return Time(sec=ns // _NS, nanosec=ns % _NS)
+    return (make or ROS)('builtin_interfaces/msg/Time', sec=ns // _NS, nanosec=ns % _NS)
 
 
 def vector3_to_numpy(v) -> np.ndarray:
@@ -55,13 +186,9 @@ def pose_to_matrix(pose) -> np.ndarray:
     return out
 
 
-def matrix_to_pose(matrix):
+def matrix_to_pose(matrix, make=ROS):
     """4x4 matrix -> geometry_msgs/Pose."""
-    from geometry_msgs.msg import Point, Pose, Quaternion  # noqa: PLC0415
-    m = np.asarray(matrix, dtype=np.float64)
-    q = quaternion_from_matrix(m[:3, :3])
-    return Pose(position=Point(x=float(m[0, 3]), y=float(m[1, 3]), z=float(m[2, 3])),
-                orientation=Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3])))
+    return _pose(make, matrix)
 
 
 def pose_to_pose4(pose, atol: float = 1e-6) -> Pose4:
@@ -69,9 +196,9 @@ def pose_to_pose4(pose, atol: float = 1e-6) -> Pose4:
     return Pose4.from_matrix(pose_to_matrix(pose), atol=atol)
 
 
-def pose4_to_pose(pose4: Pose4):
+def pose4_to_pose(pose4: Pose4, make=ROS):
     """Pose4 -> geometry_msgs/Pose."""
-    return matrix_to_pose(pose4.matrix())
+    return _pose(make, pose4.matrix())
 
 
 def float32_array(values) -> array.array:
@@ -133,41 +260,25 @@ def frame_detections_from_msg(msg) -> FrameObservations:
     )
 
 
-def frame_detections_to_msg(obs: FrameObservations):
+def frame_detections_to_msg(obs: FrameObservations, make=ROS):
     """FrameObservations -> rfm_msgs/FrameDetections (box poses in the camera optical frame)."""
-    from geometry_msgs.msg import Vector3  # noqa: PLC0415
-    from rfm_msgs.msg import FrameDetections, ObjectDetection  # noqa: PLC0415
-    from std_msgs.msg import Header  # noqa: PLC0415
-
     camera_from_aligned = obs.rotation_aligned_from_camera.T
     centers, rotations, sizes = oriented_from_boxes(obs.boxes)
-    msg = FrameDetections(
-        header=Header(stamp=ns_to_stamp(obs.stamp_ns), frame_id=obs.frame_id),
-        backend=obs.backend,
-        fx=float(obs.intrinsics.fx), fy=float(obs.intrinsics.fy),
-        cx=float(obs.intrinsics.cx), cy=float(obs.intrinsics.cy),
-        width=int(obs.intrinsics.width), height=int(obs.intrinsics.height),
-        gravity=Vector3(x=float(obs.gravity_cam[0]), y=float(obs.gravity_cam[1]),
-                        z=float(obs.gravity_cam[2])),
-    )
     detections = []
     for i in range(len(obs)):
         m = np.eye(4)
         m[:3, :3] = camera_from_aligned @ rotations[i]
         m[:3, 3] = camera_from_aligned @ centers[i]
-        det = ObjectDetection(
-            index=i,
-            object_id=int(obs.object_ids[i]),
-            pose=matrix_to_pose(m),
-            size=Vector3(x=float(sizes[i, 0]), y=float(sizes[i, 1]), z=float(sizes[i, 2])),
-            score=float(obs.scores[i]),
-            label=obs.labels[i],
-            box_2d=obs.boxes_2d[i].astype(np.float32),
-            visibility=float(obs.visibility[i]),
-        )
-        det.embedding = float32_array(obs.embeddings[i])
-        if obs.corner_descriptors is not None:
-            det.corner_descriptors = float32_array(obs.corner_descriptors[i])
-        detections.append(det)
-    msg.detections = detections
-    return msg
+        corner = (obs.corner_descriptors[i] if obs.corner_descriptors is not None else [])
+        detections.append(make(
+            'rfm_msgs/msg/ObjectDetection', index=i, object_id=int(obs.object_ids[i]),
+            pose=_pose(make, m), size=_vector3(make, sizes[i]), score=float(obs.scores[i]),
+            label=obs.labels[i], embedding=make.float32_array(obs.embeddings[i]),
+            corner_descriptors=make.float32_array(corner),
+            box_2d=np.asarray(obs.boxes_2d[i], dtype=np.float32),
+            visibility=float(obs.visibility[i])))
+    intr = obs.intrinsics
+    return make('rfm_msgs/msg/FrameDetections', header=header(make, obs.stamp_ns, obs.frame_id),
+                backend=obs.backend, fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.cx),
+                cy=float(intr.cy), width=int(intr.width), height=int(intr.height),
+                gravity=_vector3(make, obs.gravity_cam), detections=detections)

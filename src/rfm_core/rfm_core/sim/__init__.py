@@ -1,0 +1,1 @@
+"""Synthetic indoor scenes: rooms, RGB-D rendering, camera trajectories, ground truth."""

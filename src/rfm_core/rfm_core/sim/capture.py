@@ -1,0 +1,236 @@
+"""A simulated RGB-D + IMU capture of a room, written as an ordinary ROS 2 bag.
+
+The bag carries what a RealSense-style driver publishes (no ground truth among them):
+
+==============================  =================================  =====================
+topic                           type                               notes
+==============================  =================================  =====================
+/camera/color/image_raw         sensor_msgs/Image (rgb8)           per frame
+/camera/color/camera_info       sensor_msgs/CameraInfo             per frame
+/camera/depth/image_raw         sensor_msgs/Image (16UC1 mm        aligned to colour,
+                                or 32FC1 m)                        0 / NaN = no depth
+/camera/depth/camera_info       sensor_msgs/CameraInfo             per frame
+/imu/data                       sensor_msgs/Imu                    ``imu_rate_hz``, camera
+                                                                   optical frame
+/tf_static                      tf2_msgs/TFMessage                 latched
+==============================  =================================  =====================
+
+and ground truth on separate topics, which the pipeline never reads:
+
+- ``/ground_truth/camera_pose`` (geometry_msgs/PoseStamped, frame ``map``): per frame, the
+  pose of the camera optical frame (camera-to-map);
+- ``/ground_truth/objects`` (rfm_msgs/ObjectMap, latched): every object, ids 1..N;
+- ``/ground_truth/detections`` (rfm_msgs/FrameDetections): per frame, the full (amodal)
+  boxes of the objects visible in it, in the camera frame, with their visible fraction.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Iterator
+
+import numpy as np
+
+from rfm_core.geometry import Pose4, gravity_aligned_rotation
+from rfm_core.observations import CameraIntrinsics, FrameObservations
+from rfm_core.sim.render import NoiseModel, Renderer, RenderOutput
+from rfm_core.sim.room import STYLES, Room, generate_room
+from rfm_core.sim.trajectory import CAPTURE_STYLES, Trajectory, imu_samples, make_trajectory
+
+__all__ = ['CaptureConfig', 'SimFrame', 'Capture', 'TOPICS', 'OPTICAL_FRAME', 'START_NS']
+
+OPTICAL_FRAME = 'camera_color_optical_frame'
+BASE_FRAME = 'camera_link'
+START_NS = 1_700_000_000 * 1_000_000_000      # bag time of the first frame
+TOPICS = {
+    'color': '/camera/color/image_raw',
+    'color_info': '/camera/color/camera_info',
+    'depth': '/camera/depth/image_raw',
+    'depth_info': '/camera/depth/camera_info',
+    'imu': '/imu/data',
+    'tf_static': '/tf_static',
+    'gt_pose': '/ground_truth/camera_pose',
+    'gt_objects': '/ground_truth/objects',
+    'gt_detections': '/ground_truth/detections',
+}
+# camera_link (x forward, y left, z up) -> optical frame (x right, y down, z forward)
+_LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0],
+                               [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
+
+
+@dataclass
+class CaptureConfig:
+    """Everything that defines a capture; the same config gives the same bytes."""
+
+    seed: int = 0
+    room_style: str = 'plain'             #: plain | textured (rfm_core.sim.room.STYLES)
+    capture: str = 'handheld'             #: handheld | sparse | orbit
+    frames: int = 100
+    fps: float = 30.0                     #: frame rate of handheld / orbit captures
+    width: int = 320
+    height: int = 240
+    hfov_deg: float = 70.0
+    imu_rate_hz: float = 200.0
+    depth_encoding: str = '16UC1'         #: 16UC1 (mm) | 32FC1 (m)
+    min_visible_fraction: float = 0.001   #: ground-truth detections need this share of the image
+    num_objects: tuple = (10, 40)
+    noise: NoiseModel = field(default_factory=NoiseModel)
+
+    def __post_init__(self):
+        if self.room_style not in STYLES:
+            raise ValueError(f'room_style must be one of {STYLES}')
+        if self.capture not in CAPTURE_STYLES:
+            raise ValueError(f'capture must be one of {CAPTURE_STYLES}')
+        if self.depth_encoding not in ('16UC1', '32FC1'):
+            raise ValueError("depth_encoding must be '16UC1' (mm) or '32FC1' (m)")
+        if self.width < 16 or self.height < 16 or self.frames < 1:
+            raise ValueError('need at least 16x16 pixels and one frame')
+        if isinstance(self.noise, dict):
+            self.noise = NoiseModel(**self.noise)
+        self.num_objects = tuple(self.num_objects)
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        f = self.width / 2.0 / np.tan(np.radians(self.hfov_deg) / 2.0)
+        return CameraIntrinsics(f, f, (self.width - 1) / 2.0, (self.height - 1) / 2.0,
+                                self.width, self.height)
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self), sort_keys=True)
+
+
+@dataclass
+class SimFrame:
+    index: int
+    stamp_ns: int
+    rotation: np.ndarray         #: (3, 3) camera-to-map
+    position: np.ndarray         #: (3,) camera center in the map frame
+    render: RenderOutput
+    ground_truth: FrameObservations   #: visible objects, boxes in the gravity-aligned camera frame
+
+    @property
+    def pose_matrix(self) -> np.ndarray:
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = self.rotation, self.position
+        return m
+
+
+class Capture:
+    """The room, trajectory and renderer of one configuration."""
+
+    def __init__(self, config: CaptureConfig):
+        self.config = config
+        seeds = np.random.SeedSequence(config.seed).spawn(4)
+        self.room: Room = generate_room(int(seeds[0].generate_state(1)[0]), config.room_style,
+                                        config.num_objects)
+        self.trajectory: Trajectory = make_trajectory(
+            self.room, config.capture, config.frames, config.fps,
+            seed=int(seeds[1].generate_state(1)[0]))
+        self.intrinsics = config.intrinsics
+        self.renderer = Renderer(self.room, self.intrinsics, config.noise)
+        self._noise_seed = int(seeds[2].generate_state(1)[0])
+        self._imu_seed = int(seeds[3].generate_state(1)[0])
+
+    def stamp_ns(self, t: float) -> int:
+        return START_NS + int(round(t * 1e9))
+
+    def frames(self) -> Iterator[SimFrame]:
+        rng = np.random.default_rng(self._noise_seed)
+        for i in range(len(self.trajectory)):
+            rotation = self.trajectory.rotations[i]
+            position = self.trajectory.positions[i]
+            out = self.renderer.render(rotation, position, rng)
+            stamp = self.stamp_ns(self.trajectory.times[i])
+            yield SimFrame(i, stamp, rotation, position, out,
+                           self.ground_truth_detections(rotation, position, out, stamp))
+
+    def ground_truth_detections(self, rotation, position, out: RenderOutput,
+                                stamp_ns: int) -> FrameObservations:
+        """Full boxes of the objects visible in a rendered frame (gravity-aligned camera frame)."""
+        gravity_cam = rotation.T @ np.array([0.0, 0.0, -1.0])
+        aligned_from_map = gravity_aligned_rotation(gravity_cam) @ rotation.T
+        t_aligned_map = Pose4.from_matrix(np.c_[aligned_from_map, -aligned_from_map @ position],
+                                          atol=1e-6)
+        min_pixels = self.config.min_visible_fraction * self.intrinsics.width * self.intrinsics.height
+        keep = np.flatnonzero(out.visible_pixels >= max(min_pixels, 1))
+        visibility = np.clip(out.visible_pixels[keep] / np.maximum(out.amodal_area[keep], 1), 0, 1)
+        boxes = t_aligned_map.transform_boxes(self.room.boxes[keep]) if len(keep) else np.zeros((0, 7))
+        return FrameObservations(
+            stamp_ns=stamp_ns, frame_id=OPTICAL_FRAME, intrinsics=self.intrinsics,
+            gravity_cam=gravity_cam, boxes=boxes, scores=np.ones(len(keep)),
+            labels=[self.room.objects[k].label for k in keep],
+            boxes_2d=out.boxes_2d[keep], visibility=visibility, object_ids=keep + 1,
+            backend='ground_truth')
+
+    # ------------------------------------------------------------------ bag writing
+
+    def write_bag(self, path, progress: Callable[[int, int], None] | None = None) -> dict:
+        """Write the capture as a rosbag2 MCAP directory at ``path`` (must not exist)."""
+        from rfm_core.io.bag import BagWriter  # noqa: PLC0415
+        from rfm_core.io.images import numpy_to_image  # noqa: PLC0415
+        from rfm_core.io.messages import (  # noqa: PLC0415
+            camera_info_msg, frame_detections_to_msg, header, imu_msg, object_map_msg,
+            pose_stamped_msg, transform_stamped_msg,
+        )
+
+        cfg = self.config
+        imu = imu_samples(self.trajectory, cfg.imu_rate_hz, seed=self._imu_seed)
+        imu_stamps = [self.stamp_ns(t) for t in imu.times]
+        counts = {topic: 0 for topic in TOPICS.values()}
+        with BagWriter(path) as bag:
+            make = bag.make
+            bag.set_metadata('rfm.sim.config', cfg.to_json())
+            for key, topic in TOPICS.items():
+                msgtype = {
+                    'color': 'sensor_msgs/msg/Image', 'depth': 'sensor_msgs/msg/Image',
+                    'color_info': 'sensor_msgs/msg/CameraInfo',
+                    'depth_info': 'sensor_msgs/msg/CameraInfo', 'imu': 'sensor_msgs/msg/Imu',
+                    'tf_static': 'tf2_msgs/msg/TFMessage',
+                    'gt_pose': 'geometry_msgs/msg/PoseStamped',
+                    'gt_objects': 'rfm_msgs/msg/ObjectMap',
+                    'gt_detections': 'rfm_msgs/msg/FrameDetections'}[key]
+                bag.add_topic(topic, msgtype, latched=key in ('tf_static', 'gt_objects'),
+                              reliable=key != 'imu')
+
+            def write(key, stamp, msg):
+                bag.write(TOPICS[key], stamp, msg)
+                counts[TOPICS[key]] += 1
+
+            start = self.stamp_ns(0.0)
+            write('tf_static', start, make('tf2_msgs/msg/TFMessage', transforms=[
+                transform_stamped_msg(_LINK_FROM_OPTICAL, start, BASE_FRAME, OPTICAL_FRAME, make)]))
+            write('gt_objects', start, object_map_msg(
+                self.room.boxes, self.room.labels, np.arange(len(self.room.objects)) + 1,
+                start, 'map', make=make))
+            next_imu = 0
+            for frame in self.frames():
+                while next_imu < len(imu_stamps) and imu_stamps[next_imu] <= frame.stamp_ns:
+                    write('imu', imu_stamps[next_imu], imu_msg(
+                        imu.linear_acceleration[next_imu], imu.angular_velocity[next_imu],
+                        imu_stamps[next_imu], OPTICAL_FRAME, make=make))
+                    next_imu += 1
+                stamp = frame.stamp_ns
+                image_header = header(make, stamp, OPTICAL_FRAME)
+                write('color', stamp, numpy_to_image(frame.render.rgb, 'rgb8', image_header, make=make))
+                write('color_info', stamp, camera_info_msg(self.intrinsics, stamp, OPTICAL_FRAME, make))
+                depth = frame.render.depth
+                if cfg.depth_encoding == '16UC1':
+                    mm = np.where(np.isfinite(depth), np.rint(depth * 1000.0), 0)
+                    depth_msg = numpy_to_image(np.clip(mm, 0, 65535).astype(np.uint16), '16UC1',
+                                               image_header, make=make)
+                else:
+                    depth_msg = numpy_to_image(depth.astype(np.float32), '32FC1', image_header,
+                                               make=make)
+                write('depth', stamp, depth_msg)
+                write('depth_info', stamp, camera_info_msg(self.intrinsics, stamp, OPTICAL_FRAME, make))
+                write('gt_pose', stamp, pose_stamped_msg(frame.pose_matrix, stamp, 'map', make))
+                write('gt_detections', stamp, frame_detections_to_msg(frame.ground_truth, make))
+                if progress is not None:
+                    progress(frame.index + 1, len(self.trajectory))
+            while next_imu < len(imu_stamps):
+                write('imu', imu_stamps[next_imu], imu_msg(
+                    imu.linear_acceleration[next_imu], imu.angular_velocity[next_imu],
+                    imu_stamps[next_imu], OPTICAL_FRAME, make=make))
+                next_imu += 1
+        return {'path': str(Path(path)), 'messages': counts, 'objects': len(self.room.objects)}

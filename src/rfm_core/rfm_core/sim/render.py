@@ -1,0 +1,351 @@
+"""RGB-D rendering of a Room by vectorised ray casting.
+
+Every pixel casts a ray from the camera center through the pixel center (OpenCV/ROS
+convention: pixel (u, v) is centred at integer coordinates). Rays are intersected with the
+room's walls, floor and ceiling (the ray leaving the room box) and with every object box
+(slab test in the box's frame, only for pixels inside the box's projected bounding
+rectangle). The nearest hit gives depth (z in the camera optical frame), the instance id and
+the surface point, which is shaded Lambertian with a texture fixed in object coordinates.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rfm_core.geometry import convex_hull_area, box_corners
+from rfm_core.observations import CameraIntrinsics
+from rfm_core.sim.room import Material, Room
+
+__all__ = ['RenderOutput', 'Renderer', 'NoiseModel']
+
+_NEAR = 0.05                                  # m: rays start this far in front of the camera
+_LIGHT = np.array([0.35, 0.55, 1.0]) / np.linalg.norm([0.35, 0.55, 1.0])  # to the light, map frame
+_AMBIENT, _DIFFUSE = 0.5, 0.5
+# Box edges as corner index pairs (corner order of rfm_core.geometry).
+_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                   [0, 4], [1, 5], [2, 6], [3, 7]])
+
+
+@dataclass(frozen=True)
+class NoiseModel:
+    """Sensor noise of a structured-light / stereo RGB-D camera.
+
+    Depth is measured as a disparity ``d = f b / z`` of a reference sensor (focal ``f`` px,
+    baseline ``b`` m), perturbed by spatially correlated noise (blocks of
+    ``depth_noise_block_px`` pixels, as block matching produces) and quantised to
+    1 / ``disparity_subpixel`` px: the depth error and the depth steps grow with z^2
+    (about 1 cm noise and 2.6 cm steps at 3 m with the defaults). Holes appear at random and
+    along depth discontinuities; depth beyond ``max_depth_m`` reads as missing.
+    """
+
+    color_sigma: float = 2.0            #: std of additive colour noise (8-bit levels)
+    depth_focal_px: float = 580.0       #: reference sensor focal length (px)
+    depth_baseline_m: float = 0.075     #: reference sensor baseline (m)
+    disparity_sigma_px: float = 0.05    #: disparity noise std (px)
+    disparity_subpixel: int = 8         #: disparity quantisation steps per pixel (0: none)
+    depth_noise_block_px: int = 4       #: correlation length of the depth noise (px)
+    depth_hole_fraction: float = 0.005  #: random missing depth pixels
+    depth_edge_hole_fraction: float = 0.3   #: missing depth at discontinuities > 10 cm
+    max_depth_m: float = 8.0            #: farther depth reads as missing
+
+    @classmethod
+    def none(cls) -> 'NoiseModel':
+        """No noise, no quantisation, no holes."""
+        return cls(color_sigma=0.0, disparity_sigma_px=0.0, disparity_subpixel=0,
+                   depth_hole_fraction=0.0, depth_edge_hole_fraction=0.0, max_depth_m=np.inf)
+
+
+@dataclass
+class RenderOutput:
+    rgb: np.ndarray            #: (H, W, 3) uint8
+    depth: np.ndarray          #: (H, W) float32, z in m, NaN where missing (noisy)
+    depth_true: np.ndarray     #: (H, W) float32, exact z in m
+    instance: np.ndarray       #: (H, W) int32: 0 room structure, k + 1 object k
+    visible_pixels: np.ndarray     #: (N,) visible pixels per object
+    unoccluded_pixels: np.ndarray  #: (N,) pixels per object in the image ignoring occlusion
+    amodal_area: np.ndarray        #: (N,) area (px) of the full projection, in or out of image
+    boxes_2d: np.ndarray           #: (N, 4) amodal 2D boxes clipped to the image
+
+
+def _hash_noise(cells: np.ndarray, seed: int) -> np.ndarray:
+    """Deterministic pseudo-random values in [0, 1) for integer lattice cells (..., 2)."""
+    x = cells[..., 0].astype(np.int64) * 73856093 ^ cells[..., 1].astype(np.int64) * 19349663
+    x = (x ^ (seed * 83492791)) & 0xFFFFFFFF
+    x = (x ^ (x >> 13)) * 1274126177 & 0xFFFFFFFF
+    x = x ^ (x >> 16)
+    return (x & 0xFFFF).astype(np.float32) / 65536.0
+
+
+def _value_noise(u: np.ndarray, v: np.ndarray, seed: int) -> np.ndarray:
+    """Smooth value noise in [0, 1) at continuous coordinates (bilinear between cells)."""
+    iu, iv = np.floor(u), np.floor(v)
+    fu, fv = (u - iu).astype(np.float32), (v - iv).astype(np.float32)
+    fu, fv = fu * fu * (3 - 2 * fu), fv * fv * (3 - 2 * fv)
+    corners = [_hash_noise(np.stack([iu + du, iv + dv], -1), seed) for du in (0, 1) for dv in (0, 1)]
+    return ((corners[0] * (1 - fv) + corners[1] * fv) * (1 - fu)
+            + (corners[2] * (1 - fv) + corners[3] * fv) * fu)
+
+
+_TILE = 256       # texture tiles are _TILE x _TILE texels, repeating
+
+
+def _texture_tile(material: Material):
+    """(tile (T, T, 3) float32, texel size in m): the material's albedo on a repeating tile."""
+    res = material.scale_m / 8.0
+    grid = (np.arange(_TILE, dtype=np.float64) + 0.5) * res
+    u, v = np.meshgrid(grid, grid)
+    return _albedo(material, u.ravel(), v.ravel()).reshape(_TILE, _TILE, 3).astype(np.float32), res
+
+
+def _sample(tile_res, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Albedo (P, 3) from a texture tile at surface coordinates u, v (m)."""
+    tile, res = tile_res
+    iu = np.floor(u * (1.0 / res)).astype(np.int64) % _TILE
+    iv = np.floor(v * (1.0 / res)).astype(np.int64) % _TILE
+    return tile[iv, iu]
+
+
+def _albedo(material: Material, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Albedo (P, 3) at surface coordinates u, v (m) of a surface with ``material``."""
+    base = np.asarray(material.color, dtype=np.float32)
+    if material.texture == 'plain' or material.contrast <= 0:
+        return np.broadcast_to(base, (len(u), 3))
+    s = material.scale_m
+    if material.texture == 'wood':
+        grain = _value_noise(u / (8 * s), v / s, material.seed)
+        pattern = 0.5 + 0.5 * np.sin((v / s + 3 * grain) * np.pi)
+    elif material.texture == 'fabric':
+        pattern = 0.5 * (_value_noise(u / s, v / s, material.seed)
+                         + (np.floor(u / (0.25 * s)) + np.floor(v / (0.25 * s))) % 2)
+    elif material.texture == 'checker':
+        pattern = (np.floor(u / s) + np.floor(v / s)) % 2
+        pattern = 0.7 * pattern + 0.3 * _value_noise(u / (0.5 * s), v / (0.5 * s), material.seed)
+    else:  # noise
+        pattern = 0.6 * _value_noise(u / s, v / s, material.seed) + 0.4 * _value_noise(
+            u / (0.3 * s), v / (0.3 * s), material.seed + 1)
+    factor = 1.0 + material.contrast * (pattern.astype(np.float32) - 0.5) * 2.0
+    return np.clip(base[None, :] * factor[:, None], 0.0, 1.0)
+
+
+class Renderer:
+    """Renders a Room from camera poses with fixed intrinsics."""
+
+    def __init__(self, room: Room, intrinsics: CameraIntrinsics, noise: NoiseModel | None = None):
+        self.room = room
+        self.intrinsics = intrinsics
+        self.noise = NoiseModel() if noise is None else noise
+        w, h = intrinsics.width, intrinsics.height
+        u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+        # Ray directions with z = 1 in the camera frame: the ray parameter is the z depth.
+        self._rays_cam = np.stack([(u - intrinsics.cx) / intrinsics.fx,
+                                   (v - intrinsics.cy) / intrinsics.fy,
+                                   np.ones_like(u)], -1).astype(np.float32)
+        self._boxes = room.boxes
+        self._corners = box_corners(self._boxes) if len(self._boxes) else np.zeros((0, 8, 3))
+        self._wall_tiles = [_texture_tile(m) for m in room.walls]
+        self._object_tiles = [_texture_tile(o.material) for o in room.objects]
+
+    # ---------------------------------------------------------------- projection
+
+    def _uv(self, cam: np.ndarray) -> np.ndarray:
+        intr = self.intrinsics
+        return np.stack([intr.fx * cam[..., 0] / cam[..., 2] + intr.cx,
+                         intr.fy * cam[..., 1] / cam[..., 2] + intr.cy], -1)
+
+    def _project_boxes(self, rot_wc: np.ndarray, pos: np.ndarray):
+        """Per object: amodal projected area (px), clipped amodal 2D box, the pixel
+        rectangle (u0, v0, u1, v1) that can contain it (u1 <= u0 when not in the image),
+        and whether the projection lies entirely inside the image.
+
+        The projection of a box is the convex hull of its projected corners; a box crossing
+        the near plane is clipped there first (its edges are cut at z = near). The hull area
+        is computed only for truncated boxes: for the others the caller counts pixels.
+        """
+        intr = self.intrinsics
+        n = len(self._boxes)
+        cam = (self._corners - pos) @ rot_wc                  # (N, 8, 3) camera frame
+        in_front = cam[..., 2] > _NEAR
+        area = np.zeros(n)
+        lo = np.full((n, 2), np.inf)
+        hi = np.full((n, 2), -np.inf)
+        full = np.all(in_front, axis=1)
+        if np.any(full):
+            uv = self._uv(cam[full])
+            lo[full], hi[full] = uv.min(1), uv.max(1)
+        inside = (full & np.all(lo >= -0.5, axis=1) & (hi[:, 0] <= intr.width - 0.5)
+                  & (hi[:, 1] <= intr.height - 0.5))
+        truncated = full & ~inside
+        if np.any(truncated):
+            area[truncated] = convex_hull_area(self._uv(cam[truncated]))
+        for k in np.flatnonzero(~full & np.any(in_front, axis=1)):
+            a, b = cam[k, _EDGES[:, 0]], cam[k, _EDGES[:, 1]]
+            crosses = (a[:, 2] > _NEAR) != (b[:, 2] > _NEAR)
+            t = (_NEAR - a[crosses, 2]) / (b[crosses, 2] - a[crosses, 2])
+            pts = np.concatenate([cam[k, in_front[k]],
+                                  a[crosses] + t[:, None] * (b[crosses] - a[crosses])])
+            uv = self._uv(pts)
+            area[k] = convex_hull_area(uv[None])[0]
+            lo[k], hi[k] = uv.min(0), uv.max(0)
+        boxes_2d = np.stack([np.maximum(lo[:, 0], -0.5), np.maximum(lo[:, 1], -0.5),
+                             np.minimum(hi[:, 0], intr.width - 0.5),
+                             np.minimum(hi[:, 1], intr.height - 0.5)], -1)
+        boxes_2d[~np.isfinite(boxes_2d)] = 0.0
+        with np.errstate(invalid='ignore'):
+            rect = np.stack([np.floor(lo[:, 0]), np.floor(lo[:, 1]),
+                             np.ceil(hi[:, 0]) + 1, np.ceil(hi[:, 1]) + 1], -1)
+        rect = np.nan_to_num(rect, nan=0.0, posinf=0.0, neginf=0.0)
+        rect[:, [0, 2]] = np.clip(rect[:, [0, 2]], 0, intr.width)
+        rect[:, [1, 3]] = np.clip(rect[:, [1, 3]], 0, intr.height)
+        return area, boxes_2d, rect.astype(np.int64), inside
+
+    # ---------------------------------------------------------------- rendering
+
+    def render(self, rot_wc: np.ndarray, position: np.ndarray,
+               rng: np.random.Generator | None = None) -> RenderOutput:
+        """Render from a camera with orientation ``rot_wc`` (camera-to-map) at ``position``."""
+        intr = self.intrinsics
+        h, w = intr.height, intr.width
+        rot_wc = np.asarray(rot_wc, dtype=np.float64)
+        pos = np.asarray(position, dtype=np.float64)
+        rays = (self._rays_cam @ rot_wc.T.astype(np.float32))   # (H, W, 3) map-frame directions
+        rays[np.abs(rays) < 1e-9] = 1e-9
+        inv = 1.0 / rays
+
+        # Room structure: where each ray leaves the room box [0, W] x [0, D] x [0, H].
+        size = self.room.size.astype(np.float32)
+        t_axis = (np.where(rays > 0, size, np.float32(0)) - pos.astype(np.float32)) * inv
+        exit_axis = np.argmin(t_axis, axis=-1)
+        depth = np.take_along_axis(t_axis, exit_axis[..., None], -1)[..., 0]
+        # Surface id: 0 wall x=0, 1 wall x=W, 2 wall y=0, 3 wall y=D, 4 floor, 5 ceiling
+        positive = np.take_along_axis(rays, exit_axis[..., None], -1)[..., 0] > 0
+        surface = 2 * exit_axis + positive
+        instance = np.zeros((h, w), dtype=np.int32)
+        obj_axis = np.zeros((h, w), dtype=np.int8)          # entry axis of the winning object hit
+
+        n = len(self._boxes)
+        unoccluded = np.zeros(n, dtype=np.int64)
+        amodal, boxes_2d, rects, inside = self._project_boxes(rot_wc, pos)
+        for k in range(n):
+            u0, v0, u1, v1 = rects[k]
+            if u1 <= u0 or v1 <= v0:
+                continue
+            box = self._boxes[k]
+            c, s = np.float32(np.cos(box[6])), np.float32(np.sin(box[6]))
+            rel = pos - box[:3]
+            ol = np.array([c * rel[0] + s * rel[1], -s * rel[0] + c * rel[1], rel[2]], np.float32)
+            half = (box[3:6] / 2).astype(np.float32)
+            d = rays[v0:v1, u0:u1]
+            dx = c * d[..., 0] + s * d[..., 1]
+            dy = -s * d[..., 0] + c * d[..., 1]
+            t_near = np.full(dx.shape, -np.inf, np.float32)
+            t_far = np.full(dx.shape, np.inf, np.float32)
+            axis = np.zeros(dx.shape, np.int8)
+            for i, di in enumerate((dx, dy, d[..., 2])):     # slab test per axis
+                with np.errstate(divide='ignore'):
+                    inv_d = 1.0 / di
+                ta, tb = (-half[i] - ol[i]) * inv_d, (half[i] - ol[i]) * inv_d
+                enter, leave = np.minimum(ta, tb), np.maximum(ta, tb)
+                later = enter > t_near
+                t_near = np.where(later, enter, t_near)
+                axis[later] = i
+                np.minimum(t_far, leave, out=t_far)
+            hit = (t_near <= t_far) & (t_near > _NEAR)
+            unoccluded[k] = np.count_nonzero(hit)
+            closer = hit & (t_near < depth[v0:v1, u0:u1])
+            if not np.any(closer):
+                continue
+            depth[v0:v1, u0:u1][closer] = t_near[closer]
+            instance[v0:v1, u0:u1][closer] = k + 1
+            obj_axis[v0:v1, u0:u1][closer] = axis[closer]
+
+        visible = np.bincount(instance.ravel(), minlength=n + 1)[1:].astype(np.int64)
+        amodal = np.where(inside, unoccluded, amodal)
+        rgb = self._shade(pos, rays, depth, instance, surface, obj_axis)
+
+        rng = np.random.default_rng(0) if rng is None else rng
+        nm = self.noise
+        rgb *= 255.0
+        if nm.color_sigma > 0:
+            rgb += rng.normal(0.0, nm.color_sigma, rgb.shape).astype(np.float32)
+        rgb = np.clip(np.rint(rgb), 0, 255).astype(np.uint8)
+        depth_true = depth.astype(np.float32)
+        noisy = self._depth_noise(depth_true, rng)
+        return RenderOutput(rgb, noisy, depth_true, instance, visible, unoccluded, amodal, boxes_2d)
+
+    def _shade(self, pos, rays, depth, instance, surface, obj_axis):
+        """Lambertian shading of albedo textures fixed in object coordinates."""
+        n = len(self._boxes)
+        flat_inst = instance.ravel()
+        order = np.argsort(flat_inst, kind='stable')
+        starts = np.concatenate([[0], np.cumsum(np.bincount(flat_inst, minlength=n + 1))])
+        rays_flat = rays.reshape(-1, 3)
+        depth_flat = depth.ravel()
+        albedo = np.zeros((len(flat_inst), 3), dtype=np.float32)
+        normal = np.zeros((len(flat_inst), 3), dtype=np.float32)
+        pos32 = pos.astype(np.float32)
+
+        # Room structure, grouped by surface
+        idx0 = order[starts[0]:starts[1]]
+        surf = surface.ravel()[idx0]
+        for sid, material in enumerate(self.room.walls):
+            idx = idx0[surf == sid]
+            if not len(idx):
+                continue
+            p = pos32 + rays_flat[idx] * depth_flat[idx, None]
+            axis = sid // 2
+            u, v = (p[:, 1], p[:, 2]) if axis == 0 else (p[:, 0], p[:, 2]) if axis == 1 else (p[:, 0], p[:, 1])
+            albedo[idx] = _sample(self._wall_tiles[sid], u, v)
+            normal[idx, axis] = -1.0 if sid % 2 else 1.0      # pointing into the room
+        # Objects
+        for k, obj in enumerate(self.room.objects):
+            idx = order[starts[k + 1]:starts[k + 2]]
+            if not len(idx):
+                continue
+            box = obj.box.astype(np.float32)
+            c, s = np.cos(box[6]), np.sin(box[6])
+            rel = pos32 + rays_flat[idx] * depth_flat[idx, None] - box[:3]
+            local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], -1)
+            axis = obj_axis.ravel()[idx].astype(np.int64)
+            rows = np.arange(len(idx))
+            sign = np.sign(local[rows, axis])
+            # surface coordinates: the two local coordinates spanning the face (m)
+            other1 = np.where(axis == 0, 1, 0)
+            other2 = np.where(axis == 2, 1, 2)
+            u = local[rows, other1] + box[3 + other1] / 2
+            v = local[rows, other2] + box[3 + other2] / 2
+            albedo[idx] = _sample(self._object_tiles[k], u, v)
+            n_local = np.zeros((len(idx), 3), dtype=np.float32)
+            n_local[rows, axis] = sign
+            normal[idx] = np.stack([c * n_local[:, 0] - s * n_local[:, 1],
+                                    s * n_local[:, 0] + c * n_local[:, 1], n_local[:, 2]], -1)
+        lambert = np.clip(normal @ _LIGHT.astype(np.float32), 0.0, 1.0)
+        # a little bounce light, so faces turned away from the light still differ
+        bounce = 0.08 * np.abs(normal @ np.array([0.8, -0.6, 0.0], dtype=np.float32))
+        shade = _AMBIENT + _DIFFUSE * lambert + bounce
+        return (albedo * shade[:, None]).reshape(instance.shape + (3,))
+
+    def _depth_noise(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        nm = self.noise
+        fb = nm.depth_focal_px * nm.depth_baseline_m
+        disparity = fb / depth
+        if nm.disparity_sigma_px > 0:
+            h, w = depth.shape
+            block = max(int(nm.depth_noise_block_px), 1)
+            coarse = rng.normal(0.0, nm.disparity_sigma_px, (h // block + 1, w // block + 1))
+            disparity = disparity + np.repeat(np.repeat(coarse, block, 0), block, 1)[:h, :w]
+        if nm.disparity_subpixel > 0:
+            disparity = np.round(disparity * nm.disparity_subpixel) / nm.disparity_subpixel
+        with np.errstate(divide='ignore'):
+            out = (fb / disparity).astype(np.float32)
+        holes = ~(disparity > 0)
+        if nm.depth_hole_fraction > 0:
+            holes |= rng.random(depth.shape) < nm.depth_hole_fraction
+        if nm.depth_edge_hole_fraction > 0:
+            jump = np.zeros(depth.shape, dtype=bool)
+            jump[:, 1:] |= np.abs(np.diff(depth, axis=1)) > 0.1
+            jump[1:, :] |= np.abs(np.diff(depth, axis=0)) > 0.1
+            holes |= jump & (rng.random(depth.shape) < nm.depth_edge_hole_fraction)
+        holes |= depth > nm.max_depth_m
+        out[holes] = np.nan
+        return out

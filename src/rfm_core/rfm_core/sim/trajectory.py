@@ -1,0 +1,203 @@
+"""Camera trajectories through a Room, and the IMU readings along them.
+
+Styles (paper: CA-1M is handheld video, ScanNet++ DSLR captures are scattered):
+
+- ``handheld``: a smooth walk around the room (about 0.35 m/s) at eye height, looking
+  towards a slowly wandering point in the room, with pitch/roll jitter of a hand;
+- ``sparse``: scattered viewpoints (DSLR-like), random positions and viewing directions,
+  in random order: not a smooth path;
+- ``orbit``: a circle around the room's center, looking at the center.
+
+Poses are camera-to-map: ``rotation`` maps the camera optical frame (x right, y down,
+z forward) to the map frame (z up). Everything is deterministic for a seed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from rfm_core.sim.room import Room
+
+__all__ = ['CAPTURE_STYLES', 'Trajectory', 'ImuSamples', 'make_trajectory', 'imu_samples',
+           'look_rotation']
+
+CAPTURE_STYLES = ('handheld', 'sparse', 'orbit')
+GRAVITY = 9.80665
+
+
+@dataclass
+class Trajectory:
+    style: str
+    times: np.ndarray        #: (F,) seconds from the start
+    rotations: np.ndarray    #: (F, 3, 3) camera-to-map
+    positions: np.ndarray    #: (F, 3) camera centers in the map frame (m)
+    smooth: bool             #: whether the camera moves continuously between frames
+    #: t (s, array) -> (rotations, positions) of the continuous path, for smooth styles
+    pose_fn: Callable | None = field(default=None, repr=False, compare=False)
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+
+@dataclass
+class ImuSamples:
+    times: np.ndarray             #: (S,) seconds
+    linear_acceleration: np.ndarray   #: (S, 3) specific force in the camera optical frame (m/s^2)
+    angular_velocity: np.ndarray      #: (S, 3) in the camera optical frame (rad/s)
+
+
+def look_rotation(forward, roll: float = 0.0) -> np.ndarray:
+    """Camera-to-map rotation of an optical frame looking along ``forward`` with a roll (rad)."""
+    f = np.asarray(forward, dtype=np.float64)
+    f = f / np.linalg.norm(f)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    if np.linalg.norm(right) < 1e-6:
+        right = np.array([1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(f, right)
+    c, s = np.cos(roll), np.sin(roll)
+    right, down = c * right + s * down, -s * right + c * down
+    return np.stack([right, down, f], axis=1)
+
+
+class _HandheldPath:
+    """Continuous handheld motion, so that the IMU can be sampled at any time."""
+
+    def __init__(self, room: Room, rng, speed: float = 0.35):
+        w, d = room.size[:2]
+        self.center = np.array([w / 2, d / 2])
+        self.radii = np.array([max(w / 2 - 1.1, 0.4), max(d / 2 - 1.1, 0.4)])
+        self.perimeter = np.pi * (3 * self.radii.sum() - np.sqrt(
+            (3 * self.radii[0] + self.radii[1]) * (self.radii[0] + 3 * self.radii[1])))
+        self.omega = speed / (self.perimeter / (2 * np.pi))
+        self.phase = rng.uniform(0, 2 * np.pi)
+        self.direction = rng.choice([-1.0, 1.0])
+        self.height = rng.uniform(1.45, 1.65)
+        self.noise_rng_seed = int(rng.integers(2**31))
+        nrng = np.random.default_rng(self.noise_rng_seed)
+        self.wobble = [nrng.uniform(0, 2 * np.pi, 3) for _ in range(8)]
+        self.target_offset = nrng.uniform(0.3, 0.7)
+
+    def _wave(self, i, t, amplitude, freqs=(0.11, 0.23, 0.47)):
+        return amplitude * sum(np.sin(2 * np.pi * f * t + p)
+                               for f, p in zip(freqs, self.wobble[i])) / len(freqs)
+
+    def pose(self, t):
+        t = np.asarray(t, dtype=np.float64)
+        a = self.phase + self.direction * self.omega * t
+        xy = self.center + self.radii * np.stack([np.cos(a), np.sin(a)], -1) * (
+            1 + self._wave(0, t, 0.15))[..., None]
+        z = self.height + self._wave(1, t, 0.05)
+        position = np.concatenate([xy, z[..., None]], -1)
+        # Look across the room: towards a point ahead of and opposite to the walker.
+        ahead = a + self.direction * (np.pi * self.target_offset + self._wave(2, t, 0.6))
+        target_xy = self.center + 0.5 * self.radii * np.stack([np.cos(ahead), np.sin(ahead)], -1)
+        target_z = 0.6 + self._wave(3, t, 0.3)
+        forward = np.concatenate([target_xy, target_z[..., None]], -1) - position
+        roll = self._wave(4, t, np.radians(3.0), freqs=(0.7, 1.3, 2.1))
+        pitch_jitter = self._wave(5, t, np.radians(2.0), freqs=(0.9, 1.7, 2.9))
+        forward = np.atleast_2d(forward)
+        forward = forward / np.linalg.norm(forward, axis=-1, keepdims=True)
+        forward[:, 2] += np.atleast_1d(pitch_jitter)
+        rotations = np.stack([look_rotation(f, r) for f, r in zip(forward, np.atleast_1d(roll))])
+        return rotations, np.atleast_2d(position)
+
+
+def _orbit(room: Room, rng):
+    w, d = room.size[:2]
+    center = np.array([w / 2, d / 2, 0.6])
+    radius = max(min(w, d) / 2 - 1.0, 0.5)
+    phase = rng.uniform(0, 2 * np.pi)
+    height = rng.uniform(1.4, 1.7)
+
+    def pose(t, duration):
+        a = phase + 2 * np.pi * np.asarray(t) / max(duration, 1e-9)
+        pos = np.stack([center[0] + radius * np.cos(a), center[1] + radius * np.sin(a),
+                        np.full_like(a, height)], -1)
+        rot = np.stack([look_rotation(center - p) for p in np.atleast_2d(pos)])
+        return rot, np.atleast_2d(pos)
+    return pose
+
+
+def _free_position(room: Room, rng, margin=0.8):
+    for _ in range(200):
+        p = np.array([rng.uniform(margin, room.size[0] - margin),
+                      rng.uniform(margin, room.size[1] - margin), rng.uniform(1.2, 1.8)])
+        if not room.contains_camera(p, margin=0.3):
+            return p
+    raise RuntimeError('no free camera position in this room')
+
+
+def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
+                    seed: int = 0) -> Trajectory:
+    """A camera trajectory of ``num_frames`` frames through ``room``.
+
+    Handheld and orbit frames are ``1 / fps`` apart; sparse viewpoints are 1 s apart.
+    Camera positions never fall inside furniture: a handheld path that would is re-drawn.
+    """
+    if style not in CAPTURE_STYLES:
+        raise ValueError(f'capture style must be one of {CAPTURE_STYLES}, got {style!r}')
+    if num_frames < 1:
+        raise ValueError('num_frames must be >= 1')
+    rng = np.random.default_rng(seed)
+    if style == 'sparse':
+        times = np.arange(num_frames, dtype=np.float64)
+        positions, rotations = [], []
+        for _ in range(num_frames):
+            p = _free_position(room, rng)
+            target = np.array([rng.uniform(0.5, room.size[0] - 0.5),
+                               rng.uniform(0.5, room.size[1] - 0.5), rng.uniform(0.2, 1.0)])
+            if np.linalg.norm(target[:2] - p[:2]) < 1.0:
+                target[:2] = room.size[:2] - p[:2]        # look across the room
+            positions.append(p)
+            rotations.append(look_rotation(target - p, rng.normal(0, np.radians(2))))
+        return Trajectory(style, times, np.array(rotations), np.array(positions), smooth=False)
+
+    times = np.arange(num_frames) / float(fps)
+    if style == 'orbit':
+        pose = _orbit(room, rng)
+        duration = max(times[-1], 20.0)
+        rotations, positions = pose(times, duration)
+        return Trajectory(style, times, rotations, positions, smooth=True,
+                          pose_fn=lambda t: pose(t, duration))
+    for _attempt in range(20):
+        path = _HandheldPath(room, rng)
+        rotations, positions = path.pose(times)
+        if not any(room.contains_camera(p) for p in positions):
+            break
+    return Trajectory(style, times, rotations, positions, smooth=True, pose_fn=path.pose)
+
+
+def imu_samples(traj: Trajectory, rate_hz: float, seed: int = 0,
+                accel_sigma: float = 0.02, gyro_sigma: float = 0.002) -> ImuSamples:
+    """IMU readings in the camera optical frame at ``rate_hz`` over the trajectory.
+
+    Specific force f = R^T (a - g) with g = (0, 0, -9.80665): at rest it reads +9.81 along
+    "up". For smooth trajectories acceleration and angular rate come from central
+    differences of the continuous path; for sparse captures the camera is held still at
+    each viewpoint (the reading in between follows the nearest viewpoint).
+    """
+    rng = np.random.default_rng(seed)
+    end = traj.times[-1] if len(traj) > 1 else 0.0
+    times = np.arange(0.0, end + 1e-9, 1.0 / rate_hz)
+    g = np.array([0.0, 0.0, -GRAVITY])
+    if traj.smooth and traj.pose_fn is not None:
+        dt = 1e-3
+        r0, p0 = traj.pose_fn(times)
+        r_prev, p_prev = traj.pose_fn(times - dt)
+        r_next, p_next = traj.pose_fn(times + dt)
+        accel_world = (p_next - 2 * p0 + p_prev) / dt ** 2
+        dr = np.einsum('nji,njk->nik', r0, (r_next - r_prev) / (2 * dt))   # R^T dR/dt
+        omega = np.stack([dr[:, 2, 1] - dr[:, 1, 2], dr[:, 0, 2] - dr[:, 2, 0],
+                          dr[:, 1, 0] - dr[:, 0, 1]], -1) / 2
+    else:
+        nearest = np.clip(np.searchsorted(traj.times, times + 0.5) - 1, 0, len(traj) - 1)
+        r0 = traj.rotations[nearest]
+        accel_world = np.zeros((len(times), 3))
+        omega = np.zeros((len(times), 3))
+    force = np.einsum('nji,nj->ni', r0, accel_world - g)
+    force += rng.normal(0, accel_sigma, force.shape)
+    omega = omega + rng.normal(0, gyro_sigma, omega.shape)
+    return ImuSamples(times, force, omega)

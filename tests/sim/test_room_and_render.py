@@ -1,0 +1,157 @@
+"""rfm_core.sim: rooms, trajectories, rendering and ground truth against independent checks."""
+import numpy as np
+import pytest
+
+from rfm_core.geometry import box_corners, yaw_matrix
+from rfm_core.sim.capture import Capture, CaptureConfig
+from rfm_core.sim.render import NoiseModel
+from rfm_core.sim.room import generate_room
+from rfm_core.sim.trajectory import GRAVITY, imu_samples, make_trajectory
+
+
+@pytest.fixture(scope='module')
+def capture():
+    cap = Capture(CaptureConfig(seed=11, room_style='textured', frames=12, fps=5,
+                                noise=NoiseModel.none()))
+    return cap, list(cap.frames())
+
+
+def test_rooms_are_furnished_and_deterministic():
+    counts, groups, stacked = [], 0, 0
+    for seed in range(12):
+        room = generate_room(seed, 'plain' if seed % 2 else 'textured')
+        counts.append(len(room.objects))
+        assert np.all(room.boxes[:, 3:6] > 0)
+        # every object inside the room, standing on the floor or on another object
+        corners = box_corners(room.boxes)
+        assert np.all(corners >= -1e-6) and np.all(corners <= room.size + 1e-6)
+        tops = room.boxes[:, 2] + room.boxes[:, 5] / 2
+        for box in room.boxes:
+            bottom = box[2] - box[5] / 2
+            on_floor = abs(bottom) < 1e-9
+            on_support = np.any(np.abs(tops - bottom) < 1e-9)
+            assert on_floor or on_support
+            stacked += on_support and not on_floor
+        labels = room.labels
+        by_group = {}
+        for obj in room.objects:
+            if obj.group >= 0:
+                by_group.setdefault(obj.group, []).append(obj)
+        for members in by_group.values():          # identical copies: same size and colour
+            assert len({tuple(np.round(m.box[3:6], 9)) for m in members}) == 1
+            assert len({m.material.color for m in members}) == 1
+        groups += sum(len(m) > 1 for m in by_group.values())
+        assert len(set(labels)) >= 3
+    assert min(counts) >= 10 and max(counts) <= 40
+    assert groups >= 12 and stacked >= 24          # identical groups and small objects on top
+    a, b = generate_room(5, 'plain'), generate_room(5, 'plain')
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+
+
+def test_trajectories_stay_in_free_space():
+    room = generate_room(3, 'plain')
+    handheld = make_trajectory(room, 'handheld', 90, fps=30, seed=1)
+    assert not any(room.contains_camera(p) for p in handheld.positions)
+    steps = np.linalg.norm(np.diff(handheld.positions, axis=0), axis=1)
+    assert np.all(steps < 0.05) and np.all(steps > 0.001)          # smooth walk at ~0.35 m/s
+    np.testing.assert_allclose(np.diff(handheld.times), 1 / 30)
+    sparse = make_trajectory(room, 'sparse', 20, seed=2)
+    assert not any(room.contains_camera(p, margin=0.25) for p in sparse.positions)
+    assert np.median(np.linalg.norm(np.diff(sparse.positions, axis=0), axis=1)) > 0.5
+    for traj in (handheld, sparse, make_trajectory(room, 'orbit', 30, seed=3)):
+        rots = traj.rotations
+        np.testing.assert_allclose(rots @ np.transpose(rots, (0, 2, 1)), np.broadcast_to(np.eye(3), rots.shape), atol=1e-9)
+        np.testing.assert_allclose(np.linalg.det(rots), 1.0)
+
+
+def test_imu_reads_gravity_along_up_in_the_camera_frame():
+    room = generate_room(3, 'plain')
+    traj = make_trajectory(room, 'handheld', 60, fps=30, seed=1)
+    imu = imu_samples(traj, 200.0, seed=0)
+    assert len(imu.times) == int(traj.times[-1] * 200) + 1
+    # the camera's "up" in its own frame is R^T z; the specific force points along it
+    frames = np.clip(np.round(imu.times * 30).astype(int), 0, len(traj) - 1)
+    up_cam = np.einsum('nji,j->ni', traj.rotations[frames], [0.0, 0.0, 1.0])
+    cosine = np.sum(imu.linear_acceleration * up_cam, axis=1) / np.linalg.norm(imu.linear_acceleration, axis=1)
+    assert np.median(cosine) > 0.995
+    assert abs(np.median(np.linalg.norm(imu.linear_acceleration, axis=1)) - GRAVITY) < 0.2
+
+
+def ray_box_depth(rotation, position, intrinsics, u, v, box):
+    """z-depth where the pixel's ray enters ``box``, by an independent slab test."""
+    d_cam = np.array([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, 1.0])
+    d = yaw_matrix(-box[6]) @ (rotation @ d_cam)
+    o = yaw_matrix(-box[6]) @ (position - box[:3])
+    with np.errstate(divide='ignore'):
+        t1, t2 = (-box[3:6] / 2 - o) / d, (box[3:6] / 2 - o) / d
+    near, far = np.max(np.minimum(t1, t2)), np.min(np.maximum(t1, t2))
+    return near if near <= far and near > 0 else np.inf
+
+
+def test_depth_agrees_with_ray_box_distances(capture):
+    cap, frames = capture
+    rng = np.random.default_rng(0)
+    checked = 0
+    for frame in frames[::3]:
+        inst = frame.render.instance
+        ys, xs = np.nonzero(inst > 0)
+        for i in rng.choice(len(ys), 60, replace=False):
+            k = inst[ys[i], xs[i]] - 1
+            expected = ray_box_depth(frame.rotation, frame.position, cap.intrinsics, xs[i], ys[i],
+                                     cap.room.boxes[k])
+            assert frame.render.depth_true[ys[i], xs[i]] == pytest.approx(expected, rel=1e-4)
+            checked += 1
+    assert checked == 240
+
+
+def test_ground_truth_boxes_project_onto_instance_masks(capture):
+    cap, frames = capture
+    intr = cap.intrinsics
+    ious = []
+    for frame in frames:
+        gt = frame.ground_truth
+        aligned_from_cam = gt.rotation_aligned_from_camera
+        for box, oid in zip(gt.boxes, gt.object_ids):
+            k = oid - 1
+            r = frame.render
+            if r.visible_pixels[k] != r.unoccluded_pixels[k] or r.visible_pixels[k] < 200:
+                continue                                 # occluded or tiny
+            cam = box_corners(box) @ aligned_from_cam     # gravity-aligned -> camera optical
+            if np.any(cam[:, 2] <= 0.05):
+                continue
+            uv = np.c_[intr.fx * cam[:, 0] / cam[:, 2] + intr.cx, intr.fy * cam[:, 1] / cam[:, 2] + intr.cy]
+            if np.any(uv < 0) or np.any(uv[:, 0] > intr.width - 1) or np.any(uv[:, 1] > intr.height - 1):
+                continue                                 # truncated by the image border
+            ys, xs = np.nonzero(r.instance == oid)
+            mask_box = np.array([xs.min() - 0.5, ys.min() - 0.5, xs.max() + 0.5, ys.max() + 0.5])
+            proj = np.r_[uv.min(0), uv.max(0)]
+            inter = np.prod(np.clip(np.minimum(proj[2:], mask_box[2:]) - np.maximum(proj[:2], mask_box[:2]), 0, None))
+            union = np.prod(proj[2:] - proj[:2]) + np.prod(mask_box[2:] - mask_box[:2]) - inter
+            ious.append(inter / union)
+            assert gt.visibility[list(gt.object_ids).index(oid)] > 0.9
+    assert len(ious) >= 10
+    assert np.mean(ious) > 0.8
+
+
+def test_ground_truth_lists_the_visible_objects_with_their_visible_fraction(capture):
+    cap, frames = capture
+    for frame in frames:
+        gt, r = frame.ground_truth, frame.render
+        visible_ids = set(np.flatnonzero(r.visible_pixels >= 0.001 * 320 * 240) + 1)
+        assert set(gt.object_ids) == visible_ids
+        for oid, vis in zip(gt.object_ids, gt.visibility):
+            assert 0 < vis <= 1
+            assert vis <= r.visible_pixels[oid - 1] / max(r.unoccluded_pixels[oid - 1], 1) + 1e-6
+
+
+def test_noise_model_holes_and_error_grow_with_distance():
+    cap = Capture(CaptureConfig(seed=4, frames=3, fps=5))
+    frame = next(cap.frames())
+    true, noisy = frame.render.depth_true, frame.render.depth
+    holes = np.isnan(noisy)
+    assert 0.002 < holes.mean() < 0.1
+    err = np.abs(noisy - true)[~holes]
+    near = err[true[~holes] < 2.0]
+    far = err[true[~holes] > 4.0]
+    assert np.median(near) < 0.01 and np.median(far) > np.median(near)
+    assert frame.render.rgb.std() > 10
