@@ -43,6 +43,11 @@ fi
 if [ -f "$_rfm_ws_dir/install/local_setup.bash" ]; then
   # shellcheck disable=SC1091
   . "$_rfm_ws_dir/install/local_setup.bash"
+  # the `rfm` command line
+  case ":$PATH:" in
+    *":$_rfm_ws_dir/install/rfm_bringup/lib/rfm_bringup:"*) ;;
+    *) export PATH="$_rfm_ws_dir/install/rfm_bringup/lib/rfm_bringup:$PATH" ;;
+  esac
 fi
 
 [ "$_rfm_nounset" = 1 ] && set -u

@@ -22,6 +22,15 @@ def executable(package, name):
     return path
 
 
+def stop(proc, timeout=15):
+    """Output of a process told to stop; killed (never leaked) if it does not."""
+    try:
+        return proc.communicate(timeout=timeout)[0]
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.communicate()[0] + '\n[killed: did not stop on SIGINT]'
+
+
 def test_nodes_start_join_the_graph_and_stop_on_sigint():
     procs = [subprocess.Popen([executable(pkg, exe)], stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)
@@ -48,6 +57,6 @@ def test_nodes_start_join_the_graph_and_stop_on_sigint():
         rclpy.try_shutdown()
         for p in procs:
             p.send_signal(signal.SIGINT)
-        outputs = [p.communicate(timeout=15)[0] for p in procs]
+        outputs = [stop(p) for p in procs]
     for p, out in zip(procs, outputs):
         assert p.returncode == 0, out

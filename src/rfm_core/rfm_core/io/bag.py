@@ -58,8 +58,9 @@ class BagWriter:
     ``with BagWriter(path) as bag: bag.add_topic(...); bag.write(topic, stamp_ns, msg)``
     """
 
-    def __init__(self, path, compress: bool = True):
+    def __init__(self, path, compress: bool = True, compression_level: int = 10):
         self.path = Path(path)
+        self.compression_level = compression_level
         self.typestore = rfm_typestore()
         self.make = BagMessages(self.typestore)
         self._writer = Writer(self.path, version=9, storage_plugin=StoragePlugin.MCAP)
@@ -69,6 +70,16 @@ class BagWriter:
 
     def __enter__(self) -> 'BagWriter':
         self._writer.open()
+        storage = getattr(self._writer, 'storage', None)
+        if getattr(storage, 'compression', '') == 'zstd':
+            # rosbags compresses MCAP chunks at zstd's default level 3; images and depth
+            # shrink by a further ~20% at level 10 for ~1 s per 30 MB.
+            try:
+                from compression import zstd  # noqa: PLC0415 - Python >= 3.14
+            except ImportError:
+                from backports import zstd  # noqa: PLC0415
+            level = self.compression_level
+            storage.compressor = lambda data: zstd.compress(data, level=level)
         return self
 
     def __exit__(self, *exc) -> None:
@@ -85,8 +96,13 @@ class BagWriter:
             offered_qos_profiles=[qos_profile(latched, reliable)]), msgtype)
 
     def write(self, topic: str, stamp_ns: int, msg) -> None:
+        """Serialise a message built with :attr:`make` and write it."""
         connection, msgtype = self._connections[topic]
         self._writer.write(connection, int(stamp_ns), self.typestore.serialize_cdr(msg, msgtype))
+
+    def write_raw(self, topic: str, stamp_ns: int, data: bytes) -> None:
+        """Write an already serialised (CDR) message."""
+        self._writer.write(self._connections[topic][0], int(stamp_ns), data)
 
 
 def bag_custom_data(path) -> dict:

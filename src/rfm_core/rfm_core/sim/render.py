@@ -98,14 +98,6 @@ def _texture_tile(material: Material):
     return _albedo(material, u.ravel(), v.ravel()).reshape(_TILE, _TILE, 3).astype(np.float32), res
 
 
-def _sample(tile_res, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Albedo (P, 3) from a texture tile at surface coordinates u, v (m)."""
-    tile, res = tile_res
-    iu = np.floor(u * (1.0 / res)).astype(np.int64) % _TILE
-    iv = np.floor(v * (1.0 / res)).astype(np.int64) % _TILE
-    return tile[iv, iu]
-
-
 def _albedo(material: Material, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Albedo (P, 3) at surface coordinates u, v (m) of a surface with ``material``."""
     base = np.asarray(material.color, dtype=np.float32)
@@ -131,8 +123,12 @@ def _albedo(material: Material, u: np.ndarray, v: np.ndarray) -> np.ndarray:
 class Renderer:
     """Renders a Room from camera poses with fixed intrinsics."""
 
-    def __init__(self, room: Room, intrinsics: CameraIntrinsics, noise: NoiseModel | None = None):
+    def __init__(self, room: Room, intrinsics: CameraIntrinsics, noise: NoiseModel | None = None,
+                 cull: bool = True):
+        """``cull``: test each box only on the pixels of its projected bounding rectangle
+        (False tests every pixel against every box: same images, for benchmarking)."""
         self.room = room
+        self.cull = cull
         self.intrinsics = intrinsics
         self.noise = NoiseModel() if noise is None else noise
         w, h = intrinsics.width, intrinsics.height
@@ -143,8 +139,12 @@ class Renderer:
                                    np.ones_like(u)], -1).astype(np.float32)
         self._boxes = room.boxes
         self._corners = box_corners(self._boxes) if len(self._boxes) else np.zeros((0, 8, 3))
-        self._wall_tiles = [_texture_tile(m) for m in room.walls]
-        self._object_tiles = [_texture_tile(o.material) for o in room.objects]
+        # Texture tiles of the 6 room surfaces then the objects, as 8-bit albedo.
+        tiles = [_texture_tile(m) for m in room.walls] + [_texture_tile(o.material)
+                                                            for o in room.objects]
+        self._tiles = np.stack([np.rint(t * 255).astype(np.uint8) for t, _ in tiles])
+        self._tile_scale = np.array([1.0 / res for _, res in tiles], dtype=np.float32)
+        self._box_table = np.concatenate([np.zeros((1, 7)), self._boxes]).astype(np.float32)
 
     # ---------------------------------------------------------------- projection
 
@@ -226,6 +226,8 @@ class Renderer:
         n = len(self._boxes)
         unoccluded = np.zeros(n, dtype=np.int64)
         amodal, boxes_2d, rects, inside = self._project_boxes(rot_wc, pos)
+        if not self.cull:
+            rects = np.where(rects[:, 2:3] > rects[:, 0:1], [[0, 0, w, h]], rects)
         for k in range(n):
             u0, v0, u1, v1 = rects[k]
             if u1 <= u0 or v1 <= v0:
@@ -261,7 +263,7 @@ class Renderer:
 
         visible = np.bincount(instance.ravel(), minlength=n + 1)[1:].astype(np.int64)
         amodal = np.where(inside, unoccluded, amodal)
-        rgb = self._shade(pos, rays, depth, instance, surface, obj_axis)
+        rgb = self._shade(pos, rays, depth, instance, surface, obj_axis, rects)
 
         rng = np.random.default_rng(0) if rng is None else rng
         nm = self.noise
@@ -273,36 +275,44 @@ class Renderer:
         noisy = self._depth_noise(depth_true, rng)
         return RenderOutput(rgb, noisy, depth_true, instance, visible, unoccluded, amodal, boxes_2d)
 
-    def _shade(self, pos, rays, depth, instance, surface, obj_axis):
+    def _albedo_at(self, tile: int, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        scale = self._tile_scale[tile]
+        iu = np.floor(u * scale).astype(np.int64) % _TILE
+        iv = np.floor(v * scale).astype(np.int64) % _TILE
+        return self._tiles[tile, iv, iu]
+
+    def _shade(self, pos, rays, depth, instance, surface, obj_axis, rects):
         """Lambertian shading of albedo textures fixed in object coordinates."""
-        n = len(self._boxes)
+        h, w = instance.shape
         flat_inst = instance.ravel()
-        order = np.argsort(flat_inst, kind='stable')
-        starts = np.concatenate([[0], np.cumsum(np.bincount(flat_inst, minlength=n + 1))])
         rays_flat = rays.reshape(-1, 3)
         depth_flat = depth.ravel()
-        albedo = np.zeros((len(flat_inst), 3), dtype=np.float32)
-        normal = np.zeros((len(flat_inst), 3), dtype=np.float32)
+        albedo = np.zeros((h * w, 3), dtype=np.uint8)
+        normal = np.zeros((h * w, 3), dtype=np.float32)
         pos32 = pos.astype(np.float32)
 
-        # Room structure, grouped by surface
-        idx0 = order[starts[0]:starts[1]]
+        # Room structure (surfaces 0-5: x=0, x=W, y=0, y=D, floor, ceiling)
+        idx0 = np.flatnonzero(flat_inst == 0)
         surf = surface.ravel()[idx0]
-        for sid, material in enumerate(self.room.walls):
+        for sid in range(6):
             idx = idx0[surf == sid]
             if not len(idx):
                 continue
             p = pos32 + rays_flat[idx] * depth_flat[idx, None]
             axis = sid // 2
             u, v = (p[:, 1], p[:, 2]) if axis == 0 else (p[:, 0], p[:, 2]) if axis == 1 else (p[:, 0], p[:, 1])
-            albedo[idx] = _sample(self._wall_tiles[sid], u, v)
+            albedo[idx] = self._albedo_at(sid, u, v)
             normal[idx, axis] = -1.0 if sid % 2 else 1.0      # pointing into the room
-        # Objects
+        # Objects: each stays inside its projected rectangle
         for k, obj in enumerate(self.room.objects):
-            idx = order[starts[k + 1]:starts[k + 2]]
-            if not len(idx):
+            u0, v0, u1, v1 = rects[k]
+            if u1 <= u0 or v1 <= v0:
                 continue
-            box = obj.box.astype(np.float32)
+            vv, uu = np.nonzero(instance[v0:v1, u0:u1] == k + 1)
+            if not len(vv):
+                continue
+            idx = (vv + v0) * w + (uu + u0)
+            box = self._box_table[k + 1]
             c, s = np.cos(box[6]), np.sin(box[6])
             rel = pos32 + rays_flat[idx] * depth_flat[idx, None] - box[:3]
             local = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1], rel[:, 2]], -1)
@@ -314,7 +324,7 @@ class Renderer:
             other2 = np.where(axis == 2, 1, 2)
             u = local[rows, other1] + box[3 + other1] / 2
             v = local[rows, other2] + box[3 + other2] / 2
-            albedo[idx] = _sample(self._object_tiles[k], u, v)
+            albedo[idx] = self._albedo_at(6 + k, u, v)
             n_local = np.zeros((len(idx), 3), dtype=np.float32)
             n_local[rows, axis] = sign
             normal[idx] = np.stack([c * n_local[:, 0] - s * n_local[:, 1],
@@ -322,8 +332,8 @@ class Renderer:
         lambert = np.clip(normal @ _LIGHT.astype(np.float32), 0.0, 1.0)
         # a little bounce light, so faces turned away from the light still differ
         bounce = 0.08 * np.abs(normal @ np.array([0.8, -0.6, 0.0], dtype=np.float32))
-        shade = _AMBIENT + _DIFFUSE * lambert + bounce
-        return (albedo * shade[:, None]).reshape(instance.shape + (3,))
+        shade = (_AMBIENT + _DIFFUSE * lambert + bounce) * np.float32(1 / 255)
+        return (albedo * shade[:, None]).reshape(h, w, 3)
 
     def _depth_noise(self, depth: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         nm = self.noise

@@ -68,7 +68,9 @@ class _HandheldPath:
     def __init__(self, room: Room, rng, speed: float = 0.35):
         w, d = room.size[:2]
         self.center = np.array([w / 2, d / 2])
-        self.radii = np.array([max(w / 2 - 1.1, 0.4), max(d / 2 - 1.1, 0.4)])
+        self.reach = 0.7 * np.array([w / 2 - 0.3, d / 2 - 0.3])   # look across the room
+        scale = rng.uniform(0.45, 1.0)
+        self.radii = scale * np.array([max(w / 2 - 1.2, 0.4), max(d / 2 - 1.2, 0.4)])
         self.perimeter = np.pi * (3 * self.radii.sum() - np.sqrt(
             (3 * self.radii[0] + self.radii[1]) * (self.radii[0] + 3 * self.radii[1])))
         self.omega = speed / (self.perimeter / (2 * np.pi))
@@ -93,7 +95,7 @@ class _HandheldPath:
         position = np.concatenate([xy, z[..., None]], -1)
         # Look across the room: towards a point ahead of and opposite to the walker.
         ahead = a + self.direction * (np.pi * self.target_offset + self._wave(2, t, 0.6))
-        target_xy = self.center + 0.5 * self.radii * np.stack([np.cos(ahead), np.sin(ahead)], -1)
+        target_xy = self.center + self.reach * np.stack([np.cos(ahead), np.sin(ahead)], -1)
         target_z = 0.6 + self._wave(3, t, 0.3)
         forward = np.concatenate([target_xy, target_z[..., None]], -1) - position
         roll = self._wave(4, t, np.radians(3.0), freqs=(0.7, 1.3, 2.1))
@@ -162,11 +164,17 @@ def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
         rotations, positions = pose(times, duration)
         return Trajectory(style, times, rotations, positions, smooth=True,
                           pose_fn=lambda t: pose(t, duration))
-    for _attempt in range(20):
+    # Keep at least 0.6 m from furniture if some path allows it, else at least 0.15 m.
+    candidates = []
+    for _attempt in range(30):
         path = _HandheldPath(room, rng)
         rotations, positions = path.pose(times)
-        if not any(room.contains_camera(p) for p in positions):
+        clearance = next((m for m in (0.6, 0.15) if not any(
+            room.contains_camera(p, margin=m) for p in positions)), 0.0)
+        candidates.append((clearance, path, rotations, positions))
+        if clearance >= 0.6:
             break
+    _, path, rotations, positions = max(candidates, key=lambda c: c[0])
     return Trajectory(style, times, rotations, positions, smooth=True, pose_fn=path.pose)
 
 

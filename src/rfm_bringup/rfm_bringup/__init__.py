@@ -1,0 +1,1 @@
+"""rfm bringup: the rfm command line (sim, play, record) and, later, launch files."""

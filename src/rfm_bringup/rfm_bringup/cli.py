@@ -1,0 +1,269 @@
+"""The rfm command line.
+
+    rfm sim OUT [--seed N --style plain|textured --capture handheld|sparse|orbit ...]
+    rfm sim-suite DIR [--count 20 --first-seed 1000 --jobs 2 ...]
+    rfm play BAG [--rate R --start-offset S --loop --topics T ... --remap FROM:=TO ...]
+    rfm record OUT [--topics T ...]
+    rfm preview BAG OUT.png [--frames 4]
+
+`sim` needs no ROS; `play` and `record` start rclpy nodes.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+__all__ = ['main', 'suite_configs']
+
+
+def _size(text: str) -> tuple:
+    try:
+        w, h = (int(v) for v in text.lower().split('x'))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"size must look like 320x240, got '{text}'") from None
+    return w, h
+
+
+def _add_scene_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument('--frames', type=int, default=100, help='frames per capture (default 100)')
+    p.add_argument('--fps', type=float, default=30.0,
+                   help='frame rate of handheld/orbit captures (default 30)')
+    p.add_argument('--size', type=_size, default=(320, 240), help='WIDTHxHEIGHT (default 320x240)')
+    p.add_argument('--hfov', type=float, default=70.0, help='horizontal field of view, deg')
+    p.add_argument('--imu-rate', type=float, default=200.0, help='IMU rate, Hz (default 200)')
+    p.add_argument('--depth-encoding', choices=('16UC1', '32FC1'), default='16UC1',
+                   help='depth image encoding: 16UC1 in mm (default) or 32FC1 in m')
+    p.add_argument('--color-noise', type=float, default=2.0,
+                   help='std of colour noise in 8-bit levels (default 2; 0 makes smaller bags)')
+    p.add_argument('--force', action='store_true', help='overwrite existing output')
+
+
+def _config(args, seed, style, capture):
+    from rfm_core.sim.capture import CaptureConfig  # noqa: PLC0415
+    from rfm_core.sim.render import NoiseModel  # noqa: PLC0415
+    return CaptureConfig(seed=seed, room_style=style, capture=capture, frames=args.frames,
+                         fps=args.fps, width=args.size[0], height=args.size[1],
+                         hfov_deg=args.hfov, imu_rate_hz=args.imu_rate,
+                         depth_encoding=args.depth_encoding,
+                         noise=NoiseModel(color_sigma=args.color_noise))
+
+
+def _prepare(path: Path, force: bool) -> None:
+    if path.exists():
+        if not force:
+            raise SystemExit(f'rfm: {path} exists; pass --force to overwrite it')
+        shutil.rmtree(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+
+
+def _write_scene(config, path: str) -> dict:
+    from rfm_core.sim.capture import Capture  # noqa: PLC0415
+    start = time.perf_counter()
+    summary = Capture(config).write_bag(path)
+    summary['seconds'] = round(time.perf_counter() - start, 2)
+    return summary
+
+
+def cmd_sim(args) -> int:
+    out = Path(args.output)
+    _prepare(out, args.force)
+    config = _config(args, args.seed, args.style, args.capture)
+
+    def progress(done, total):
+        if sys.stderr.isatty() or done == total:
+            sys.stderr.write(f'\r[rfm sim] rendered {done}/{total} frames')
+            sys.stderr.flush()
+    from rfm_core.sim.capture import Capture  # noqa: PLC0415
+    capture = Capture(config)
+    summary = capture.write_bag(out, progress=progress)
+    sys.stderr.write('\n')
+    size = sum(f.stat().st_size for f in out.iterdir())
+    print(f'wrote {out} ({size / 1e6:.1f} MB): {config.frames} frames of a {config.room_style} '
+          f'room with {summary["objects"]} objects, {config.capture} capture')
+    return 0
+
+
+def suite_configs(args) -> list:
+    """The scenes of a suite: seeds first_seed.., alternating plain/textured rooms and
+    handheld/sparse captures (every fourth scene sparse, so half of them are plain)."""
+    configs = []
+    for i in range(args.count):
+        style = 'plain' if i % 2 == 0 else 'textured'
+        capture = 'sparse' if i % 4 in (1, 2) else 'handheld'
+        configs.append((f'scene_{i:03d}_{style}_{capture}',
+                        _config(args, args.first_seed + i, style, capture)))
+    return configs
+
+
+def cmd_sim_suite(args) -> int:
+    out = Path(args.output)
+    _prepare(out, args.force)
+    out.mkdir(parents=True)
+    configs = suite_configs(args)
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        futures = [(name, cfg, pool.submit(_write_scene, cfg, str(out / name)))
+                   for name, cfg in configs]
+        scenes = []
+        for name, cfg, future in futures:
+            summary = future.result()
+            scenes.append({'name': name, 'path': name, 'config': json.loads(cfg.to_json()),
+                           'objects': summary['objects']})
+            print(f'[rfm sim-suite] {name}: {summary["objects"]} objects, {summary["seconds"]} s')
+    (out / 'suite.json').write_text(json.dumps({'scenes': scenes}, indent=1))
+    print(f'wrote {len(scenes)} scenes to {out}')
+    return 0
+
+
+def cmd_play(args) -> int:
+    import rclpy  # noqa: PLC0415
+    from rclpy.executors import ExternalShutdownException  # noqa: PLC0415
+
+    from rfm_bringup.player import BagPlayer, PlayOptions  # noqa: PLC0415
+    remaps = {}
+    for item in args.remap or []:
+        if ':=' not in item:
+            raise SystemExit(f"rfm: --remap takes FROM:=TO, got '{item}'")
+        old, new = item.split(':=', 1)
+        remaps[old] = new
+    options = PlayOptions(rate=args.rate, start_offset=args.start_offset, loop=args.loop,
+                          topics=args.topics or [], remaps=remaps, clock=not args.no_clock,
+                          delay=args.delay, progress=None if not args.quiet else False)
+    if not Path(args.bag).exists():
+        raise SystemExit(f'rfm: no bag at {args.bag}')
+    rclpy.init()
+    player = None
+    try:
+        player = BagPlayer(args.bag, options)
+        player.play()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if player is not None:
+            player.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def cmd_record(args) -> int:
+    import rclpy  # noqa: PLC0415
+    from rclpy.executors import ExternalShutdownException  # noqa: PLC0415
+
+    from rfm_bringup.recorder import BagRecorder  # noqa: PLC0415
+    out = Path(args.output)
+    _prepare(out, args.force)
+    rclpy.init()
+    recorder = None
+    try:
+        recorder = BagRecorder(out, topics=args.topics or ())
+        rclpy.spin(recorder)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if recorder is not None:
+            counts = recorder.close()
+            print(f'wrote {out}: ' + ', '.join(f'{t} {n}' for t, n in sorted(counts.items())))
+            recorder.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+def cmd_preview(args) -> int:
+    """A contact sheet (colour | depth) of evenly spaced frames of a bag, as PNG."""
+    import numpy as np  # noqa: PLC0415
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415
+
+    from rfm_core.io.images import depth_to_meters, image_to_rgb  # noqa: PLC0415
+    from rfm_core.io.png import write_png  # noqa: PLC0415
+    from rfm_core.sim.capture import TOPICS  # noqa: PLC0415
+
+    color_topic = args.color_topic or TOPICS['color']
+    depth_topic = args.depth_topic or TOPICS['depth']
+    frames = {color_topic: [], depth_topic: []}
+    with AnyReader([Path(args.bag)]) as reader:
+        conns = [c for c in reader.connections if c.topic in frames]
+        for conn, _, raw in reader.messages(connections=conns):
+            frames[conn.topic].append((conn.msgtype, raw))
+    colors = frames[color_topic]
+    if not colors:
+        raise SystemExit(f'rfm: no {color_topic} in {args.bag}')
+    picks = np.linspace(0, len(colors) - 1, min(args.frames, len(colors))).round().astype(int)
+    rows = []
+    with AnyReader([Path(args.bag)]) as reader:
+        for i in picks:
+            rgb = image_to_rgb(reader.deserialize(colors[i][1], colors[i][0]))
+            row = [rgb]
+            if i < len(frames[depth_topic]):
+                msgtype, raw = frames[depth_topic][i]
+                depth = np.nan_to_num(depth_to_meters(reader.deserialize(raw, msgtype)), nan=0.0)
+                grey = (np.clip(depth / args.max_depth, 0, 1) * 255).astype(np.uint8)
+                row.append(np.repeat(grey[..., None], 3, axis=2))
+            rows.append(np.concatenate(row, axis=1))
+    write_png(args.output, np.concatenate(rows, axis=0))
+    print(f'wrote {args.output}: frames {picks.tolist()} of {len(colors)}')
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog='rfm', description='rfm: Rooms from Motion for ROS 2')
+    sub = parser.add_subparsers(dest='command', required=True)
+
+    p = sub.add_parser('sim', help='render a synthetic RGB-D capture of a room into a bag')
+    p.add_argument('output', help='bag directory to create')
+    p.add_argument('--seed', type=int, default=0)
+    p.add_argument('--style', choices=('plain', 'textured'), default='plain',
+                   help='plain-painted (default) or textured room')
+    p.add_argument('--capture', choices=('handheld', 'sparse', 'orbit'), default='handheld')
+    _add_scene_options(p)
+    p.set_defaults(func=cmd_sim)
+
+    p = sub.add_parser('sim-suite', help='render a suite of scenes (mixed styles and captures)')
+    p.add_argument('output', help='directory to create, one bag per scene plus suite.json')
+    p.add_argument('--count', type=int, default=20)
+    p.add_argument('--first-seed', type=int, default=1000,
+                   help='seed of the first scene (default 1000: disjoint from training seeds)')
+    p.add_argument('--jobs', type=int, default=1, help='scenes rendered in parallel')
+    _add_scene_options(p)
+    p.set_defaults(func=cmd_sim_suite)
+
+    p = sub.add_parser('play', help='play a bag with rclpy (raw CDR, recorded QoS, /clock)')
+    p.add_argument('bag')
+    p.add_argument('--rate', type=float, default=1.0, help='playback speed factor')
+    p.add_argument('--start-offset', type=float, default=0.0, help='start this many s into the bag')
+    p.add_argument('--loop', action='store_true', help='play again when the bag ends')
+    p.add_argument('--topics', nargs='+', help='play only these topics')
+    p.add_argument('--remap', nargs='+', metavar='FROM:=TO', help='publish FROM as TO')
+    p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
+    p.add_argument('--delay', type=float, default=0.0,
+                   help='seconds to wait before playing (lets subscribers connect)')
+    p.add_argument('--quiet', action='store_true', help='no progress line')
+    p.set_defaults(func=cmd_play)
+
+    p = sub.add_parser('preview', help='write a PNG contact sheet (colour | depth) of a bag')
+    p.add_argument('bag')
+    p.add_argument('output', help='PNG file to write')
+    p.add_argument('--frames', type=int, default=4, help='frames to show (default 4)')
+    p.add_argument('--color-topic', help=f"default {'/camera/color/image_raw'}")
+    p.add_argument('--depth-topic', help=f"default {'/camera/depth/image_raw'}")
+    p.add_argument('--max-depth', type=float, default=6.0, help='depth shown as white (m)')
+    p.set_defaults(func=cmd_preview)
+
+    p = sub.add_parser('record', help='record topics to an MCAP bag until Ctrl-C')
+    p.add_argument('output', help='bag directory to create')
+    p.add_argument('--topics', nargs='+', help='topics to record (default: all)')
+    p.add_argument('--force', action='store_true', help='overwrite existing output')
+    p.set_defaults(func=cmd_record)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    return args.func(args)
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,158 @@
+"""`rfm play`: publish a rosbag2 bag's raw CDR messages at their recorded timing.
+
+Like ``ros2 bag play`` (which the PyPI wheels lack): messages are published as the bytes
+stored in the bag, with the QoS they were recorded with (latched topics stay
+transient-local), optionally faster or slower, from an offset, looped, filtered and
+remapped, while ``/clock`` carries the bag time so nodes can run with ``use_sim_time``.
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+__all__ = ['PlayOptions', 'BagPlayer', 'message_type']
+
+
+def message_type(name: str):
+    """The Python class of a ROS message type name such as ``sensor_msgs/msg/Image``."""
+    parts = name.split('/')
+    if len(parts) == 2:                       # pkg/Type (ROS 1 style names)
+        parts = [parts[0], 'msg', parts[1]]
+    package, kind, type_name = parts
+    try:
+        return getattr(importlib.import_module(f'{package}.{kind}'), type_name)
+    except (ImportError, AttributeError) as exc:
+        raise LookupError(f"message type '{name}' is not installed ({exc}); "
+                          'source the workspace that provides it') from exc
+
+
+def recorded_qos(connection) -> QoSProfile:
+    """The QoS to publish a bag connection with: as offered when it was recorded."""
+    profiles = list(getattr(connection.ext, 'offered_qos_profiles', []) or [])
+    latched = any(getattr(q.durability, 'name', '') == 'TRANSIENT_LOCAL' for q in profiles)
+    best_effort = profiles and all(getattr(q.reliability, 'name', '') == 'BEST_EFFORT'
+                                   for q in profiles)
+    if latched:
+        return QoSProfile(history=HistoryPolicy.KEEP_LAST,
+                          depth=max(1, min(int(connection.msgcount or 1), 100)),
+                          reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                      reliability=(ReliabilityPolicy.BEST_EFFORT if best_effort
+                                   else ReliabilityPolicy.RELIABLE),
+                      durability=DurabilityPolicy.VOLATILE)
+
+
+@dataclass
+class PlayOptions:
+    rate: float = 1.0                 #: playback speed factor
+    start_offset: float = 0.0         #: seconds into the bag to start from
+    loop: bool = False                #: play again from the start when the bag ends
+    topics: list = field(default_factory=list)   #: play only these topics (empty: all)
+    remaps: dict = field(default_factory=dict)   #: bag topic -> published topic
+    clock: bool = True                #: publish /clock with the bag time
+    clock_hz: float = 100.0           #: /clock rate while waiting between messages
+    delay: float = 0.0                #: seconds to wait (for subscribers) before playing
+    progress: bool | None = None      #: status line on stderr (default: if a terminal)
+
+    def __post_init__(self):
+        if self.rate <= 0:
+            raise ValueError('rate must be > 0')
+        if self.start_offset < 0 or self.delay < 0:
+            raise ValueError('start offset and delay must be >= 0')
+
+
+class BagPlayer(Node):
+    """Plays one bag; call :meth:`play` (blocks until the bag ends, or forever with loop)."""
+
+    def __init__(self, path, options: PlayOptions | None = None, node_name: str = 'rfm_player'):
+        super().__init__(node_name)
+        from rosbags.highlevel import AnyReader  # noqa: PLC0415
+
+        self.options = options or PlayOptions()
+        self.path = path = Path(path)
+        self._reader_type = AnyReader
+        self.published: dict = {}
+        with AnyReader([path]) as reader:
+            connections = [c for c in reader.connections
+                           if not self.options.topics or c.topic in self.options.topics]
+            missing = set(self.options.topics) - {c.topic for c in reader.connections}
+            if missing:
+                self.get_logger().warning(f'topics not in the bag: {sorted(missing)}')
+            self.start_ns, self.end_ns = reader.start_time, reader.end_time
+        self._bag_publishers = {}
+        for c in connections:
+            if c.topic in self._bag_publishers:
+                continue
+            topic = self.options.remaps.get(c.topic, c.topic)
+            try:
+                msg_type = message_type(c.msgtype)
+            except LookupError as exc:
+                self.get_logger().error(f'skipping {c.topic}: {exc}')
+                continue
+            self._bag_publishers[c.topic] = self.create_publisher(msg_type, topic, recorded_qos(c))
+            self.published[topic] = 0
+        self._topics = set(self._bag_publishers)
+        self._clock_pub = None
+        if self.options.clock:
+            from rosgraph_msgs.msg import Clock  # noqa: PLC0415
+            self._clock_type = Clock
+            self._clock_pub = self.create_publisher(
+                Clock, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        self.get_logger().info(
+            f'playing {path}: {len(self._topics)} topics, '
+            f'{(self.end_ns - self.start_ns) / 1e9:.1f} s at {self.options.rate}x')
+
+    def _publish_clock(self, bag_ns: int) -> None:
+        if self._clock_pub is not None:
+            msg = self._clock_type()
+            msg.clock.sec, msg.clock.nanosec = divmod(int(bag_ns), 1_000_000_000)
+            self._clock_pub.publish(msg)
+
+    def play(self) -> dict:
+        """Publish the bag; returns the number of messages published per topic."""
+        opts = self.options
+        show = sys.stderr.isatty() if opts.progress is None else opts.progress
+        first = self.start_ns + int(opts.start_offset * 1e9)
+        duration = max(self.end_ns - first, 1)
+        if opts.delay:
+            time.sleep(opts.delay)
+        while True:
+            wall0 = time.monotonic()
+            last_clock = 0.0
+            last_progress = 0.0
+            with self._reader_type([self.path]) as reader:
+                conns = [c for c in reader.connections if c.topic in self._topics]
+                for conn, stamp, raw in reader.messages(connections=conns, start=first):
+                    target = wall0 + (stamp - first) / 1e9 / opts.rate
+                    while True:
+                        now = time.monotonic()
+                        if now >= target:
+                            break
+                        if now - last_clock >= 1.0 / opts.clock_hz:
+                            self._publish_clock(first + (now - wall0) * opts.rate * 1e9)
+                            last_clock = now
+                        time.sleep(min(target - now, 1.0 / opts.clock_hz))
+                    self._publish_clock(stamp)
+                    last_clock = time.monotonic()
+                    self._bag_publishers[conn.topic].publish(bytes(raw))
+                    self.published[opts.remaps.get(conn.topic, conn.topic)] += 1
+                    if show and last_clock - last_progress > 0.5:
+                        last_progress = last_clock
+                        done = (stamp - first) / duration
+                        sys.stderr.write(f'\r[rfm play] {(stamp - first) / 1e9:7.2f} / '
+                                         f'{duration / 1e9:.2f} s ({100 * done:3.0f}%) '
+                                         f'{sum(self.published.values())} msgs')
+                        sys.stderr.flush()
+            if show:
+                sys.stderr.write('\n')
+            if not opts.loop:
+                break
+        self.get_logger().info(f'done: {sum(self.published.values())} messages')
+        return dict(self.published)
