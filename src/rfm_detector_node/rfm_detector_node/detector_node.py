@@ -1,17 +1,325 @@
 """rfm detector node: per-frame metric 3D boxes and embeddings (paper section 3.1).
 
-Thin rclpy wrapper: the algorithms live in rfm_core (no ROS there).
+Subscribes (all remappable; sensor-data QoS, so reliable and best-effort publishers connect):
+  rgb/image (sensor_msgs/Image: rgb8, bgr8, mono8), rgb/camera_info, depth/image (16UC1 mm
+  or 32FC1 m, registered to rgb; when the backend needs depth), imu (sensor_msgs/Imu, for
+  gravity), ground_truth/detections (rfm_msgs/FrameDetections; backend ground_truth only).
+Publishes:
+  rfm/detections (rfm_msgs/FrameDetections), rfm/detection_markers (MarkerArray),
+  /diagnostics (diagnostic_msgs/DiagnosticArray: counters, latency).
+
+Frames are processed by one worker thread; a frame arriving while it is busy replaces the
+waiting one (newest wins) and is counted as dropped, so nothing queues without bound.
+Thin rclpy wrapper: the algorithms live in rfm_core.detection.
 """
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rfm_msgs.msg import FrameDetections
+from sensor_msgs.msg import CameraInfo, Image, Imu
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+from rfm_core.detection import make_detector
+from rfm_core.detection.base import DetectorInput
+from rfm_core.detection.gravity import GravityFilter
+from rfm_core.geometry import box_corners
+from rfm_core.io.images import depth_to_meters, image_to_rgb
+from rfm_core.io.messages import frame_detections_from_msg, frame_detections_to_msg, stamp_to_ns
+from rfm_core.io.sync import ApproximateTimeSynchronizer
+from rfm_core.observations import CameraIntrinsics
+
+_EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
+          (0, 4), (1, 5), (2, 6), (3, 7)]
+_TIME_JUMP_NS = 2_000_000_000      # a stamp this much older than the last one: bag looped
+
+
+def _describe(text, lo=None, hi=None, step=None, integer=False):
+    desc = ParameterDescriptor(description=text)
+    if lo is not None:
+        if integer:
+            desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(step or 1))]
+        else:
+            desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
+                                                            step=float(step or 0.0))]
+    return desc
 
 
 class DetectorNode(Node):
 
-    def __init__(self):
-        super().__init__('detector')
-        self.get_logger().info('detector ready')
+    def __init__(self, **kwargs):
+        super().__init__('detector', **kwargs)
+        p = self.declare_parameter
+        self.backend = p('backend', 'depth_clusters', _describe(
+            'Detector: depth_clusters (RGB-D, no learning), ground_truth (simulator ground '
+            'truth + noise model, for evaluation only)')).value
+        self.score_threshold = p('score_threshold', 0.25, _describe(
+            'Keep detections scoring at least this (paper: 0.25)', 0.0, 1.0)).value
+        self.max_detections = p('max_detections', 100, _describe(
+            'At most this many detections per frame', 1, 1000, integer=True)).value
+        self.stride = p('stride', 2, _describe(
+            'depth_clusters input resolution: use every n-th pixel', 1, 8, integer=True)).value
+        self.gt_preset = p('ground_truth_preset', 'rgbd', _describe(
+            'ground_truth noise preset: perfect, rgbd, rgb')).value
+        self.gt_seed = p('ground_truth_seed', 0, _describe('ground_truth noise seed')).value
+        self.device = p('device', 'cpu', _describe('Torch device for learned backends: cpu or cuda')).value
+        self.every_nth = p('every_nth_frame', 1, _describe(
+            'Process one synchronised frame in n', 1, 100, integer=True)).value
+        queue = p('queue_size', 10, _describe('Synchroniser queue per input', 1, 100, integer=True)).value
+        slop = p('sync_slop_s', 0.05, _describe(
+            'Max stamp difference between image, camera_info and depth (s)', 0.0, 1.0)).value
+        self.gravity_source = p('gravity_source', 'imu', _describe(
+            "Gravity from 'imu' (low-pass of the accelerometer) or 'parameter'")).value
+        gravity = p('gravity', [0.0, 1.0, 0.0], _describe(
+            'Gravity ("down") in the camera optical frame when gravity_source is parameter')).value
+        tau = p('imu_tau_s', 0.5, _describe('Accelerometer low-pass time constant (s)', 0.01, 10.0)).value
+        self.imu_max_age_s = p('imu_max_age_s', 1.0, _describe(
+            'Drop frames when the last IMU sample is older than this (s)', 0.01, 60.0)).value
+        self.imu_wait_s = p('imu_wait_s', 0.05, _describe(
+            'Wait up to this long for IMU samples up to a frame\'s stamp (s)', 0.0, 1.0)).value
+        self.publish_markers = p('publish_markers', True, _describe(
+            'Publish rfm/detection_markers (boxes as line lists with score labels)')).value
+        self.diagnostics_period = p('diagnostics_period_s', 1.0, _describe(
+            'Period of /diagnostics (s)', 0.1, 60.0)).value
+
+        options = {'score_threshold': self.score_threshold, 'max_detections': self.max_detections}
+        if self.backend == 'depth_clusters':
+            options['stride'] = self.stride
+        elif self.backend == 'ground_truth':
+            options.update(preset=self.gt_preset, seed=self.gt_seed)
+        self.detector = make_detector(self.backend, **options)
+        self.fixed_gravity = np.asarray(gravity, dtype=np.float64)
+        if self.gravity_source not in ('imu', 'parameter'):
+            raise ValueError("gravity_source must be 'imu' or 'parameter'")
+        if self.gravity_source == 'parameter' and np.linalg.norm(self.fixed_gravity) < 1e-6:
+            raise ValueError('gravity parameter must be a non-zero 3-vector')
+        self.gravity_filter = GravityFilter(tau_s=tau)
+
+        self.counts = dict(received=0, processed=0, published=0, dropped_busy=0,
+                           dropped_invalid=0, dropped_no_gravity=0, dropped_out_of_order=0,
+                           skipped_nth=0)
+        self.last_latency_ms = float('nan')
+        self.last_detections = 0
+        self._last_stamp = None
+        self._last_image_stamp = None
+        self._synced = 0
+        self._pending = None
+        self._cv = threading.Condition()
+        self._stop = False
+
+        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+        self.pub = self.create_publisher(FrameDetections, 'rfm/detections', reliable)
+        self.marker_pub = (self.create_publisher(MarkerArray, 'rfm/detection_markers', reliable)
+                           if self.publish_markers else None)
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        sensor = qos_profile_sensor_data
+        if self.backend == 'ground_truth':
+            self.create_subscription(FrameDetections, 'ground_truth/detections',
+                                     self._on_ground_truth, QoSProfile(depth=50))
+            inputs = 'ground_truth/detections'
+        else:
+            self.uses_depth = self.detector.needs_depth
+            n = 3 if self.uses_depth else 2
+            self.sync = ApproximateTimeSynchronizer(n, int(slop * 1e9), queue, self._on_synced)
+            self.create_subscription(Image, 'rgb/image', lambda m: self._add(0, m), sensor)
+            self.create_subscription(CameraInfo, 'rgb/camera_info', lambda m: self._add(1, m), sensor)
+            if self.uses_depth:
+                self.create_subscription(Image, 'depth/image', lambda m: self._add(2, m), sensor)
+            inputs = 'rgb/image, rgb/camera_info' + (', depth/image' if self.uses_depth else '')
+        if self.gravity_source == 'imu' and self.backend != 'ground_truth':
+            self.create_subscription(Imu, 'imu', self._on_imu, sensor)
+            inputs += ', imu'
+        self.create_timer(self.diagnostics_period, self._publish_diagnostics)
+        self._worker = threading.Thread(target=self._work, name='detector_worker', daemon=True)
+        self._worker.start()
+        self.get_logger().info(f'detector ready: backend={self.backend}, inputs: {inputs}')
+
+    # ------------------------------------------------------------------ inputs
+
+    def _warn(self, text: str) -> None:
+        self.get_logger().warning(text, throttle_duration_sec=5.0)
+
+    def _add(self, index: int, msg) -> None:
+        stamp = stamp_to_ns(msg.header.stamp)
+        if index == 0:
+            self.counts['received'] += 1
+            last = self._last_image_stamp
+            if last is not None and stamp <= last:
+                if last - stamp > _TIME_JUMP_NS:
+                    self.get_logger().info('time jumped backwards (bag loop?): resetting')
+                    self.sync.reset()
+                    self.gravity_filter = GravityFilter(tau_s=self.gravity_filter.tau_s)
+                    self._last_stamp = None
+                else:
+                    self.counts['dropped_out_of_order'] += 1
+                    self._warn(f'image dropped: stamp {stamp} is not newer than the last ({last})')
+                    return
+            self._last_image_stamp = stamp
+        self.sync.add(index, stamp, msg)
+
+    def _on_imu(self, msg: Imu) -> None:
+        a = msg.linear_acceleration
+        if not self.gravity_filter.add(stamp_to_ns(msg.header.stamp), [a.x, a.y, a.z]):
+            self._warn('IMU sample dropped: not finite, not near 1 g, or out of order')
+
+    def _on_synced(self, *msgs) -> None:
+        self._synced += 1
+        if (self._synced - 1) % self.every_nth:
+            self.counts['skipped_nth'] += 1
+            return
+        self._submit(('images', msgs))
+
+    def _on_ground_truth(self, msg: FrameDetections) -> None:
+        self.counts['received'] += 1
+        self._submit(('ground_truth', msg))
+
+    def _submit(self, job) -> None:
+        with self._cv:
+            if self._pending is not None:
+                self.counts['dropped_busy'] += 1      # newest wins
+            self._pending = job
+            self._cv.notify()
+
+    # ------------------------------------------------------------------ processing
+
+    def _work(self) -> None:
+        while True:
+            with self._cv:
+                while self._pending is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                job, self._pending = self._pending, None
+            start = time.perf_counter()
+            try:
+                obs = self._process(*job)
+            except (ValueError, RuntimeError) as exc:
+                self.counts['dropped_invalid'] += 1
+                self._warn(f'frame dropped: {exc}')
+                continue
+            except Exception as exc:  # noqa: BLE001 - never let a bad frame kill the node
+                self.counts['dropped_invalid'] += 1
+                self.get_logger().error(f'frame dropped, unexpected error: {exc!r}',
+                                        throttle_duration_sec=5.0)
+                continue
+            if obs is None:
+                continue
+            self.counts['processed'] += 1
+            self.last_latency_ms = 1e3 * (time.perf_counter() - start)
+            self.last_detections = len(obs)
+            try:
+                self.pub.publish(frame_detections_to_msg(obs))
+                self.counts['published'] += 1
+                if self.marker_pub is not None:
+                    self.marker_pub.publish(self._markers(obs))
+            except Exception as exc:  # noqa: BLE001 - e.g. publishing during shutdown
+                self.get_logger().debug(f'publish failed: {exc!r}')
+
+    def _check_order(self, stamp_ns: int) -> bool:
+        last = self._last_stamp
+        if last is not None and stamp_ns <= last:
+            if last - stamp_ns > _TIME_JUMP_NS:
+                self.get_logger().info('time jumped backwards (bag loop?): resetting')
+                self.gravity_filter = GravityFilter(tau_s=self.gravity_filter.tau_s)
+            else:
+                self.counts['dropped_out_of_order'] += 1
+                self._warn(f'frame dropped: stamp {stamp_ns} is not newer than the last ({last})')
+                return False
+        self._last_stamp = stamp_ns
+        return True
+
+    def _process(self, kind, payload):
+        if kind == 'ground_truth':
+            truth = frame_detections_from_msg(payload)
+            if not self._check_order(truth.stamp_ns):
+                return None
+            return self.detector.perturb(truth)
+        rgb_msg, info, depth_msg = (payload + (None,))[:3]
+        stamp = stamp_to_ns(rgb_msg.header.stamp)
+        if not self._check_order(stamp):
+            return None
+        k = info.k
+        intrinsics = CameraIntrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
+                                      int(info.width), int(info.height))
+        if self.gravity_source == 'imu':
+            # IMU and images travel on different topics: give the IMU a moment to catch up.
+            deadline = time.monotonic() + self.imu_wait_s
+            while time.monotonic() < deadline and (self.gravity_filter.last_stamp_ns or 0) < stamp:
+                time.sleep(0.002)
+            if self.gravity_filter.age_s(stamp) > self.imu_max_age_s:
+                self.counts['dropped_no_gravity'] += 1
+                self._warn('frame dropped: no recent IMU data on "imu"; remap the IMU topic, '
+                           'or set gravity_source:=parameter with gravity:=[gx, gy, gz]')
+                return None
+            gravity = self.gravity_filter.gravity()
+        else:
+            gravity = self.fixed_gravity / np.linalg.norm(self.fixed_gravity)
+        frame = DetectorInput(stamp, rgb_msg.header.frame_id, intrinsics, gravity,
+                              rgb=image_to_rgb(rgb_msg),
+                              depth=depth_to_meters(depth_msg) if depth_msg is not None else None)
+        return self.detector.detect(frame)
+
+    # ------------------------------------------------------------------ outputs
+
+    def _markers(self, obs) -> MarkerArray:
+        out = MarkerArray()
+        clear = Marker()
+        clear.action = Marker.DELETEALL
+        out.markers.append(clear)
+        camera_from_aligned = obs.rotation_aligned_from_camera.T
+        stamp = rclpy.time.Time(nanoseconds=obs.stamp_ns).to_msg()
+        for i, (box, score) in enumerate(zip(obs.boxes, obs.scores)):
+            corners = box_corners(box) @ camera_from_aligned.T
+            lines = Marker()
+            lines.header.frame_id, lines.header.stamp = obs.frame_id, stamp
+            lines.ns, lines.id, lines.type = 'boxes', i, Marker.LINE_LIST
+            lines.scale.x = 0.01
+            lines.pose.orientation.w = 1.0
+            lines.color = ColorRGBA(r=1.0 - float(score), g=float(score), b=0.2, a=1.0)
+            lines.points = [Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
+                            for a, b in _EDGES for c in (corners[a], corners[b])]
+            text = Marker()
+            text.header = lines.header
+            text.ns, text.id, text.type = 'scores', i, Marker.TEXT_VIEW_FACING
+            top = corners[4:].mean(0)
+            text.pose.position = Point(x=float(top[0]), y=float(top[1]), z=float(top[2]))
+            text.pose.orientation.w = 1.0
+            text.scale.z = 0.08
+            text.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
+            text.text = f'{obs.labels[i] + " " if obs.labels[i] else ""}{score:.2f}'
+            out.markers += [lines, text]
+        return out
+
+    def _publish_diagnostics(self) -> None:
+        status = DiagnosticStatus(name='rfm detector', hardware_id=self.backend)
+        dropped = self.counts['dropped_invalid'] + self.counts['dropped_no_gravity']
+        status.level = DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK
+        status.message = f'{self.counts["published"]} frames published'
+        values = dict(self.counts)
+        values['dropped_unsynchronised'] = self.sync.stats.dropped if self.backend != 'ground_truth' else 0
+        values['last_latency_ms'] = round(self.last_latency_ms, 1)
+        values['last_detections'] = self.last_detections
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.status = [status]
+        self.diag_pub.publish(msg)
+
+    def destroy_node(self):
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+        return super().destroy_node()
 
 
 def main(args=None):

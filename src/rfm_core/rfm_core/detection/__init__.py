@@ -1,0 +1,26 @@
+"""Detectors (paper section 3.1): per-frame metric 3D boxes with scores and embeddings.
+
+Backends:
+
+- ``depth_clusters`` — RGB-D, no learning (the default for RGB-D cameras);
+- ``ground_truth`` — simulator ground truth with a noise model, for evaluating the back end;
+- ``cutr`` — Cubify Transformer (PyTorch), loading the official checkpoints from a path.
+"""
+from __future__ import annotations
+
+from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput
+
+__all__ = ['BACKENDS', 'Detector', 'DetectorConfig', 'DetectorInput', 'make_detector']
+
+BACKENDS = ('depth_clusters', 'ground_truth')
+
+
+def make_detector(backend: str, **options) -> Detector:
+    """A detector by name; ``options`` are fields of that backend's config dataclass."""
+    if backend == 'depth_clusters':
+        from rfm_core.detection.depth_clusters import DepthClustersConfig, DepthClustersDetector
+        return DepthClustersDetector(DepthClustersConfig(**options))
+    if backend == 'ground_truth':
+        from rfm_core.detection.ground_truth import GroundTruthConfig, GroundTruthDetector
+        return GroundTruthDetector(GroundTruthConfig(**options))
+    raise ValueError(f'unknown detector backend {backend!r}; choose one of {BACKENDS}')

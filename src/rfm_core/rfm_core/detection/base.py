@@ -1,0 +1,82 @@
+"""The detector interface (paper section 3.1: the "keypoint detector" of Rooms from Motion).
+
+A detector turns one image (and optionally its registered depth) into metric,
+gravity-aligned 3D boxes with scores and appearance embeddings, in the frame's
+gravity-aligned camera frame (see :mod:`rfm_core.geometry`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rfm_core.observations import CameraIntrinsics, FrameObservations
+
+__all__ = ['DetectorInput', 'DetectorConfig', 'Detector', 'finalize']
+
+
+@dataclass
+class DetectorInput:
+    """One frame for a detector. Arrays are (H, W[, 3]); depth in metres, NaN = missing."""
+
+    stamp_ns: int
+    frame_id: str
+    intrinsics: CameraIntrinsics
+    gravity_cam: np.ndarray               #: unit "down" in the camera optical frame
+    rgb: np.ndarray | None = None         #: (H, W, 3) uint8
+    depth: np.ndarray | None = None       #: (H, W) float32 metres, aligned to rgb
+
+    def validate(self, needs_depth: bool) -> None:
+        """Raise ValueError saying what is wrong with this input."""
+        h, w = self.intrinsics.height, self.intrinsics.width
+        if self.rgb is not None and self.rgb.shape[:2] != (h, w):
+            raise ValueError(f'image is {self.rgb.shape[1]}x{self.rgb.shape[0]} but camera_info '
+                             f'says {w}x{h}')
+        if needs_depth:
+            if self.depth is None:
+                raise ValueError('this backend needs a depth image (depth/image)')
+            if self.depth.shape != (h, w):
+                raise ValueError(f'depth is {self.depth.shape[1]}x{self.depth.shape[0]} but '
+                                 f'camera_info says {w}x{h}; depth must be registered to colour')
+            if not np.any(np.isfinite(self.depth)):
+                raise ValueError('depth image has no valid pixels')
+
+
+@dataclass
+class DetectorConfig:
+    """Settings common to every backend (paper defaults)."""
+
+    score_threshold: float = 0.25         #: paper: 0.25 on CA-1M
+    max_detections: int = 100
+
+
+class Detector:
+    """Base class: ``detect(frame) -> FrameObservations``."""
+
+    name = 'base'
+    needs_depth = False
+
+    def detect(self, frame: DetectorInput) -> FrameObservations:  # pragma: no cover
+        raise NotImplementedError
+
+
+def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, config: DetectorConfig,
+             backend: str, visibility=None, object_ids=None) -> FrameObservations:
+    """Threshold by score, keep the best ``max_detections``, package as FrameObservations."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    scores = np.asarray(scores, dtype=np.float32).reshape(-1)
+    keep = np.flatnonzero(scores >= config.score_threshold)
+    keep = keep[np.argsort(-scores[keep], kind='stable')][:config.max_detections]
+    embeddings = np.asarray(embeddings, dtype=np.float32)
+    n = len(boxes)
+    return FrameObservations(
+        stamp_ns=frame.stamp_ns, frame_id=frame.frame_id, intrinsics=frame.intrinsics,
+        gravity_cam=frame.gravity_cam, boxes=boxes[keep], scores=scores[keep],
+        labels=[labels[i] for i in keep],
+        embeddings=embeddings.reshape(n, -1)[keep] if n else np.zeros((0, 0), np.float32),
+        boxes_2d=np.asarray(boxes_2d, dtype=np.float32).reshape(-1, 4)[keep],
+        visibility=(np.asarray(visibility, np.float32)[keep] if visibility is not None
+                    else np.full(len(keep), -1.0, np.float32)),
+        object_ids=(np.asarray(object_ids, np.int64)[keep] if object_ids is not None
+                    else np.full(len(keep), -1, np.int64)),
+        backend=backend)

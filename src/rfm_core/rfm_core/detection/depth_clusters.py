@@ -1,0 +1,427 @@
+"""`depth_clusters`: 3D boxes from RGB-D without learning.
+
+1. Back-project the depth image (every ``stride``-th pixel) into the gravity-aligned camera
+   frame; estimate normals from neighbouring pixels.
+2. Remove room structure: the floor (lowest large upward-facing surface), the ceiling, and
+   walls — large vertical planes with (almost) nothing visible behind them, found by
+   RANSAC on the bird's-eye view.
+3. Cluster the remaining points by connectivity on a voxel grid; split clusters at support
+   surfaces (an upward-facing surface with points above it: small objects on tables).
+4. Fit a gravity-aligned box to each cluster: yaw from the minimum-area footprint, extents
+   from robust percentiles, completed amodally — down to the floor or support it stands
+   on, and back to the wall behind it when its far side cannot be seen.
+5. Score by support (points) and shape; describe each box by an embedding of its colours
+   (hue/value histograms, mean colour), sorted size and height above the floor.
+
+Works on any registered RGB-D stream with gravity; it never reads instance ids.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput, finalize
+from rfm_core.geometry import gravity_aligned_rotation
+from rfm_core.observations import FrameObservations
+
+__all__ = ['DepthClustersConfig', 'DepthClustersDetector', 'EMBEDDING_DIM']
+
+EMBEDDING_DIM = 24
+
+
+@dataclass
+class DepthClustersConfig(DetectorConfig):
+    stride: int = 2                       #: use every stride-th pixel (input resolution)
+    min_depth_m: float = 0.2
+    max_depth_m: float = 6.0
+    surface_tolerance_m: float = 0.04     #: floor / ceiling / wall inlier distance at 0 m ...
+    depth_noise_per_m2: float = 0.0       #: ... plus this x range^2 (depth error growth)
+    wall_min_height_m: float = 1.0        #: a wall spans at least this much vertically
+    wall_max_behind: float = 0.03         #: fraction of points allowed behind a wall
+    max_walls: int = 4
+    ransac_iterations: int = 120
+    voxel_m: float = 0.04                 #: clustering connectivity
+    min_cluster_points: int = 25          #: after striding
+    support_min_points: int = 20          #: upward-facing points that make a support surface
+    floor_snap_m: float = 0.3             #: extend boxes down to the floor within this
+    wall_snap_m: float = 1.0              #: extend unseen backs to a wall within this
+    default_depth_m: float = 0.4          #: amodal depth of a box whose back is unseen
+    seed: int = 0                         #: RANSAC sampling
+    extra: dict = field(default_factory=dict)
+
+
+def _normals(points: np.ndarray, step: int = 1) -> np.ndarray:
+    """Unit normals (h, w, 3) of an organised point image, NaN where undefined.
+
+    Central differences over ``step`` samples each side: a wider baseline keeps quantised
+    depth (steps of centimetres at a few metres) from tilting normals of grazing surfaces.
+    """
+    dx = np.full_like(points, np.nan)
+    dy = np.full_like(points, np.nan)
+    dx[:, step:-step] = points[:, 2 * step:] - points[:, :-2 * step]
+    dy[step:-step, :] = points[2 * step:, :] - points[:-2 * step, :]
+    n = np.cross(dx, dy)
+    norm = np.linalg.norm(n, axis=-1, keepdims=True)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        n = n / norm
+    # orient towards the camera (origin)
+    flip = np.sum(n * points, axis=-1) > 0
+    n[flip] *= -1
+    return n
+
+
+def _peak_height(z: np.ndarray, lowest: bool, min_count: int, bin_m: float = 0.02):
+    """Height of the lowest (or highest) histogram peak of z with at least min_count points."""
+    if len(z) < min_count:
+        return None
+    lo, hi = np.min(z), np.max(z)
+    bins = max(int(np.ceil((hi - lo) / bin_m)), 1)
+    counts, edges = np.histogram(z, bins=bins, range=(lo, lo + bins * bin_m))
+    smooth = counts + np.r_[0, counts[:-1]] + np.r_[counts[1:], 0]
+    hits = np.flatnonzero(smooth >= min_count)
+    if not len(hits):
+        return None
+    # from the first significant bin, climb to the top of its peak (noise tails come first)
+    j, step = (hits[0], 1) if lowest else (hits[-1], -1)
+    while 0 <= j + step < len(smooth) and smooth[j + step] > smooth[j]:
+        j += step
+    sel = (z >= edges[max(j - 1, 0)]) & (z < edges[min(j + 2, len(edges) - 1)])
+    return float(np.median(z[sel]))
+
+
+def _in_footprint(xy: np.ndarray, surface_xy: np.ndarray, margin: float) -> np.ndarray:
+    """Whether points lie inside the convex hull of a surface's points (grown by margin)."""
+    from scipy.spatial import Delaunay  # noqa: PLC0415
+
+    centre = surface_xy.mean(0)
+    rel = surface_xy - centre
+    grown = centre + rel * (1 + margin / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-6))
+    try:
+        return Delaunay(grown).find_simplex(xy) >= 0
+    except Exception:  # noqa: BLE001 - degenerate (collinear) surface
+        return np.zeros(len(xy), dtype=bool)
+
+
+class DepthClustersDetector(Detector):
+    name = 'depth_clusters'
+    needs_depth = True
+
+    def __init__(self, config: DepthClustersConfig | None = None):
+        self.config = config or DepthClustersConfig()
+
+    # ------------------------------------------------------------------ pipeline
+
+    def detect(self, frame: DetectorInput) -> FrameObservations:
+        cfg = self.config
+        frame.validate(needs_depth=True)
+        intr = frame.intrinsics
+        s = max(int(cfg.stride), 1)
+        depth = frame.depth[::s, ::s].astype(np.float32)
+        h, w = depth.shape
+        v, u = np.mgrid[0:h, 0:w]
+        u, v = u * s, v * s
+        valid = np.isfinite(depth) & (depth > cfg.min_depth_m) & (depth < cfg.max_depth_m)
+        z = np.where(valid, depth, np.nan)
+        cam = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], -1)
+        rot = gravity_aligned_rotation(frame.gravity_cam).astype(np.float32)
+        pts_img = cam @ rot.T                                    # (h, w, 3) gravity-aligned
+        normals_img = _normals(pts_img)
+        good = valid & np.all(np.isfinite(normals_img), axis=-1)
+        pts = pts_img[good]
+        nrm = normals_img[good]
+        pix = np.stack([v[good], u[good]], -1)                  # full-resolution pixel coords
+        empty = finalize(frame, [], [], [], np.zeros((0, EMBEDDING_DIM)), [], cfg, self.name)
+        if len(pts) < cfg.min_cluster_points:
+            return empty
+
+        structural, floor_z, ceiling_z, walls = self._structure(pts, nrm)
+        obj = ~structural
+        labels = self._clusters(pts[obj], nrm[obj])
+        obj_idx = np.flatnonzero(obj)
+        boxes, scores, embeds, boxes_2d = [], [], [], []
+        rgb = frame.rgb
+        for points, normals, pixels, support_z in self._split_supports(
+                pts[obj], nrm[obj], pix[obj_idx], labels):
+            fit = self._fit_box(points, normals, support_z, floor_z, walls)
+            if fit is None or self._is_structure_remnant(fit[0], normals, ceiling_z):
+                continue
+            box, score = fit
+            boxes.append(box)
+            scores.append(score)
+            colours = rgb[pixels[:, 0], pixels[:, 1]] if rgb is not None else None
+            embeds.append(self._embedding(colours, box, floor_z))
+            boxes_2d.append([pixels[:, 1].min() - s / 2, pixels[:, 0].min() - s / 2,
+                             pixels[:, 1].max() + s / 2, pixels[:, 0].max() + s / 2])
+        if not boxes:
+            return empty
+        return finalize(frame, boxes, scores, [''] * len(boxes), np.array(embeds), boxes_2d,
+                        cfg, self.name)
+
+    # ------------------------------------------------------------------ structure
+
+    def _structure(self, pts, nrm):
+        """Mask of floor / ceiling / wall points, the floor height (or None), walls."""
+        cfg = self.config
+        tol = cfg.surface_tolerance_m + cfg.depth_noise_per_m2 * np.sum(pts ** 2, axis=1)
+        z = pts[:, 2]
+        up = nrm[:, 2] > 0.9
+        down = nrm[:, 2] < -0.9
+        min_count = max(30, int(0.02 * len(pts)))
+        floor_z = _peak_height(z[up], lowest=True, min_count=min_count)
+        ceiling_z = _peak_height(z[down], lowest=False, min_count=min_count)
+        structural = np.zeros(len(pts), dtype=bool)
+        if floor_z is not None:
+            structural |= z < floor_z + tol
+        if ceiling_z is not None and (floor_z is None or ceiling_z > floor_z + 1.5):
+            structural |= z > ceiling_z - tol
+        walls = []
+        rng = np.random.default_rng(cfg.seed)
+        vertical = (np.abs(nrm[:, 2]) < 0.3) & ~structural
+        for _ in range(cfg.max_walls):
+            cand = np.flatnonzero(vertical & ~structural)
+            if len(cand) < max(50, 0.03 * len(pts)):
+                break
+            wall = self._find_wall(pts, nrm, cand, structural, rng, tol)
+            if wall is None:
+                break
+            normal, offset, inliers = wall
+            walls.append((normal, offset))
+            structural[inliers] = True
+        return structural, floor_z, ceiling_z, walls
+
+    @staticmethod
+    def _is_structure_remnant(box, normals, ceiling_z) -> bool:
+        """Pieces of wall or ceiling that survived plane removal: boxes reaching the
+        ceiling, or tall, long and paper-thin vertical slabs."""
+        top = box[2] + box[5] / 2
+        if ceiling_z is not None and top > ceiling_z - 0.1:
+            return True
+        thin, long = min(box[3], box[4]), max(box[3], box[4])
+        vertical = np.mean(np.abs(normals[:, 2]) < 0.3)
+        return bool(thin < 0.08 and long > 1.2 and box[5] > 1.2 and vertical > 0.8)
+
+    def _find_wall(self, pts, nrm, cand, structural, rng, tol_all):
+        cfg = self.config
+        if len(cand) > 2000:                    # score hypotheses on a sample
+            cand = np.sort(rng.choice(cand, 2000, replace=False))
+        scale = len(np.flatnonzero((np.abs(nrm[:, 2]) < 0.3) & ~structural)) / len(cand)
+        xy = pts[cand, :2]
+        n_xy = nrm[cand, :2]
+        k = cfg.ransac_iterations
+        i = rng.integers(len(cand), size=k)
+        j = rng.integers(len(cand), size=k)
+        d = xy[j] - xy[i]
+        length = np.linalg.norm(d, axis=1)
+        ok = length > 0.3
+        if not np.any(ok):
+            return None
+        i, d, length = i[ok], d[ok], length[ok]
+        normal = np.stack([-d[:, 1], d[:, 0]], -1) / length[:, None]      # (K, 2)
+        offset = np.sum(normal * xy[i], axis=1)                           # n . p = offset
+        tol = tol_all[cand][:, None]
+        dist = np.abs(xy @ normal.T - offset)                             # (P, K)
+        aligned = np.abs(n_xy @ normal.T) > 0.85
+        count = np.sum((dist < tol) & aligned, axis=0)
+        for best in np.argsort(-count)[:5]:
+            if count[best] * scale < max(50, 0.03 * len(pts)):
+                return None
+            inl = cand[(dist[:, best] < tol[:, 0]) & aligned[:, best]]
+            zr = np.percentile(pts[inl, 2], [5, 95])
+            if zr[1] - zr[0] < cfg.wall_min_height_m:
+                continue
+            # refit the line by least squares on the inliers
+            centre = pts[inl, :2].mean(0)
+            _, _, vt = np.linalg.svd(pts[inl, :2] - centre, full_matrices=False)
+            nb = vt[1]
+            ob = float(nb @ centre)
+            if ob < 0:                         # camera (origin) on the negative side
+                nb, ob = -nb, -ob
+            # a wall bounds the visible space: little lies behind it (beyond the plane)
+            signed = pts[:, :2] @ nb - ob
+            others = ~structural
+            behind = np.count_nonzero(others & (signed > 3 * tol_all)) / max(np.count_nonzero(others), 1)
+            if behind > cfg.wall_max_behind:
+                continue
+            inliers = (np.abs(signed) < tol_all) & (np.abs(nrm[:, :2] @ nb) > 0.7)
+            inliers |= signed > -tol_all        # everything at or behind the wall plane
+            return nb, ob, inliers & ~structural
+        return None
+
+    # ------------------------------------------------------------------ clusters
+
+    def _clusters(self, pts, nrm):
+        """Connected components of the occupied voxels; a label per point (0 = none)."""
+        cfg = self.config
+        if len(pts) == 0:
+            return np.zeros(0, dtype=np.int64)
+        lo = pts.min(0)
+        idx = np.floor((pts - lo) / cfg.voxel_m).astype(np.int64)
+        shape = idx.max(0) + 1
+        if np.prod(shape) > 20_000_000:        # far outliers: clip the grid
+            idx = np.minimum(idx, np.array([400, 400, 120]))
+            shape = idx.max(0) + 1
+        grid = np.zeros(shape, dtype=bool)
+        grid[idx[:, 0], idx[:, 1], idx[:, 2]] = True
+        labels, _ = ndimage.label(grid, structure=np.ones((3, 3, 3), dtype=bool))
+        return labels[idx[:, 0], idx[:, 1], idx[:, 2]]
+
+    def _groups(self, labels):
+        order = np.argsort(labels, kind='stable')
+        for group in np.split(order, np.flatnonzero(np.diff(labels[order])) + 1):
+            if len(group) and labels[group[0]] > 0:
+                yield group
+
+    def _support_height(self, p, n):
+        """Height of the highest upward-facing surface with something standing on it."""
+        cfg = self.config
+        z_up = p[n[:, 2] > 0.9, 2]
+        if len(z_up) < cfg.support_min_points:
+            return None
+        bin_m = 0.02
+        lo = z_up.min()
+        counts = np.bincount(((z_up - lo) / bin_m).astype(int))
+        smooth = counts + np.r_[0, counts[:-1]] + np.r_[counts[1:], 0]
+        for i in np.flatnonzero(smooth >= cfg.support_min_points)[::-1]:
+            h = float(np.median(z_up[np.abs(z_up - (lo + (i + 0.5) * bin_m)) < 1.5 * bin_m]))
+            if np.count_nonzero(p[:, 2] > h + cfg.surface_tolerance_m / 2) >= cfg.min_cluster_points // 2:
+                return h
+        return None
+
+    def _split_supports(self, pts, nrm, pix, labels):
+        """Yield (points, normals, pixels, support height or None) per object.
+
+        A cluster holding an upward-facing surface with points above it is a support (a
+        table, a cabinet) carrying objects: points outside the surface's footprint belong to
+        neighbouring objects (a chair at the table) and are clustered separately; points
+        above the surface inside its footprint are clustered again, each part standing on
+        the surface.
+        """
+        cfg = self.config
+        for group in self._groups(labels):
+            if len(group) < cfg.min_cluster_points:
+                continue
+            p, n, px = pts[group], nrm[group], pix[group]
+            h = self._support_height(p, n)
+            if h is None:
+                yield p, n, px, None
+                continue
+            top = (n[:, 2] > 0.9) & (np.abs(p[:, 2] - h) < cfg.surface_tolerance_m)
+            inside = _in_footprint(p[:, :2], p[top, :2], margin=0.03)
+            above = inside & (p[:, 2] > h + cfg.surface_tolerance_m / 2)
+            support = inside & ~above
+            if np.count_nonzero(support) >= cfg.min_cluster_points:
+                yield p[support], n[support], px[support], None
+            for mask, base in ((~inside, None), (above, h)):
+                idx = np.flatnonzero(mask)
+                if len(idx) < cfg.min_cluster_points // 2:
+                    continue
+                for part in self._groups(self._clusters(p[idx], n[idx])):
+                    if len(part) >= cfg.min_cluster_points // 2:
+                        sel = idx[part]
+                        yield p[sel], n[sel], px[sel], base
+
+    # ------------------------------------------------------------------ boxes
+
+    def _fit_box(self, pts, nrm, support_z, floor_z, walls):
+        cfg = self.config
+        if len(pts) < cfg.min_cluster_points // 2:
+            return None
+        xy = pts[:, :2]
+        centre = np.median(xy, axis=0)
+        rel = xy - centre
+
+        if len(rel) > 1500:                      # the footprint needs no more points
+            rel = rel[np.linspace(0, len(rel) - 1, 1500).astype(int)]
+
+        def extents(thetas):
+            """Robust (1st-99th percentile) bounds along the axes rotated by each theta."""
+            c, s = np.cos(thetas), np.sin(thetas)
+            a = np.stack([rel @ np.stack([c, s]), rel @ np.stack([-s, c])], -1)  # (N, K, 2)
+            lo, hi = np.percentile(a, [1, 99], axis=0)
+            return lo, hi
+
+        def best(thetas):
+            lo, hi = extents(thetas)
+            return int(np.argmin(np.prod(np.maximum(hi - lo, 0.01), axis=-1)))
+
+        thetas = np.radians(np.arange(0, 90, 3.0))
+        coarse = thetas[best(thetas)]
+        fine = coarse + np.radians(np.arange(-1.5, 1.6, 0.5))
+        yaw = fine[best(fine)]
+        lo, hi = (b[0] for b in extents(np.array([yaw])))
+        z_lo, z_hi = np.percentile(pts[:, 2], [0.5, 99.5])
+        # amodal completion downwards: objects stand on their support or the floor
+        if support_z is not None:
+            z_lo = support_z
+        elif floor_z is not None and z_lo - floor_z < cfg.floor_snap_m:
+            z_lo = floor_z
+        c, s = np.cos(yaw), np.sin(yaw)
+        axes = np.array([[c, s], [-s, c]])                      # box x, y axes in the BEV
+        top_visible = np.count_nonzero(nrm[:, 2] > 0.9) >= 0.1 * len(pts)
+        if not top_visible:
+            lo, hi = self._complete_back(centre, axes, lo, hi, walls)
+        size_xy = hi - lo
+        mid = centre + axes.T @ ((lo + hi) / 2)
+        size = np.array([size_xy[0], size_xy[1], z_hi - z_lo])
+        if np.any(size < 0.03) or np.any(size[:2] > 4.0) or size[2] > 3.0:
+            return None
+        box = np.array([mid[0], mid[1], (z_lo + z_hi) / 2, size[0], size[1], size[2], yaw])
+        support = 1.0 - np.exp(-len(pts) / 80.0)
+        thin = min(1.0, size.min() / 0.08)
+        return box, float(support * (0.5 + 0.5 * thin))
+
+    def _complete_back(self, centre, axes, lo, hi, walls):
+        """Extend the side facing away from the camera: to a wall within reach, else to a
+        default depth. The camera is at the origin of the gravity-aligned frame."""
+        cfg = self.config
+        lo, hi = lo.copy(), hi.copy()
+        view = centre / max(np.linalg.norm(centre), 1e-6)      # from camera towards the box
+        k = int(np.argmin(hi - lo))                             # the unseen depth is the thin side
+        sign = np.sign(axes[k] @ view) or 1.0
+        face = hi[k] if sign > 0 else lo[k]
+        target = None
+        for normal, offset in walls:
+            denom = normal @ axes[k] * sign
+            if abs(denom) < 0.5:
+                continue
+            start = centre + axes[k] * face
+            dist = (offset - normal @ start) / denom
+            if 0 <= dist <= cfg.wall_snap_m:
+                target = face + sign * (dist - 0.02)
+        depth_now = hi[k] - lo[k]
+        if target is None and depth_now < cfg.default_depth_m:
+            target = face + sign * (cfg.default_depth_m - depth_now)
+        if target is not None:
+            if sign > 0:
+                hi[k] = max(hi[k], target)
+            else:
+                lo[k] = min(lo[k], target)
+        return lo, hi
+
+    # ------------------------------------------------------------------ embedding
+
+    @staticmethod
+    def _embedding(colours, box, floor_z) -> np.ndarray:
+        """Appearance + shape descriptor (EMBEDDING_DIM), unit length."""
+        parts = []
+        if colours is not None and len(colours):
+            c = colours.astype(np.float32) / 255.0
+            mx, mn = c.max(1), c.min(1)
+            sat = np.where(mx > 1e-6, (mx - mn) / np.maximum(mx, 1e-6), 0.0)
+            r, g, b = c[:, 0], c[:, 1], c[:, 2]
+            delta = np.maximum(mx - mn, 1e-6)
+            hue = np.where(mx == r, ((g - b) / delta) % 6,
+                           np.where(mx == g, (b - r) / delta + 2, (r - g) / delta + 4)) / 6.0
+            hue_hist = np.bincount((hue * 12).astype(int) % 12, weights=sat, minlength=12)
+            val_hist = np.bincount(np.minimum((mx * 4).astype(int), 3), minlength=4).astype(float)
+            parts += [0.8 * hue_hist / max(len(c), 1), 0.5 * val_hist / max(len(c), 1),
+                      0.8 * c.mean(0), [0.5 * float(np.std(mx))]]
+        else:
+            parts += [np.zeros(12), np.zeros(4), np.zeros(3), [0.0]]
+        size = np.sort(box[3:6])
+        height = (box[2] - box[5] / 2 - floor_z) if floor_z is not None else 0.0
+        parts += [0.6 * np.log1p(size * 2), [0.3 * np.log1p(max(height, 0.0) * 2)]]
+        vec = np.concatenate([np.ravel(p) for p in parts]).astype(np.float32)
+        return vec / max(np.linalg.norm(vec), 1e-9)

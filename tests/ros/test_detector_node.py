@@ -1,0 +1,164 @@
+"""The detector node with real rclpy: images in, FrameDetections out; bad input dropped."""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+
+from rfm_core.geometry import iou_3d  # noqa: E402
+from rfm_core.io.images import numpy_to_image  # noqa: E402
+from rfm_core.io.messages import ROS, camera_info_msg, frame_detections_from_msg, header, imu_msg  # noqa: E402
+from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
+
+pytestmark = pytest.mark.ros
+FRAME = 'camera_color_optical_frame'
+
+
+@pytest.fixture(scope='module')
+def scene():
+    cap = Capture(CaptureConfig(seed=12, frames=10, fps=2))
+    return cap, list(cap.frames())
+
+
+@pytest.fixture
+def graph():
+    """A detector node and a test node spinning in a background executor."""
+    from rfm_detector_node.detector_node import DetectorNode
+    from rfm_msgs.msg import FrameDetections
+    from sensor_msgs.msg import CameraInfo, Image, Imu
+    from diagnostic_msgs.msg import DiagnosticArray
+
+    rclpy.init()
+    nodes = {}
+
+    def start(**params):
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        detector = DetectorNode(parameter_overrides=overrides)
+        test = Node('detector_test')
+        reliable = QoSProfile(depth=20, reliability=ReliabilityPolicy.RELIABLE)
+        got, diags = [], []
+        test.create_subscription(FrameDetections, 'rfm/detections', got.append, reliable)
+        test.create_subscription(DiagnosticArray, '/diagnostics', diags.append, 10)
+        pubs = {'rgb': test.create_publisher(Image, 'rgb/image', reliable),
+                'info': test.create_publisher(CameraInfo, 'rgb/camera_info', reliable),
+                'depth': test.create_publisher(Image, 'depth/image', reliable),
+                'imu': test.create_publisher(Imu, 'imu', reliable)}
+        executor = MultiThreadedExecutor()
+        executor.add_node(detector)
+        executor.add_node(test)
+        thread = threading.Thread(target=executor.spin, daemon=True)
+        thread.start()
+        nodes.update(detector=detector, test=test, executor=executor, thread=thread)
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and any(p.get_subscription_count() == 0 for p in pubs.values()):
+            time.sleep(0.05)
+        return detector, pubs, got, diags
+
+    yield start
+    if nodes:
+        nodes['executor'].shutdown()
+        nodes['detector'].destroy_node()
+        nodes['test'].destroy_node()
+    rclpy.try_shutdown()
+
+
+def publish_frame(pubs, cap, frame, stamp=None, rgb_encoding='rgb8', depth_encoding='32FC1',
+                  imu=True, info=None, depth=None, rgb=None):
+    stamp = frame.stamp_ns if stamp is None else stamp
+    if imu:
+        force = frame.rotation.T @ np.array([0.0, 0.0, 9.81])
+        for dt in (-0.2, -0.1, 0.0):
+            pubs['imu'].publish(imu_msg(force, np.zeros(3), stamp + int(dt * 1e9), FRAME))
+    h = header(ROS, stamp, FRAME)
+    pixels = frame.render.rgb if rgb is None else rgb
+    if rgb_encoding == 'bgr8':
+        pixels = pixels[..., ::-1]
+    pubs['rgb'].publish(numpy_to_image(pixels, rgb_encoding, h))
+    pubs['info'].publish(info or camera_info_msg(cap.intrinsics, stamp, FRAME))
+    d = frame.render.depth if depth is None else depth
+    if depth_encoding == '16UC1':
+        d = np.where(np.isfinite(d), np.rint(d * 1000), 0).astype(np.uint16)
+    pubs['depth'].publish(numpy_to_image(d.astype(np.float32) if depth_encoding == '32FC1' else d,
+                                         depth_encoding, h))
+
+
+def wait_for(predicate, timeout=20.0):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
+
+
+def test_detections_from_bgr8_and_32fc1_in_the_camera_frame(graph, scene):
+    cap, frames = scene
+    detector, pubs, got, _ = graph(imu_tau_s=0.02)    # the test's IMU jumps between frames
+    for frame in frames[:3]:
+        publish_frame(pubs, cap, frame, rgb_encoding='bgr8', depth_encoding='32FC1')
+        n = len(got)
+        assert wait_for(lambda: len(got) > n), 'no FrameDetections received'
+    matched = 0
+    for msg, frame in zip(got, frames):
+        assert msg.header.frame_id == FRAME
+        assert msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec == frame.stamp_ns
+        assert msg.backend == 'depth_clusters' and len(msg.detections) > 0
+        obs = frame_detections_from_msg(msg)
+        gt = frame.ground_truth
+        np.testing.assert_allclose(obs.gravity_cam, gt.gravity_cam, atol=0.02)  # from the IMU
+        iou = iou_3d(obs.boxes, gt.boxes)
+        matched += int(np.count_nonzero(iou.max(1) >= 0.25))
+    assert matched >= 6          # boxes land on the true objects: the frames are right
+
+
+def test_bad_input_is_dropped_and_the_next_good_frame_served(graph, scene):
+    cap, frames = scene
+    detector, pubs, got, diags = graph(imu_max_age_s=0.3)
+    good = iter(frames)
+
+    def good_frame():
+        n = len(got)
+        publish_frame(pubs, cap, next(good), depth_encoding='16UC1')
+        assert wait_for(lambda: len(got) > n), f'the node stopped serving good frames: {detector.counts}'
+
+    good_frame()
+    f = next(good)
+
+    def rejected(publish):
+        n = detector.counts['dropped_invalid']
+        publish()
+        assert wait_for(lambda: detector.counts['dropped_invalid'] > n), detector.counts
+
+    rejected(lambda: publish_frame(pubs, cap, f, rgb=np.zeros((2, 2, 3), np.uint8)))   # size mismatch
+    rejected(lambda: publish_frame(pubs, cap, f, stamp=f.stamp_ns + 1000,             # all-NaN depth
+                                   depth=np.full(f.render.depth.shape, np.nan, np.float32)))
+    zero_info = camera_info_msg(cap.intrinsics, f.stamp_ns + 2000, FRAME)
+    zero_info.k = [0.0] * 9
+    rejected(lambda: publish_frame(pubs, cap, f, stamp=f.stamp_ns + 2000, info=zero_info))  # zero K
+
+    def wrong_encoding():
+        wrong = numpy_to_image(f.render.rgb, 'rgb8', header(ROS, f.stamp_ns + 3000, FRAME))
+        wrong.encoding = 'yuv422'
+        pubs['rgb'].publish(wrong)
+        pubs['info'].publish(camera_info_msg(cap.intrinsics, f.stamp_ns + 3000, FRAME))
+        pubs['depth'].publish(numpy_to_image(f.render.depth, '32FC1', header(ROS, f.stamp_ns + 3000, FRAME)))
+    rejected(wrong_encoding)
+    assert len(got) == 1
+    before = dict(detector.counts)
+    old = frames[0]
+    publish_frame(pubs, cap, old)                           # out of order (older than the last)
+    late = next(good)
+    publish_frame(pubs, cap, late, stamp=late.stamp_ns, imu=False)   # no recent IMU
+    assert wait_for(lambda: detector.counts['dropped_out_of_order'] > before['dropped_out_of_order']
+                    and detector.counts['dropped_no_gravity'] > before['dropped_no_gravity']), \
+        f'{before} -> {detector.counts}'
+    good_frame()                                             # and it keeps going
+    assert wait_for(lambda: any(
+        any(kv.key == 'dropped_invalid' and int(kv.value) >= 4 for kv in d.status[0].values)
+        for d in diags), timeout=5)
