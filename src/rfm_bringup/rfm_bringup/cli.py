@@ -5,6 +5,7 @@
     rfm play BAG [--rate R --start-offset S --loop --topics T ... --remap FROM:=TO ...]
     rfm record OUT [--topics T ...]
     rfm preview BAG OUT.png [--frames 4]
+    rfm eval-detections BAG|SUITE ... [--backend depth_clusters|ground_truth]
 
 `sim` needs no ROS; `play` and `record` start rclpy nodes.
 """
@@ -17,6 +18,8 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
+
+import numpy as np
 
 __all__ = ['main', 'suite_configs']
 
@@ -208,6 +211,49 @@ def cmd_preview(args) -> int:
     return 0
 
 
+def cmd_eval_detections(args) -> int:
+    """Per-frame AP/AR of a detector backend on bags with ground truth."""
+    from rfm_core.detection import make_detector  # noqa: PLC0415
+    from rfm_core.evaluation.detection import DetectionEvaluator  # noqa: PLC0415
+    from rfm_core.evaluation.detection_bags import evaluate_bag  # noqa: PLC0415
+
+    bags = []
+    for item in args.bags:
+        path = Path(item)
+        if (path / 'suite.json').exists():
+            suite = json.loads((path / 'suite.json').read_text())
+            bags += [path / scene['path'] for scene in suite['scenes']]
+        elif (path / 'metadata.yaml').exists():
+            bags.append(path)
+        else:
+            raise SystemExit(f'rfm: {path} is neither a bag directory nor a suite')
+    options = {}
+    if args.backend == 'depth_clusters':
+        options['stride'] = args.stride
+    elif args.backend == 'ground_truth':
+        options['preset'] = args.preset
+    rows = []
+    for bag in bags:
+        detector = make_detector(args.backend, **options)
+        result = evaluate_bag(bag, detector, every=args.every, max_frames=args.max_frames,
+                              evaluator=DetectionEvaluator(min_visibility=args.min_visibility))
+        rows.append((bag.name, result))
+        print(f'{bag.name}: AP15 {result["AP15"]:.3f} AR15 {result["AR15"]:.3f} '
+              f'AP25 {result["AP25"]:.3f} AR25 {result["AR25"]:.3f} '
+              f'({result["frames"]} frames, {result["latency_ms"]:.0f} ms/frame)', flush=True)
+    name = args.backend + (f':{args.preset}' if args.backend == 'ground_truth' else '')
+    keys = ('AP15', 'AR15', 'AP25', 'AR25')
+    mean = {k: float(np.mean([r[k] for _, r in rows])) for k in keys}
+    print(f'\n| backend | scenes | frames | ' + ' | '.join(keys) + ' |')
+    print('|---|---|---|' + '---|' * len(keys))
+    print(f'| {name} | {len(rows)} | {sum(r["frames"] for _, r in rows)} | '
+          + ' | '.join(f'{mean[k]:.3f}' for k in keys) + ' |')
+    if args.json:
+        Path(args.json).write_text(json.dumps({'backend': name, 'mean': mean,
+                                               'scenes': dict(rows)}, indent=1))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='rfm', description='rfm: Rooms from Motion for ROS 2')
     sub = parser.add_subparsers(dest='command', required=True)
@@ -251,6 +297,19 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--depth-topic', help=f"default {'/camera/depth/image_raw'}")
     p.add_argument('--max-depth', type=float, default=6.0, help='depth shown as white (m)')
     p.set_defaults(func=cmd_preview)
+
+    p = sub.add_parser('eval-detections',
+                       help='per-frame AP/AR at 3D IoU 0.15/0.25 of a detector on bags with ground truth')
+    p.add_argument('bags', nargs='+', help='bag directories or suite directories (suite.json)')
+    p.add_argument('--backend', default='depth_clusters', choices=('depth_clusters', 'ground_truth'))
+    p.add_argument('--preset', default='rgbd', help='ground_truth noise preset (perfect, rgbd, rgb)')
+    p.add_argument('--stride', type=int, default=2, help='depth_clusters: use every n-th pixel')
+    p.add_argument('--every', type=int, default=1, help='evaluate every n-th frame')
+    p.add_argument('--max-frames', type=int, help='at most this many frames per bag')
+    p.add_argument('--min-visibility', type=float, default=0.2,
+                   help='ground truth seen less than this is ignored (default 0.2)')
+    p.add_argument('--json', help='also write the results to this JSON file')
+    p.set_defaults(func=cmd_eval_detections)
 
     p = sub.add_parser('record', help='record topics to an MCAP bag until Ctrl-C')
     p.add_argument('output', help='bag directory to create')

@@ -61,8 +61,9 @@ class DetectorNode(Node):
         super().__init__('detector', **kwargs)
         p = self.declare_parameter
         self.backend = p('backend', 'depth_clusters', _describe(
-            'Detector: depth_clusters (RGB-D, no learning), ground_truth (simulator ground '
-            'truth + noise model, for evaluation only)')).value
+            'Detector: depth_clusters (RGB-D, no learning), cutr (Cubify Transformer, needs '
+            'cutr_checkpoint), ground_truth (simulator ground truth + noise model, for '
+            'evaluation only)')).value
         self.score_threshold = p('score_threshold', 0.25, _describe(
             'Keep detections scoring at least this (paper: 0.25)', 0.0, 1.0)).value
         self.max_detections = p('max_detections', 100, _describe(
@@ -73,6 +74,10 @@ class DetectorNode(Node):
             'ground_truth noise preset: perfect, rgbd, rgb')).value
         self.gt_seed = p('ground_truth_seed', 0, _describe('ground_truth noise seed')).value
         self.device = p('device', 'cpu', _describe('Torch device for learned backends: cpu or cuda')).value
+        self.cutr_checkpoint = p('cutr_checkpoint', '', _describe(
+            'cutr: path to cutr_rgb.pth or cutr_rgbd.pth (not shipped: research licence)')).value
+        self.cutr_max_side = p('cutr_max_side_px', 1024, _describe(
+            'cutr: resize so the long image side is at most this', 64, 1024, integer=True)).value
         self.every_nth = p('every_nth_frame', 1, _describe(
             'Process one synchronised frame in n', 1, 100, integer=True)).value
         queue = p('queue_size', 10, _describe('Synchroniser queue per input', 1, 100, integer=True)).value
@@ -82,7 +87,9 @@ class DetectorNode(Node):
             "Gravity from 'imu' (low-pass of the accelerometer) or 'parameter'")).value
         gravity = p('gravity', [0.0, 1.0, 0.0], _describe(
             'Gravity ("down") in the camera optical frame when gravity_source is parameter')).value
-        tau = p('imu_tau_s', 0.5, _describe('Accelerometer low-pass time constant (s)', 0.01, 10.0)).value
+        tau = p('imu_tau_s', 1.0, _describe(
+            'Gravity filter time constant (s): the gyroscope carries the estimate between '
+            'accelerometer corrections', 0.01, 10.0)).value
         self.imu_max_age_s = p('imu_max_age_s', 1.0, _describe(
             'Drop frames when the last IMU sample is older than this (s)', 0.01, 60.0)).value
         self.imu_wait_s = p('imu_wait_s', 0.05, _describe(
@@ -97,6 +104,9 @@ class DetectorNode(Node):
             options['stride'] = self.stride
         elif self.backend == 'ground_truth':
             options.update(preset=self.gt_preset, seed=self.gt_seed)
+        elif self.backend == 'cutr':
+            options.update(checkpoint=self.cutr_checkpoint, device=self.device,
+                           max_side_px=self.cutr_max_side)
         self.detector = make_detector(self.backend, **options)
         self.fixed_gravity = np.asarray(gravity, dtype=np.float64)
         if self.gravity_source not in ('imu', 'parameter'):
@@ -168,8 +178,9 @@ class DetectorNode(Node):
         self.sync.add(index, stamp, msg)
 
     def _on_imu(self, msg: Imu) -> None:
-        a = msg.linear_acceleration
-        if not self.gravity_filter.add(stamp_to_ns(msg.header.stamp), [a.x, a.y, a.z]):
+        a, w = msg.linear_acceleration, msg.angular_velocity
+        gyro = None if msg.angular_velocity_covariance[0] == -1 else [w.x, w.y, w.z]
+        if not self.gravity_filter.add(stamp_to_ns(msg.header.stamp), [a.x, a.y, a.z], gyro):
             self._warn('IMU sample dropped: not finite, not near 1 g, or out of order')
 
     def _on_synced(self, *msgs) -> None:

@@ -12,7 +12,7 @@ from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput
 
 __all__ = ['BACKENDS', 'Detector', 'DetectorConfig', 'DetectorInput', 'make_detector']
 
-BACKENDS = ('depth_clusters', 'ground_truth')
+BACKENDS = ('depth_clusters', 'ground_truth', 'cutr')
 
 
 def make_detector(backend: str, **options) -> Detector:
@@ -23,4 +23,7 @@ def make_detector(backend: str, **options) -> Detector:
     if backend == 'ground_truth':
         from rfm_core.detection.ground_truth import GroundTruthConfig, GroundTruthDetector
         return GroundTruthDetector(GroundTruthConfig(**options))
+    if backend == 'cutr':
+        from rfm_core.detection.cutr import CutrConfig, CutrDetector
+        return CutrDetector(CutrConfig(**options))
     raise ValueError(f'unknown detector backend {backend!r}; choose one of {BACKENDS}')

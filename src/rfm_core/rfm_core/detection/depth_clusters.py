@@ -37,7 +37,7 @@ class DepthClustersConfig(DetectorConfig):
     min_depth_m: float = 0.2
     max_depth_m: float = 6.0
     surface_tolerance_m: float = 0.04     #: floor / ceiling / wall inlier distance at 0 m ...
-    depth_noise_per_m2: float = 0.0       #: ... plus this x range^2 (depth error growth)
+    depth_noise_per_m2: float = 0.002       #: ... plus this x range^2 (depth error growth)
     wall_min_height_m: float = 1.0        #: a wall spans at least this much vertically
     wall_max_behind: float = 0.03         #: fraction of points allowed behind a wall
     max_walls: int = 4
@@ -48,6 +48,9 @@ class DepthClustersConfig(DetectorConfig):
     floor_snap_m: float = 0.3             #: extend boxes down to the floor within this
     wall_snap_m: float = 1.0              #: extend unseen backs to a wall within this
     default_depth_m: float = 0.4          #: amodal depth of a box whose back is unseen
+    truncated_score_factor: float = 0.6   #: score multiplier of boxes cut by the image border
+    refine_gravity: bool = True           #: align gravity with the floor plane when visible
+    max_gravity_correction_deg: float = 6.0   #: ... if it is within this of the input gravity
     seed: int = 0                         #: RANSAC sampling
     extra: dict = field(default_factory=dict)
 
@@ -92,16 +95,16 @@ def _peak_height(z: np.ndarray, lowest: bool, min_count: int, bin_m: float = 0.0
 
 
 def _in_footprint(xy: np.ndarray, surface_xy: np.ndarray, margin: float) -> np.ndarray:
-    """Whether points lie inside the convex hull of a surface's points (grown by margin)."""
-    from scipy.spatial import Delaunay  # noqa: PLC0415
+    """Whether points lie inside the convex hull of a surface's points, grown by margin."""
+    from scipy.spatial import ConvexHull, QhullError  # noqa: PLC0415
 
-    centre = surface_xy.mean(0)
-    rel = surface_xy - centre
-    grown = centre + rel * (1 + margin / np.maximum(np.linalg.norm(rel, axis=1, keepdims=True), 1e-6))
     try:
-        return Delaunay(grown).find_simplex(xy) >= 0
-    except Exception:  # noqa: BLE001 - degenerate (collinear) surface
+        hull = ConvexHull(surface_xy)
+    except (QhullError, ValueError):          # degenerate (collinear) surface
         return np.zeros(len(xy), dtype=bool)
+    # hull.equations rows: (nx, ny, d) with n.p + d <= 0 inside, n unit length
+    eq = hull.equations
+    return np.all(xy @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
 
 
 class DepthClustersDetector(Detector):
@@ -125,9 +128,19 @@ class DepthClustersDetector(Detector):
         valid = np.isfinite(depth) & (depth > cfg.min_depth_m) & (depth < cfg.max_depth_m)
         z = np.where(valid, depth, np.nan)
         cam = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], -1)
-        rot = gravity_aligned_rotation(frame.gravity_cam).astype(np.float32)
-        pts_img = cam @ rot.T                                    # (h, w, 3) gravity-aligned
-        normals_img = _normals(pts_img)
+        gravity = np.asarray(frame.gravity_cam, dtype=np.float64)
+        for _ in range(2 if cfg.refine_gravity else 1):
+            rot = gravity_aligned_rotation(gravity).astype(np.float32)
+            pts_img = cam @ rot.T                                # (h, w, 3) gravity-aligned
+            normals_img = _normals(pts_img)
+            if not cfg.refine_gravity:
+                break
+            refined = self._floor_gravity(pts_img, normals_img, rot)
+            if refined is None:
+                break
+            gravity = refined
+        frame = DetectorInput(frame.stamp_ns, frame.frame_id, frame.intrinsics, gravity,
+                              frame.rgb, frame.depth)
         good = valid & np.all(np.isfinite(normals_img), axis=-1)
         pts = pts_img[good]
         nrm = normals_img[good]
@@ -148,6 +161,12 @@ class DepthClustersDetector(Detector):
             if fit is None or self._is_structure_remnant(fit[0], normals, ceiling_z):
                 continue
             box, score = fit
+            # boxes cut by the image border are completed from a partial view: less certain
+            margin = 2 * s
+            if (pixels[:, 0].min() < margin or pixels[:, 1].min() < margin
+                    or pixels[:, 0].max() >= intr.height - margin
+                    or pixels[:, 1].max() >= intr.width - margin):
+                score *= cfg.truncated_score_factor
             boxes.append(box)
             scores.append(score)
             colours = rgb[pixels[:, 0], pixels[:, 1]] if rgb is not None else None
@@ -161,10 +180,34 @@ class DepthClustersDetector(Detector):
 
     # ------------------------------------------------------------------ structure
 
+    def _floor_gravity(self, pts_img, normals_img, rot):
+        """Gravity from the floor plane when the floor is visible: the IMU's estimate is off
+        by a degree or more on a moving camera; the floor's normal is exact. Returns the
+        refined gravity in the camera frame, or None (no floor, or too far off to trust)."""
+        cfg = self.config
+        ok = np.all(np.isfinite(normals_img), axis=-1) & np.isfinite(pts_img[..., 2])
+        pts, nrm = pts_img[ok], normals_img[ok]
+        up = nrm[:, 2] > 0.9
+        floor_z = _peak_height(pts[up, 2], lowest=True, min_count=max(100, int(0.05 * len(pts))))
+        if floor_z is None:
+            return None
+        sel = up & (np.abs(pts[:, 2] - floor_z) < 0.08)
+        if np.count_nonzero(sel) < 200:
+            return None
+        floor = pts[sel].astype(np.float64)
+        centre = floor.mean(0)
+        _, _, vt = np.linalg.svd(floor - centre, full_matrices=False)
+        normal = vt[2] if vt[2][2] > 0 else -vt[2]
+        if np.degrees(np.arccos(np.clip(normal[2], -1, 1))) > cfg.max_gravity_correction_deg:
+            return None
+        return -(rot.T.astype(np.float64) @ normal)          # "down" in the camera frame
+
     def _structure(self, pts, nrm):
         """Mask of floor / ceiling / wall points, the floor height (or None), walls."""
         cfg = self.config
-        tol = cfg.surface_tolerance_m + cfg.depth_noise_per_m2 * np.sum(pts ** 2, axis=1)
+        tol = np.full(len(pts), cfg.surface_tolerance_m)
+        # floor and ceiling: far away, quantised depth scatters more
+        tol_far = tol + cfg.depth_noise_per_m2 * np.sum(pts ** 2, axis=1)
         z = pts[:, 2]
         up = nrm[:, 2] > 0.9
         down = nrm[:, 2] < -0.9
@@ -173,9 +216,9 @@ class DepthClustersDetector(Detector):
         ceiling_z = _peak_height(z[down], lowest=False, min_count=min_count)
         structural = np.zeros(len(pts), dtype=bool)
         if floor_z is not None:
-            structural |= z < floor_z + tol
+            structural |= z < floor_z + tol_far
         if ceiling_z is not None and (floor_z is None or ceiling_z > floor_z + 1.5):
-            structural |= z > ceiling_z - tol
+            structural |= z > ceiling_z - tol_far
         walls = []
         rng = np.random.default_rng(cfg.seed)
         vertical = (np.abs(nrm[:, 2]) < 0.3) & ~structural
@@ -274,16 +317,21 @@ class DepthClustersDetector(Detector):
                 yield group
 
     def _support_height(self, p, n):
-        """Height of the highest upward-facing surface with something standing on it."""
+        """Height of the highest upward-facing surface with something standing on it.
+
+        A surface needs ``support_min_points`` points at 2 m; fewer farther away, since the
+        number of points on a surface falls with the square of its distance."""
         cfg = self.config
-        z_up = p[n[:, 2] > 0.9, 2]
-        if len(z_up) < cfg.support_min_points:
+        z_up = p[n[:, 2] > 0.85, 2]
+        distance = float(np.median(np.linalg.norm(p, axis=1)))
+        min_points = max(5, int(round(cfg.support_min_points * min(1.0, (2.0 / max(distance, 0.1)) ** 2))))
+        if len(z_up) < min_points:
             return None
         bin_m = 0.02
         lo = z_up.min()
         counts = np.bincount(((z_up - lo) / bin_m).astype(int))
         smooth = counts + np.r_[0, counts[:-1]] + np.r_[counts[1:], 0]
-        for i in np.flatnonzero(smooth >= cfg.support_min_points)[::-1]:
+        for i in np.flatnonzero(smooth >= min_points)[::-1]:
             h = float(np.median(z_up[np.abs(z_up - (lo + (i + 0.5) * bin_m)) < 1.5 * bin_m]))
             if np.count_nonzero(p[:, 2] > h + cfg.surface_tolerance_m / 2) >= cfg.min_cluster_points // 2:
                 return h
@@ -307,7 +355,7 @@ class DepthClustersDetector(Detector):
             if h is None:
                 yield p, n, px, None
                 continue
-            top = (n[:, 2] > 0.9) & (np.abs(p[:, 2] - h) < cfg.surface_tolerance_m)
+            top = (n[:, 2] > 0.85) & (np.abs(p[:, 2] - h) < cfg.surface_tolerance_m)
             inside = _in_footprint(p[:, :2], p[top, :2], margin=0.03)
             above = inside & (p[:, 2] > h + cfg.surface_tolerance_m / 2)
             support = inside & ~above

@@ -112,3 +112,42 @@ def bag_custom_data(path) -> dict:
     with open(Path(path) / 'metadata.yaml') as f:
         info = yaml.safe_load(f)['rosbag2_bagfile_information']
     return dict(info.get('custom_data') or {})
+
+
+def iter_camera_frames(path, color_topic: str, depth_topic: str | None, info_topic: str,
+                       imu_topic: str | None = None, extra_topics=(), slop_ns: int = 50_000_000):
+    """Read a bag in time order and yield, per colour image, a dict with the deserialised
+    ``color``, ``info``, ``depth`` (when given; matched within ``slop_ns``), the IMU
+    messages received since the previous frame (``imu``), and the latest message of each
+    ``extra_topics`` with the same stamp (e.g. ground truth), keyed by topic."""
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415
+
+    from rfm_core.io.messages import stamp_to_ns  # noqa: PLC0415
+
+    wanted = {t for t in (color_topic, depth_topic, info_topic, imu_topic, *extra_topics) if t}
+    pending = {}
+    imu_buffer = []
+    with AnyReader([Path(path)]) as reader:
+        conns = [c for c in reader.connections if c.topic in wanted]
+        missing = {color_topic, info_topic} - {c.topic for c in conns}
+        if missing:
+            raise ValueError(f'{path} has no {sorted(missing)}')
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            if conn.topic == imu_topic:
+                imu_buffer.append(msg)
+                continue
+            stamp = stamp_to_ns(msg.header.stamp)
+            pending.setdefault(stamp, {})[conn.topic] = msg
+            ready = [s for s, group in pending.items()
+                     if color_topic in group and info_topic in group
+                     and (depth_topic is None or depth_topic in group)
+                     and all(t in group for t in extra_topics)]
+            for s in sorted(ready):
+                group = pending.pop(s)
+                yield {'stamp_ns': s, 'color': group[color_topic], 'info': group[info_topic],
+                       'depth': group.get(depth_topic), 'imu': imu_buffer,
+                       **{t: group[t] for t in extra_topics}}
+                imu_buffer = []
+            for s in [s for s in pending if s < stamp - 10 * slop_ns]:
+                del pending[s]                   # never completed
