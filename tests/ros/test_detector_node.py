@@ -162,3 +162,20 @@ def test_bad_input_is_dropped_and_the_next_good_frame_served(graph, scene):
     assert wait_for(lambda: any(
         any(kv.key == 'dropped_invalid' and int(kv.value) >= 4 for kv in d.status[0].values)
         for d in diags), timeout=5)
+
+
+def test_ground_truth_backend_republishes_noisy_ground_truth(graph, scene):
+    from rfm_core.io.messages import frame_detections_to_msg
+    from rfm_msgs.msg import FrameDetections
+    cap, frames = scene
+    detector, pubs, got, _ = graph(backend='ground_truth', ground_truth_preset='rgbd')
+    pub = detector.create_publisher(FrameDetections, 'ground_truth/detections', 10)
+    assert wait_for(lambda: pub.get_subscription_count() > 0)
+    for frame in frames[:3]:
+        n = len(got)
+        pub.publish(frame_detections_to_msg(frame.ground_truth))
+        assert wait_for(lambda: len(got) > n)
+    for msg, frame in zip(got, frames):
+        obs = frame_detections_from_msg(msg)
+        assert msg.backend == 'ground_truth:rgbd' and len(obs) > 0
+        assert np.median(iou_3d(obs.boxes, frame.ground_truth.boxes).max(1)) > 0.5

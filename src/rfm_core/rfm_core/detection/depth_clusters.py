@@ -98,6 +98,8 @@ def _in_footprint(xy: np.ndarray, surface_xy: np.ndarray, margin: float) -> np.n
     """Whether points lie inside the convex hull of a surface's points, grown by margin."""
     from scipy.spatial import ConvexHull, QhullError  # noqa: PLC0415
 
+    if len(surface_xy) > 400:                 # the hull needs no more points
+        surface_xy = surface_xy[np.linspace(0, len(surface_xy) - 1, 400).astype(int)]
     try:
         hull = ConvexHull(surface_xy)
     except (QhullError, ValueError):          # degenerate (collinear) surface
@@ -129,16 +131,15 @@ class DepthClustersDetector(Detector):
         z = np.where(valid, depth, np.nan)
         cam = np.stack([(u - intr.cx) / intr.fx * z, (v - intr.cy) / intr.fy * z, z], -1)
         gravity = np.asarray(frame.gravity_cam, dtype=np.float64)
-        for _ in range(2 if cfg.refine_gravity else 1):
-            rot = gravity_aligned_rotation(gravity).astype(np.float32)
-            pts_img = cam @ rot.T                                # (h, w, 3) gravity-aligned
-            normals_img = _normals(pts_img)
-            if not cfg.refine_gravity:
-                break
-            refined = self._floor_gravity(pts_img, normals_img, rot)
-            if refined is None:
-                break
+        rot = gravity_aligned_rotation(gravity).astype(np.float32)
+        pts_img = cam @ rot.T                                    # (h, w, 3) gravity-aligned
+        normals_img = _normals(pts_img)
+        refined = self._floor_gravity(pts_img, normals_img, rot) if cfg.refine_gravity else None
+        if refined is not None:                                  # re-express in the refined frame
             gravity = refined
+            new_rot = gravity_aligned_rotation(gravity).astype(np.float32)
+            delta = new_rot @ rot.T
+            pts_img, normals_img = pts_img @ delta.T, normals_img @ delta.T
         frame = DetectorInput(frame.stamp_ns, frame.frame_id, frame.intrinsics, gravity,
                               frame.rgb, frame.depth)
         good = valid & np.all(np.isfinite(normals_img), axis=-1)
@@ -382,23 +383,24 @@ class DepthClustersDetector(Detector):
 
         if len(rel) > 1500:                      # the footprint needs no more points
             rel = rel[np.linspace(0, len(rel) - 1, 1500).astype(int)]
+        sample = rel[np.linspace(0, len(rel) - 1, min(len(rel), 300)).astype(int)]
 
-        def extents(thetas):
+        def extents(points, thetas):
             """Robust (1st-99th percentile) bounds along the axes rotated by each theta."""
             c, s = np.cos(thetas), np.sin(thetas)
-            a = np.stack([rel @ np.stack([c, s]), rel @ np.stack([-s, c])], -1)  # (N, K, 2)
+            a = np.stack([points @ np.stack([c, s]), points @ np.stack([-s, c])], -1)  # (N, K, 2)
             lo, hi = np.percentile(a, [1, 99], axis=0)
             return lo, hi
 
-        def best(thetas):
-            lo, hi = extents(thetas)
+        def best(points, thetas):
+            lo, hi = extents(points, thetas)
             return int(np.argmin(np.prod(np.maximum(hi - lo, 0.01), axis=-1)))
 
         thetas = np.radians(np.arange(0, 90, 3.0))
-        coarse = thetas[best(thetas)]
+        coarse = thetas[best(sample, thetas)]
         fine = coarse + np.radians(np.arange(-1.5, 1.6, 0.5))
-        yaw = fine[best(fine)]
-        lo, hi = (b[0] for b in extents(np.array([yaw])))
+        yaw = fine[best(rel, fine)]
+        lo, hi = (b[0] for b in extents(rel, np.array([yaw])))
         z_lo, z_hi = np.percentile(pts[:, 2], [0.5, 99.5])
         # amodal completion downwards: objects stand on their support or the floor
         if support_z is not None:
