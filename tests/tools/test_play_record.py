@@ -1,5 +1,4 @@
 """`rfm play` and `rfm record` with real rclpy processes."""
-import os
 import shutil
 import signal
 import subprocess

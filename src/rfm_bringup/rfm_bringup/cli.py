@@ -244,7 +244,7 @@ def cmd_eval_detections(args) -> int:
     name = args.backend + (f':{args.preset}' if args.backend == 'ground_truth' else '')
     keys = ('AP15', 'AR15', 'AP25', 'AR25')
     mean = {k: float(np.mean([r[k] for _, r in rows])) for k in keys}
-    print(f'\n| backend | scenes | frames | ' + ' | '.join(keys) + ' |')
+    print('\n| backend | scenes | frames | ' + ' | '.join(keys) + ' |')
     print('|---|---|---|' + '---|' * len(keys))
     print(f'| {name} | {len(rows)} | {sum(r["frames"] for _, r in rows)} | '
           + ' | '.join(f'{mean[k]:.3f}' for k in keys) + ' |')

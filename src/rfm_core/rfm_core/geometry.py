@@ -197,13 +197,13 @@ def quaternion_from_matrix(rotation) -> np.ndarray:
                                (r[:, 1, 0] - r[:, 0, 1]) / s, 0.25 * s], axis=1)
         else:
             i = k - 1
-            j, l = (i + 1) % 3, (i + 2) % 3
-            s = 2.0 * np.sqrt(np.maximum(1.0 + r[:, i, i] - r[:, j, j] - r[:, l, l], 0.0))
+            j, m = (i + 1) % 3, (i + 2) % 3
+            s = 2.0 * np.sqrt(np.maximum(1.0 + r[:, i, i] - r[:, j, j] - r[:, m, m], 0.0))
             qq = np.empty((len(r), 4))
             qq[:, i] = 0.25 * s
             qq[:, j] = (r[:, j, i] + r[:, i, j]) / s
-            qq[:, l] = (r[:, l, i] + r[:, i, l]) / s
-            qq[:, 3] = (r[:, l, j] - r[:, j, l]) / s
+            qq[:, m] = (r[:, m, i] + r[:, i, m]) / s
+            qq[:, 3] = (r[:, m, j] - r[:, j, m]) / s
             q[sel] = qq
     q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
     q /= np.linalg.norm(q, axis=1, keepdims=True)

@@ -111,7 +111,7 @@ class GroundTruthDetector(Detector):
         boxes[:, 3:6] *= scale[:, None] * np.clip(1.0 + rng.normal(size=(n, 3)) * nm.size_sigma, 0.5, 1.5)
         boxes[:, 6] = wrap_angle(boxes[:, 6] + np.radians(nm.yaw_sigma_deg) * rng.normal(size=n))
         scores = np.clip(0.55 + 0.45 * vis - np.abs(rng.normal(size=n)) * nm.score_sigma, 0.05, 1.0)
-        embeds = np.array([_base_embedding(l, s) for l, s in zip(truth.labels, truth.boxes[:, 3:6])]
+        embeds = np.array([_base_embedding(label, size) for label, size in zip(truth.labels, truth.boxes[:, 3:6])]
                           ).reshape(n, EMBEDDING_DIM)
         embeds = embeds + rng.normal(size=embeds.shape) * nm.embedding_sigma / np.sqrt(EMBEDDING_DIM)
         labels = list(truth.labels)
