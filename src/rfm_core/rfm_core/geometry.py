@@ -197,13 +197,13 @@ def quaternion_from_matrix(rotation) -> np.ndarray:
                                (r[:, 1, 0] - r[:, 0, 1]) / s, 0.25 * s], axis=1)
         else:
             i = k - 1
-            j, m = (i + 1) % 3, (i + 2) % 3
-            s = 2.0 * np.sqrt(np.maximum(1.0 + r[:, i, i] - r[:, j, j] - r[:, m, m], 0.0))
+            j, k2 = (i + 1) % 3, (i + 2) % 3
+            s = 2.0 * np.sqrt(np.maximum(1.0 + r[:, i, i] - r[:, j, j] - r[:, k2, k2], 0.0))
             qq = np.empty((len(r), 4))
             qq[:, i] = 0.25 * s
             qq[:, j] = (r[:, j, i] + r[:, i, j]) / s
-            qq[:, m] = (r[:, m, i] + r[:, i, m]) / s
-            qq[:, 3] = (r[:, m, j] - r[:, j, m]) / s
+            qq[:, k2] = (r[:, k2, i] + r[:, i, k2]) / s
+            qq[:, 3] = (r[:, k2, j] - r[:, j, k2]) / s
             q[sel] = qq
     q *= np.where(q[:, 3:4] < 0, -1.0, 1.0)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
