@@ -362,14 +362,17 @@ class DepthClustersDetector(Detector):
             support = inside & ~above
             if np.count_nonzero(support) >= cfg.min_cluster_points:
                 yield p[support], n[support], px[support], None
-            for mask, base in ((~inside, None), (above, h)):
-                idx = np.flatnonzero(mask)
-                if len(idx) < cfg.min_cluster_points // 2:
-                    continue
-                for part in self._groups(self._clusters(p[idx], n[idx])):
-                    if len(part) >= cfg.min_cluster_points // 2:
-                        sel = idx[part]
-                        yield p[sel], n[sel], px[sel], base
+            # The rest, clustered again: parts entirely above the surface stand on it;
+            # parts reaching outside its footprint (a chair pushed under a table) stand on
+            # the floor, including whatever of them rises above the surface.
+            idx = np.flatnonzero(~support)
+            if len(idx) < cfg.min_cluster_points // 2:
+                continue
+            for part in self._groups(self._clusters(p[idx], n[idx])):
+                if len(part) >= cfg.min_cluster_points // 2:
+                    sel = idx[part]
+                    on_top = bool(np.all(above[sel]))
+                    yield p[sel], n[sel], px[sel], (h if on_top else None)
 
     # ------------------------------------------------------------------ boxes
 
