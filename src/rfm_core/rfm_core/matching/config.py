@@ -1,0 +1,21 @@
+"""Every matching threshold, with the paper's defaults, in one place."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+__all__ = ['MatchingConfig']
+
+
+@dataclass(frozen=True)
+class MatchingConfig:
+    # object matching (3.2)
+    match_threshold: float = 0.5          #: paper: 0.5 on CA-1M (0.4 on ScanNet++)
+    size_ratio_gate: float = 0.5          #: classical: min/max size ratio per sorted axis
+    # relative pose and verification (3.4)
+    inlier_iou: float = 0.25              #: a match is an inlier when IoU3D >= this after transfer
+    min_inlier_ratio: float = 0.5         #: a sample needs this share of all matches as inliers
+    corner_inlier_m: float = 0.10         #: corner inliers (for bundle adjustment)
+    min_matches: int = 2                  #: a minimal sample is two matched objects
+    size_consistency: float = 0.35        #: max relative footprint-size difference of a box
+                                          #: pair under a yaw hypothesis (yaw symmetry)
+    refine: bool = True                   #: refit the winner on all inlier corners (not in the paper)

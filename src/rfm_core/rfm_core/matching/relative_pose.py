@@ -1,0 +1,130 @@
+"""Relative pose from matched boxes, with geometric verification (paper section 3.4).
+
+For every minimal set of two matched objects, the corners of both boxes give 16 point
+correspondences and a 4-DoF Kabsch alignment (yaw + translation, gravity known). Each
+object match is then an inlier when the transferred box overlaps its match with
+IoU3D >= ``inlier_iou``. A sample is accepted when its own two matches are inliers and at
+least ``min_inlier_ratio`` of all matches are; the accepted sample with the lowest mean
+matching error (1 - IoU3D over all matches) wins. Corners of inlier matches that land within
+``corner_inlier_m`` of their counterparts are kept for bundle adjustment. Beyond the paper,
+the winning pose is refitted on the corners of all its inlier matches (``refine``) and kept
+when that lowers the mean error.
+
+The yaw symmetry of boxes (a quarter turn with swapped sizes is the same box) is resolved
+geometrically: the first object of a sample proposes every quarter turn consistent with its
+sizes, and the second object takes the quarter turn closest to the proposed yaw.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from itertools import combinations
+
+import numpy as np
+
+from rfm_core.geometry import Pose4, box_corners, iou_3d_paired, kabsch_4dof, wrap_angle
+from rfm_core.matching.classical import ObjectMatches
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.corners import corner_permutation, quarter_turn_candidates, relabel
+
+__all__ = ['RelativePose', 'estimate_relative_pose']
+
+
+@dataclass
+class RelativePose:
+    """A verified relative pose: ``pose`` is T_b_a (maps frame a's gravity-aligned camera
+    frame into frame b's: p_b = Rz(yaw) p_a + t)."""
+
+    pose: Pose4
+    inliers: np.ndarray          #: (K, 2) detection indices (a, b) of inlier matches
+    inlier_ious: np.ndarray      #: (K,) IoU3D after transfer
+    inlier_scores: np.ndarray    #: (K,) matcher scores
+    mean_error: float            #: mean 1 - IoU3D over all matches of the winning sample
+    num_matches: int
+    corner_inliers: list = field(default_factory=list)  #: (ia, corner_a, ib, corner_b, error_m)
+
+    @property
+    def inlier_ratio(self) -> float:
+        return len(self.inliers) / max(self.num_matches, 1)
+
+
+def _best_turn(candidates, yaw):
+    """The quarter turn whose implied relative yaw is closest to ``yaw``."""
+    if not candidates:
+        return None
+    return min(candidates, key=lambda kc: abs(wrap_angle(kc[1] - yaw)))
+
+
+def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: ObjectMatches,
+                           config: MatchingConfig | None = None) -> RelativePose | None:
+    """Verified T_b_a from matched boxes of two frames (gravity-aligned camera frames), or
+    None when no minimal sample passes verification."""
+    cfg = config or MatchingConfig()
+    n = len(matches)
+    if n < max(cfg.min_matches, 2):
+        return None
+    a = np.asarray(boxes_a, dtype=np.float64)[matches.a]
+    b = np.asarray(boxes_b, dtype=np.float64)[matches.b]
+    turns = [quarter_turn_candidates(a[m], b[m], cfg.size_consistency) for m in range(n)]
+    corners_a = box_corners(a)                                   # (n, 8, 3)
+    corners_b = box_corners(b)
+    best = None
+    for i, j in combinations(range(n), 2):
+        for k_i, yaw in turns[i]:
+            pick = _best_turn(turns[j], yaw)
+            if pick is None:
+                continue
+            k_j = pick[0]
+            src = np.concatenate([corners_a[i], corners_a[j]])
+            dst = np.concatenate([corners_b[i][corner_permutation(k_i)],
+                                  corners_b[j][corner_permutation(k_j)]])
+            pose = kabsch_4dof(src, dst)
+            ious = iou_3d_paired(pose.transform_boxes(a), b)
+            inlier = ious >= cfg.inlier_iou
+            if not (inlier[i] and inlier[j]) or inlier.mean() < cfg.min_inlier_ratio:
+                continue
+            error = float(np.mean(1.0 - ious))
+            if best is None or error < best[0]:
+                best = (error, pose, ious, inlier)
+    if best is None:
+        return None
+    error, pose, ious, inlier = best
+    if cfg.refine:
+        # Local optimisation: refit on the corners of every inlier match (each with the
+        # quarter turn that agrees with the sample's yaw); keep it if it explains the
+        # matches better.
+        src, dst = [], []
+        for m in np.flatnonzero(inlier):
+            pick = _best_turn(turns[m], pose.yaw)
+            if pick is not None:
+                src.append(corners_a[m])
+                dst.append(corners_b[m][corner_permutation(pick[0])])
+        if len(src) >= 2:
+            refit = kabsch_4dof(np.concatenate(src), np.concatenate(dst))
+            refit_ious = iou_3d_paired(refit.transform_boxes(a), b)
+            refit_error = float(np.mean(1.0 - refit_ious))
+            if refit_error <= error and np.mean(refit_ious >= cfg.inlier_iou) >= cfg.min_inlier_ratio:
+                error, pose, ious = refit_error, refit, refit_ious
+                inlier = ious >= cfg.inlier_iou
+    idx = np.flatnonzero(inlier)
+    return RelativePose(
+        pose=pose,
+        inliers=np.stack([matches.a[idx], matches.b[idx]], axis=1),
+        inlier_ious=ious[idx], inlier_scores=np.asarray(matches.scores)[idx],
+        mean_error=error, num_matches=n,
+        corner_inliers=_corner_inliers(pose, a, b, matches, idx, cfg))
+
+
+def _corner_inliers(pose: Pose4, a, b, matches, idx, cfg) -> list:
+    """Corner correspondences of inlier matches within ``corner_inlier_m`` after transfer."""
+    out = []
+    moved = pose.transform_boxes(a[idx])
+    for m, box in zip(idx, moved):
+        # the quarter turn of box b that best matches the transferred box's yaw
+        k = min(range(4), key=lambda q: abs(wrap_angle(relabel(b[m], q)[6] - box[6])))
+        perm = corner_permutation(k)
+        ca = box_corners(box)
+        cb = box_corners(b[m])[perm]
+        err = np.linalg.norm(ca - cb, axis=1)
+        for c in np.flatnonzero(err < cfg.corner_inlier_m):
+            out.append((int(matches.a[m]), int(c), int(matches.b[m]), int(perm[c]), float(err[c])))
+    return out
