@@ -40,7 +40,7 @@ __all__ = [
     'BOX_DIM', 'CORNER_SIGNS', 'Pose4', 'wrap_angle', 'yaw_matrix', 'box_corners',
     'bev_corners', 'box_volume', 'boxes_from_oriented', 'oriented_from_boxes',
     'gravity_from_accelerometer', 'gravity_aligned_rotation', 'quaternion_from_matrix',
-    'matrix_from_quaternion', 'kabsch_4dof', 'convex_hull_area', 'iou_3d', 'iou_3d_paired', 'giou_3d',
+    'matrix_from_quaternion', 'kabsch_4dof', 'kabsch_4dof_batch', 'convex_hull_area', 'iou_3d', 'iou_3d_paired', 'giou_3d',
     'giou_3d_paired',
 ]
 
@@ -336,6 +336,21 @@ def kabsch_4dof(source, target, weights=None) -> Pose4:
     sin_term = np.sum(w * (qc[:, 1] * sc[:, 0] - qc[:, 0] * sc[:, 1]))
     yaw = np.arctan2(sin_term, cos_term)
     return Pose4(yaw, q_mean - yaw_matrix(yaw) @ s_mean)
+
+
+def kabsch_4dof_batch(source, target):
+    """Unweighted :func:`kabsch_4dof` for H problems at once: (H, N, 3) x 2 ->
+    (yaw (H,), translation (H, 3)) of T_target_source."""
+    s = np.asarray(source, dtype=np.float64)
+    q = np.asarray(target, dtype=np.float64)
+    s_mean, q_mean = s.mean(1, keepdims=True), q.mean(1, keepdims=True)
+    sc, qc = s - s_mean, q - q_mean
+    cos_term = np.sum(qc[..., 0] * sc[..., 0] + qc[..., 1] * sc[..., 1], axis=1)
+    sin_term = np.sum(qc[..., 1] * sc[..., 0] - qc[..., 0] * sc[..., 1], axis=1)
+    yaw = np.arctan2(sin_term, cos_term)
+    rot = yaw_matrix(yaw)                                          # (H, 3, 3)
+    t = q_mean[:, 0] - np.einsum('hij,hj->hi', rot, s_mean[:, 0])
+    return yaw, t
 
 
 # --------------------------------------------------------------------------------------

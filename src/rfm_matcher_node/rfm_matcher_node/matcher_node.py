@@ -1,17 +1,115 @@
 """rfm matcher node: keyframes and a view graph of verified 4-DoF relative poses (paper 3.2-3.4).
 
-Thin rclpy wrapper: the algorithms live in rfm_core (no ROS there).
+Subscribes rfm/detections (rfm_msgs/FrameDetections). Publishes rfm/keyframes
+(rfm_msgs/Keyframe) and rfm/view_graph/edges (rfm_msgs/ViewGraphEdge), reliable with deep
+queues so the mapper does not miss any. An edge's (yaw, translation) is T_source_target,
+between the gravity-aligned camera frames of its keyframes; its inliers pair detection
+indices of the source and target keyframes.
+
+Thin rclpy wrapper: the algorithms live in rfm_core.matching.
 """
+from __future__ import annotations
+
+import numpy as np
 import rclpy
+from geometry_msgs.msg import Vector3
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, ViewGraphEdge
+
+from rfm_core.io.messages import frame_detections_from_msg, ns_to_stamp
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
+
+
+def _float(text, lo, hi):
+    return ParameterDescriptor(description=text, floating_point_range=[
+        FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)])
+
+
+def _int(text, lo, hi):
+    return ParameterDescriptor(description=text, integer_range=[
+        IntegerRange(from_value=int(lo), to_value=int(hi), step=1)])
 
 
 class MatcherNode(Node):
 
-    def __init__(self):
-        super().__init__('matcher')
-        self.get_logger().info('matcher ready')
+    def __init__(self, **kwargs):
+        super().__init__('matcher', **kwargs)
+        p = self.declare_parameter
+        d = MatchingConfig()
+        k = KeyframeConfig()
+        matching = MatchingConfig(
+            match_threshold=p('match_threshold', d.match_threshold, _float(
+                'Keep object matches scoring at least this (paper: 0.5)', 0, 1)).value,
+            size_ratio_gate=p('size_ratio_gate', d.size_ratio_gate, _float(
+                'Classical matcher: minimum size similarity of a match', 0, 1)).value,
+            inlier_iou=p('inlier_iou', d.inlier_iou, _float(
+                'A match is an inlier when its transferred box has IoU3D >= this (paper: 0.25)', 0, 1)).value,
+            min_inlier_ratio=p('min_inlier_ratio', d.min_inlier_ratio, _float(
+                'A pose needs this share of all matches as inliers (paper: 0.5)', 0, 1)).value,
+            corner_inlier_m=p('corner_inlier_m', d.corner_inlier_m, _float(
+                'Corner inlier distance for bundle adjustment (m, paper: 0.10)', 0, 1)).value,
+            refine=p('refine_pose', d.refine, ParameterDescriptor(
+                description='Refit the winning pose on all inlier corners')).value)
+        keyframes = KeyframeConfig(
+            min_overlap=p('keyframe_min_overlap', k.min_overlap, _float(
+                'New keyframe when fewer than this share of objects match the last one', 0, 1)).value,
+            max_translation_m=p('keyframe_max_translation_m', k.max_translation_m, _float(
+                'New keyframe after moving this far from the last one (m)', 0, 100)).value,
+            max_yaw_deg=p('keyframe_max_yaw_deg', k.max_yaw_deg, _float(
+                'New keyframe after turning this much from the last one (deg)', 0, 180)).value,
+            min_detections=p('min_detections', k.min_detections, _int(
+                'Skip frames with fewer detections', 0, 1000)).value,
+            recent_keyframes=p('recent_keyframes', k.recent_keyframes, _int(
+                'Match a new keyframe against this many latest keyframes', 0, 100)).value,
+            retrieved_keyframes=p('retrieved_keyframes', k.retrieved_keyframes, _int(
+                'Plus this many most similar older keyframes (retrieval)', 0, 100)).value)
+        self.graph = ViewGraphBuilder(matching, keyframes)
+        deep = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
+                          reliability=ReliabilityPolicy.RELIABLE)
+        self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', deep)
+        self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', deep)
+        self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
+                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+        self.get_logger().info('matcher ready: rfm/detections -> rfm/keyframes, rfm/view_graph/edges')
+
+    def _on_detections(self, msg: FrameDetections) -> None:
+        try:
+            obs = frame_detections_from_msg(msg)
+        except ValueError as exc:
+            self.get_logger().warning(f'detections dropped: {exc}', throttle_duration_sec=5.0)
+            return
+        keyframe, edges = self.graph.add(obs)
+        if keyframe is None:
+            return
+        out = Keyframe(header=msg.header, keyframe_id=keyframe.keyframe_id, detections=msg)
+        self.keyframe_pub.publish(out)
+        for edge in edges:
+            self.edge_pub.publish(self._edge_msg(edge, obs.stamp_ns))
+        self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')
+
+    @staticmethod
+    def _edge_msg(edge, stamp_ns: int) -> ViewGraphEdge:
+        rel = edge.relative
+        msg = ViewGraphEdge()
+        msg.header.stamp = ns_to_stamp(stamp_ns)
+        msg.source_id, msg.target_id = edge.source_id, edge.target_id
+        msg.yaw = float(rel.pose.yaw)
+        t = rel.pose.t
+        msg.translation = Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2]))
+        msg.num_matches = int(rel.num_matches)
+        msg.inliers = [ObjectMatch(source_index=int(s), target_index=int(t_), score=float(sc),
+                                   iou=float(iou))
+                       for (s, t_), sc, iou in zip(rel.inliers, rel.inlier_scores, rel.inlier_ious)]
+        msg.corner_inliers = [CornerMatch(source_index=int(s), source_corner=int(cs),
+                                          target_index=int(t_), target_corner=int(ct), error=float(e))
+                              for s, cs, t_, ct, e in rel.corner_inliers]
+        msg.mean_error = float(rel.mean_error)
+        msg.score = float(np.clip(rel.inlier_ratio, 0.0, 1.0))
+        return msg
 
 
 def main(args=None):

@@ -21,7 +21,9 @@ from itertools import combinations
 
 import numpy as np
 
-from rfm_core.geometry import Pose4, box_corners, iou_3d_paired, kabsch_4dof, wrap_angle
+from rfm_core.geometry import (
+    Pose4, box_corners, iou_3d_paired, kabsch_4dof, kabsch_4dof_batch, wrap_angle, yaw_matrix,
+)
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import corner_permutation, quarter_turn_candidates, relabel
@@ -67,24 +69,33 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
     turns = [quarter_turn_candidates(a[m], b[m], cfg.size_consistency) for m in range(n)]
     corners_a = box_corners(a)                                   # (n, 8, 3)
     corners_b = box_corners(b)
-    best = None
+    # Every minimal sample and yaw hypothesis, solved and verified in one batch.
+    hyps = []
     for i, j in combinations(range(n), 2):
         for k_i, yaw in turns[i]:
             pick = _best_turn(turns[j], yaw)
-            if pick is None:
-                continue
-            k_j = pick[0]
-            src = np.concatenate([corners_a[i], corners_a[j]])
-            dst = np.concatenate([corners_b[i][corner_permutation(k_i)],
-                                  corners_b[j][corner_permutation(k_j)]])
-            pose = kabsch_4dof(src, dst)
-            ious = iou_3d_paired(pose.transform_boxes(a), b)
-            inlier = ious >= cfg.inlier_iou
-            if not (inlier[i] and inlier[j]) or inlier.mean() < cfg.min_inlier_ratio:
-                continue
-            error = float(np.mean(1.0 - ious))
-            if best is None or error < best[0]:
-                best = (error, pose, ious, inlier)
+            if pick is not None:
+                hyps.append((i, j, k_i, pick[0]))
+    best = None
+    if hyps:
+        h = np.array(hyps)
+        perms = np.stack([corner_permutation(k) for k in range(4)])          # (4, 8)
+        src = np.concatenate([corners_a[h[:, 0]], corners_a[h[:, 1]]], axis=1)  # (H, 16, 3)
+        dst = np.concatenate([np.take_along_axis(corners_b[h[:, 0]], perms[h[:, 2]][..., None], 1),
+                              np.take_along_axis(corners_b[h[:, 1]], perms[h[:, 3]][..., None], 1)],
+                             axis=1)
+        yaws, trans = kabsch_4dof_batch(src, dst)
+        moved = np.repeat(a[None], len(h), axis=0)                            # (H, n, 7)
+        moved[..., :3] = np.einsum('hij,hnj->hni', yaw_matrix(yaws), a[None, :, :3]) + trans[:, None]
+        moved[..., 6] = wrap_angle(a[None, :, 6] + yaws[:, None])
+        ious = iou_3d_paired(moved.reshape(-1, 7), np.tile(b, (len(h), 1))).reshape(len(h), n)
+        inlier = ious >= cfg.inlier_iou
+        rows = np.arange(len(h))
+        ok = inlier[rows, h[:, 0]] & inlier[rows, h[:, 1]] & (inlier.mean(1) >= cfg.min_inlier_ratio)
+        if np.any(ok):
+            errors = np.where(ok, np.mean(1.0 - ious, axis=1), np.inf)
+            w = int(np.argmin(errors))               # the lowest mean error (first on ties)
+            best = (float(errors[w]), Pose4(yaws[w], trans[w]), ious[w], inlier[w])
     if best is None:
         return None
     error, pose, ious, inlier = best

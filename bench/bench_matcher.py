@@ -1,0 +1,63 @@
+"""Benchmark: matcher cost per keyframe as the view graph grows, and per-pair latency.
+
+A simulated detection stream (ground_truth:rgbd detections of one room) is replayed into a
+ViewGraphBuilder that already holds 10, 100 or 1000 keyframes (copies of the room's
+keyframes, so retrieval has real candidates). Reported: median time to process one new
+keyframe (matching against the last keyframe, retrieval, matching and verifying the
+candidates), and the median time of one pair (match + relative pose).
+
+    ros_ws/env.sh python bench/bench_matcher.py
+"""
+import os
+
+for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
+    os.environ[_var] = '1'
+
+import statistics  # noqa: E402
+import time  # noqa: E402
+
+from rfm_core.detection import make_detector  # noqa: E402
+from rfm_core.matching.classical import ClassicalMatcher  # noqa: E402
+from rfm_core.matching.relative_pose import estimate_relative_pose  # noqa: E402
+from rfm_core.matching.view_graph import Keyframe, ViewGraphBuilder, _descriptor  # noqa: E402
+from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
+
+
+def main():
+    frames = list(Capture(CaptureConfig(seed=300, frames=60, fps=4)).frames())
+    det = make_detector('ground_truth', preset='rgbd', seed=0)
+    stream = [det.perturb(f.ground_truth) for f in frames]
+    print('# matcher cost per new keyframe vs keyframes already in the graph (one core)')
+    print('| keyframes in graph | per keyframe (ms) | pairs tested per keyframe |')
+    print('|---|---|---|')
+    for size in (10, 100, 1000):
+        graph = ViewGraphBuilder()
+        for i in range(size):                       # pre-fill with keyframes of the room
+            obs = stream[i % len(stream)]
+            kf = Keyframe(graph._next_id, obs, _descriptor(obs))
+            graph._next_id += 1
+            graph.keyframes.append(kf)
+        graph._desc_buffer = __import__('numpy').stack([k.descriptor for k in graph.keyframes])
+        times, pairs = [], []
+        for obs in stream:
+            before = graph.stats.pairs_tested
+            start = time.perf_counter()
+            kf, _ = graph.add(obs)
+            if kf is not None:
+                times.append(time.perf_counter() - start)
+                pairs.append(graph.stats.pairs_tested - before)
+        print(f'| {size} | {1e3 * statistics.median(times):.1f} | {statistics.median(pairs):.0f} |')
+    matcher = ClassicalMatcher()
+    pair_times = []
+    for a, b in zip(stream[:-1], stream[1:]):
+        start = time.perf_counter()
+        m = matcher.match(b, a)
+        estimate_relative_pose(b.boxes, a.boxes, m)
+        pair_times.append(time.perf_counter() - start)
+    print(f'\nper pair (classical match + relative pose, '
+          f'{statistics.median(len(s) for s in stream):.0f} detections per frame): '
+          f'{1e3 * statistics.median(pair_times):.1f} ms')
+
+
+if __name__ == '__main__':
+    main()

@@ -1,0 +1,149 @@
+"""Keyframes and view-graph edges from a stream of detections (paper 3.2-3.4, made live).
+
+Each incoming frame is matched against the last keyframe. It becomes a keyframe when it
+shares too few objects with it, or has moved or turned too far from it. A new keyframe is
+then matched against candidates: the few most recent keyframes plus the keyframes whose
+bag-of-objects descriptor (mean of the object embeddings) is most similar, so the cost per
+keyframe stays bounded however large the map grows. Every verified relative pose becomes
+an edge.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from rfm_core.matching.classical import ClassicalMatcher
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose
+from rfm_core.observations import FrameObservations
+
+__all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'ViewGraphBuilder']
+
+
+@dataclass(frozen=True)
+class KeyframeConfig:
+    min_overlap: float = 0.6          #: new keyframe when fewer than this share of objects match
+    max_translation_m: float = 0.5    #: ... or when it moved farther than this
+    max_yaw_deg: float = 20.0         #: ... or turned more than this
+    min_detections: int = 2           #: frames with fewer detections are skipped
+    recent_keyframes: int = 3         #: always match against this many latest keyframes
+    retrieved_keyframes: int = 5      #: plus this many most similar older ones
+    min_retrieval_similarity: float = 0.3
+
+
+@dataclass
+class Keyframe:
+    keyframe_id: int
+    observations: FrameObservations
+    descriptor: np.ndarray            #: unit bag-of-objects descriptor (D,)
+
+
+@dataclass
+class Edge:
+    """A verified relative pose: ``relative.pose`` is T_source_target (maps the target
+    keyframe's gravity-aligned frame into the source's), ``relative.inliers`` are
+    (source detection, target detection) index pairs."""
+
+    source_id: int
+    target_id: int
+    relative: RelativePose
+
+
+def _descriptor(obs: FrameObservations) -> np.ndarray:
+    if obs.embeddings.shape[1] == 0 or len(obs) == 0:
+        return np.zeros(max(obs.embeddings.shape[1], 1))
+    v = obs.embeddings.astype(np.float64).mean(0)
+    return v / max(np.linalg.norm(v), 1e-9)
+
+
+@dataclass
+class _Stats:
+    frames: int = 0
+    skipped: int = 0
+    keyframes: int = 0
+    pairs_tested: int = 0
+    edges: int = 0
+    last_candidates: list = field(default_factory=list)
+
+
+class ViewGraphBuilder:
+    """Feed frames with :meth:`add`; it returns the new keyframe (or None) and its edges."""
+
+    def __init__(self, matching: MatchingConfig | None = None,
+                 keyframes: KeyframeConfig | None = None, matcher=None):
+        self.matching = matching or MatchingConfig()
+        self.config = keyframes or KeyframeConfig()
+        self.matcher = matcher or ClassicalMatcher(self.matching)
+        self.keyframes: list = []
+        self._desc_buffer = np.zeros((0, 0))      # grows by doubling: O(1) amortised append
+        self.stats = _Stats()
+        self._next_id = 0
+
+    def _relative(self, source: FrameObservations, target: FrameObservations) -> RelativePose | None:
+        """T_source_target from matching target against source."""
+        matches = self.matcher.match(target, source)
+        rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching)
+        if rel is None:
+            return None
+        rel.inliers = rel.inliers[:, ::-1].copy()        # as (source, target) index pairs
+        rel.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in rel.corner_inliers]
+        return rel
+
+    def needs_keyframe(self, obs: FrameObservations) -> bool:
+        if not self.keyframes:
+            return True
+        cfg = self.config
+        last = self.keyframes[-1].observations
+        rel = self._relative(last, obs)
+        if rel is None:
+            return True
+        overlap = len(rel.inliers) / max(min(len(obs), len(last)), 1)
+        return (overlap < cfg.min_overlap
+                or np.linalg.norm(rel.pose.t) > cfg.max_translation_m
+                or np.degrees(abs(rel.pose.yaw)) > cfg.max_yaw_deg)
+
+    def candidates(self, descriptor: np.ndarray) -> list:
+        """Indices of keyframes to match a new keyframe against (bounded in number)."""
+        cfg = self.config
+        n = len(self.keyframes)
+        recent = list(range(max(0, n - cfg.recent_keyframes), n))
+        older = n - len(recent)
+        if older > 0 and cfg.retrieved_keyframes > 0 and self._desc_buffer.shape[1] == len(descriptor):
+            sims = self._desc_buffer[:older] @ descriptor
+            k = min(cfg.retrieved_keyframes, older)
+            top = np.argpartition(-sims, k - 1)[:k]
+            top = top[np.argsort(-sims[top])]
+            recent += [int(i) for i in top if sims[i] >= cfg.min_retrieval_similarity]
+        return recent
+
+    def add(self, obs: FrameObservations):
+        """Process one frame; returns (Keyframe or None, [Edge, ...])."""
+        self.stats.frames += 1
+        if len(obs) < self.config.min_detections:
+            self.stats.skipped += 1
+            return None, []
+        if not self.needs_keyframe(obs):
+            return None, []
+        descriptor = _descriptor(obs)
+        keyframe = Keyframe(self._next_id, obs, descriptor)
+        self._next_id += 1
+        edges = []
+        cand = self.candidates(descriptor)
+        self.stats.last_candidates = [self.keyframes[i].keyframe_id for i in cand]
+        for i in cand:
+            source = self.keyframes[i]
+            self.stats.pairs_tested += 1
+            rel = self._relative(source.observations, obs)
+            if rel is not None:
+                edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
+        n = len(self.keyframes)
+        if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe
+            self._desc_buffer = np.zeros((64, len(descriptor)))
+        elif n == len(self._desc_buffer):
+            self._desc_buffer = np.vstack([self._desc_buffer, np.zeros_like(self._desc_buffer)])
+        self._desc_buffer[n] = descriptor
+        self.keyframes.append(keyframe)
+        self.stats.keyframes += 1
+        self.stats.edges += len(edges)
+        return keyframe, edges

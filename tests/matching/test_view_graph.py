@@ -1,0 +1,56 @@
+"""Keyframes and verified edges from a simulated detection stream."""
+import numpy as np
+import pytest
+
+from rfm_core.detection import make_detector
+from rfm_core.geometry import Pose4, gravity_aligned_rotation
+from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
+from rfm_core.sim.capture import Capture, CaptureConfig
+
+
+def aligned_from_map(frame):
+    r = gravity_aligned_rotation(frame.ground_truth.gravity_cam) @ frame.rotation.T
+    return Pose4.from_matrix(np.c_[r, -r @ frame.position], atol=1e-6)
+
+
+@pytest.fixture(scope='module')
+def stream():
+    cap = Capture(CaptureConfig(seed=31, frames=40, fps=4))
+    return list(cap.frames())
+
+
+@pytest.mark.parametrize('preset,max_yaw,max_t', [('perfect', 0.05, 0.005), ('rgbd', 2.0, 0.12)])
+def test_edges_agree_with_ground_truth(stream, preset, max_yaw, max_t):
+    det = make_detector('ground_truth', preset=preset, seed=4)
+    graph = ViewGraphBuilder()
+    frames_by_kf = {}
+    edges = []
+    for frame in stream:
+        kf, new_edges = graph.add(det.perturb(frame.ground_truth))
+        if kf is not None:
+            frames_by_kf[kf.keyframe_id] = frame
+        edges += new_edges
+    assert 4 <= len(frames_by_kf) < len(stream)          # keyframes, not every frame
+    assert len(edges) >= len(frames_by_kf) - 1
+    yaw_err, t_err = [], []
+    for e in edges:
+        truth = aligned_from_map(frames_by_kf[e.source_id]) @ aligned_from_map(frames_by_kf[e.target_id]).inverse()
+        yaw_err.append(np.degrees(e.relative.pose.angle_to(truth)))
+        t_err.append(np.linalg.norm(e.relative.pose.t - truth.t))
+        src = frames_by_kf[e.source_id]
+        # inlier pairs are (source detection, target detection): same object in both frames
+        if preset == 'perfect':
+            ids_s = graph.keyframes[e.source_id].observations.object_ids
+            ids_t = graph.keyframes[e.target_id].observations.object_ids
+            assert all(ids_s[i] == ids_t[j] for i, j in e.relative.inliers)
+        assert src is not None
+    assert np.median(yaw_err) < max_yaw and np.median(t_err) < max_t
+
+
+def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
+    det = make_detector('ground_truth', preset='perfect')
+    graph = ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=2, retrieved_keyframes=3))
+    for frame in stream + stream[:8]:                    # come back to the start
+        graph.add(det.perturb(frame.ground_truth))
+        assert len(graph.stats.last_candidates) <= 5
+    assert graph.stats.keyframes >= 5
