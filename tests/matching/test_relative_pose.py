@@ -85,12 +85,7 @@ def test_classical_matcher_and_pose_on_simulated_frames():
         if rel is None:
             continue
         verified += 1
-        # ground truth T_2_1 between the gravity-aligned camera frames
-        def aligned_from_map(f):
-            from rfm_core.geometry import gravity_aligned_rotation
-            r = gravity_aligned_rotation(f.ground_truth.gravity_cam) @ f.rotation.T
-            return Pose4.from_matrix(np.c_[r, -r @ f.position], atol=1e-6)
-        truth = aligned_from_map(f2) @ aligned_from_map(f1).inverse()
+        truth = f2.aligned_from_map() @ f1.aligned_from_map().inverse()   # T_2_1
         errors.append((np.degrees(rel.pose.angle_to(truth)), np.linalg.norm(rel.pose.t - truth.t)))
     yaw_err, t_err = np.median(errors, axis=0)
     assert yaw_err < 2.0 and t_err < 0.1, errors          # rgbd preset: 2 deg yaw noise per box

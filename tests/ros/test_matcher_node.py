@@ -11,16 +11,12 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from rfm_core.detection import make_detector  # noqa: E402
-from rfm_core.geometry import Pose4, gravity_aligned_rotation  # noqa: E402
+from rfm_core.geometry import Pose4  # noqa: E402
 from rfm_core.io.messages import frame_detections_to_msg  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-
-def aligned_from_map(frame):
-    r = gravity_aligned_rotation(frame.ground_truth.gravity_cam) @ frame.rotation.T
-    return Pose4.from_matrix(np.c_[r, -r @ frame.position], atol=1e-6)
 
 
 def test_keyframes_and_edges_agree_with_ground_truth():
@@ -70,7 +66,7 @@ def test_keyframes_and_edges_agree_with_ground_truth():
     yaw_err, t_err = [], []
     for e in edges:
         est = Pose4(e.yaw, (e.translation.x, e.translation.y, e.translation.z))
-        truth = aligned_from_map(kf_frame[e.source_id]) @ aligned_from_map(kf_frame[e.target_id]).inverse()
+        truth = kf_frame[e.source_id].aligned_from_map() @ kf_frame[e.target_id].aligned_from_map().inverse()
         yaw_err.append(np.degrees(est.angle_to(truth)))
         t_err.append(np.linalg.norm(est.t - truth.t))
         assert len(e.inliers) >= 2 and 0 < e.score <= 1

@@ -115,6 +115,18 @@ class SimFrame:
         m[:3, :3], m[:3, 3] = self.rotation, self.position
         return m
 
+    def aligned_from_map(self) -> Pose4:
+        """T_aligned_map: the true 4-DoF pose mapping the map frame into this frame's
+        gravity-aligned camera frame (what relative poses between keyframes compose)."""
+        return aligned_from_map(self.rotation, self.position)
+
+
+def aligned_from_map(rotation, position) -> Pose4:
+    """T_aligned_map of a camera with orientation ``rotation`` (camera-to-map) at ``position``."""
+    gravity_cam = rotation.T @ np.array([0.0, 0.0, -1.0])
+    r = gravity_aligned_rotation(gravity_cam) @ rotation.T
+    return Pose4.from_matrix(np.c_[r, -r @ position], atol=1e-6)
+
 
 class Capture:
     """The room, trajectory and renderer of one configuration."""
@@ -149,9 +161,7 @@ class Capture:
                                 stamp_ns: int) -> FrameObservations:
         """Full boxes of the objects visible in a rendered frame (gravity-aligned camera frame)."""
         gravity_cam = rotation.T @ np.array([0.0, 0.0, -1.0])
-        aligned_from_map = gravity_aligned_rotation(gravity_cam) @ rotation.T
-        t_aligned_map = Pose4.from_matrix(np.c_[aligned_from_map, -aligned_from_map @ position],
-                                          atol=1e-6)
+        t_aligned_map = aligned_from_map(rotation, position)
         min_pixels = self.config.min_visible_fraction * self.intrinsics.width * self.intrinsics.height
         keep = np.flatnonzero(out.visible_pixels >= max(min_pixels, 1))
         visibility = np.clip(out.visible_pixels[keep] / np.maximum(out.amodal_area[keep], 1), 0, 1)
