@@ -90,18 +90,16 @@ class ViewGraphBuilder:
         rel.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in rel.corner_inliers]
         return rel
 
-    def needs_keyframe(self, obs: FrameObservations) -> bool:
-        if not self.keyframes:
+    def _is_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None) -> bool:
+        """Whether a frame becomes a keyframe, given its verified pose to the last keyframe."""
+        if not self.keyframes or last_rel is None:
             return True
         cfg = self.config
         last = self.keyframes[-1].observations
-        rel = self._relative(last, obs)
-        if rel is None:
-            return True
-        overlap = len(rel.inliers) / max(min(len(obs), len(last)), 1)
+        overlap = len(last_rel.inliers) / max(min(len(obs), len(last)), 1)
         return (overlap < cfg.min_overlap
-                or np.linalg.norm(rel.pose.t) > cfg.max_translation_m
-                or np.degrees(abs(rel.pose.yaw)) > cfg.max_yaw_deg)
+                or np.linalg.norm(last_rel.pose.t) > cfg.max_translation_m
+                or np.degrees(abs(last_rel.pose.yaw)) > cfg.max_yaw_deg)
 
     def candidates(self, descriptor: np.ndarray) -> list:
         """Indices of keyframes to match a new keyframe against (bounded in number)."""
@@ -123,7 +121,9 @@ class ViewGraphBuilder:
         if len(obs) < self.config.min_detections:
             self.stats.skipped += 1
             return None, []
-        if not self.needs_keyframe(obs):
+        # the pose to the last keyframe decides, and is reused as that candidate's edge
+        last_rel = self._relative(self.keyframes[-1].observations, obs) if self.keyframes else None
+        if not self._is_keyframe(obs, last_rel):
             return None, []
         descriptor = _descriptor(obs)
         keyframe = Keyframe(self._next_id, obs, descriptor)
@@ -131,10 +131,11 @@ class ViewGraphBuilder:
         edges = []
         cand = self.candidates(descriptor)
         self.stats.last_candidates = [self.keyframes[i].keyframe_id for i in cand]
+        last = len(self.keyframes) - 1
         for i in cand:
             source = self.keyframes[i]
             self.stats.pairs_tested += 1
-            rel = self._relative(source.observations, obs)
+            rel = last_rel if i == last else self._relative(source.observations, obs)
             if rel is not None:
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
         n = len(self.keyframes)
