@@ -326,30 +326,26 @@ def kabsch_4dof(source, target, weights=None) -> Pose4:
     w = np.ones(len(s)) if weights is None else np.asarray(weights, dtype=np.float64).reshape(-1)
     if w.shape != (len(s),) or np.any(w < 0) or not np.all(np.isfinite(w)):
         raise ValueError('weights must be finite, non-negative, one per point')
-    total = w.sum()
-    if total <= 0:
+    if w.sum() <= 0:
         raise ValueError('kabsch_4dof needs a positive total weight')
-    s_mean = w @ s / total
-    q_mean = w @ q / total
-    sc, qc = s - s_mean, q - q_mean
-    cos_term = np.sum(w * (qc[:, 0] * sc[:, 0] + qc[:, 1] * sc[:, 1]))
-    sin_term = np.sum(w * (qc[:, 1] * sc[:, 0] - qc[:, 0] * sc[:, 1]))
-    yaw = np.arctan2(sin_term, cos_term)
-    return Pose4(yaw, q_mean - yaw_matrix(yaw) @ s_mean)
+    yaw, t = kabsch_4dof_batch(s[None], q[None], w[None])
+    return Pose4(yaw[0], t[0])
 
 
-def kabsch_4dof_batch(source, target):
-    """Unweighted :func:`kabsch_4dof` for H problems at once: (H, N, 3) x 2 ->
-    (yaw (H,), translation (H, 3)) of T_target_source."""
+def kabsch_4dof_batch(source, target, weights=None):
+    """:func:`kabsch_4dof` for H problems at once: (H, N, 3) x 2 (and weights (H, N)) ->
+    (yaw (H,), translation (H, 3)) of T_target_source. No input validation."""
     s = np.asarray(source, dtype=np.float64)
     q = np.asarray(target, dtype=np.float64)
-    s_mean, q_mean = s.mean(1, keepdims=True), q.mean(1, keepdims=True)
-    sc, qc = s - s_mean, q - q_mean
-    cos_term = np.sum(qc[..., 0] * sc[..., 0] + qc[..., 1] * sc[..., 1], axis=1)
-    sin_term = np.sum(qc[..., 1] * sc[..., 0] - qc[..., 0] * sc[..., 1], axis=1)
+    w = np.ones(s.shape[:2]) if weights is None else np.asarray(weights, dtype=np.float64)
+    total = w.sum(1, keepdims=True)
+    s_mean = np.einsum('hn,hni->hi', w, s) / total
+    q_mean = np.einsum('hn,hni->hi', w, q) / total
+    sc, qc = s - s_mean[:, None], q - q_mean[:, None]
+    cos_term = np.sum(w * (qc[..., 0] * sc[..., 0] + qc[..., 1] * sc[..., 1]), axis=1)
+    sin_term = np.sum(w * (qc[..., 1] * sc[..., 0] - qc[..., 0] * sc[..., 1]), axis=1)
     yaw = np.arctan2(sin_term, cos_term)
-    rot = yaw_matrix(yaw)                                          # (H, 3, 3)
-    t = q_mean[:, 0] - np.einsum('hij,hj->hi', rot, s_mean[:, 0])
+    t = q_mean - np.einsum('hij,hj->hi', yaw_matrix(yaw), s_mean)
     return yaw, t
 
 
