@@ -35,9 +35,11 @@ from rfm_core.detection.base import DetectorInput
 from rfm_core.detection.gravity import GravityFilter
 from rfm_core.geometry import box_corners
 from rfm_core.io.images import depth_to_meters, image_to_rgb
-from rfm_core.io.messages import frame_detections_from_msg, frame_detections_to_msg, stamp_to_ns
+from rfm_core.io.messages import (
+    camera_info_intrinsics, frame_detections_from_msg, frame_detections_to_msg, imu_reading,
+    stamp_to_ns,
+)
 from rfm_core.io.sync import ApproximateTimeSynchronizer
-from rfm_core.observations import CameraIntrinsics
 
 _EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
           (0, 4), (1, 5), (2, 6), (3, 7)]
@@ -178,9 +180,7 @@ class DetectorNode(Node):
         self.sync.add(index, stamp, msg)
 
     def _on_imu(self, msg: Imu) -> None:
-        a, w = msg.linear_acceleration, msg.angular_velocity
-        gyro = None if msg.angular_velocity_covariance[0] == -1 else [w.x, w.y, w.z]
-        if not self.gravity_filter.add(stamp_to_ns(msg.header.stamp), [a.x, a.y, a.z], gyro):
+        if not self.gravity_filter.add(*imu_reading(msg)):
             self._warn('IMU sample dropped: not finite, not near 1 g, or out of order')
 
     def _on_synced(self, *msgs) -> None:
@@ -259,9 +259,7 @@ class DetectorNode(Node):
         stamp = stamp_to_ns(rgb_msg.header.stamp)
         if not self._check_order(stamp):
             return None
-        k = info.k
-        intrinsics = CameraIntrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
-                                      int(info.width), int(info.height))
+        intrinsics = camera_info_intrinsics(info)
         if self.gravity_source == 'imu':
             # IMU and images travel on different topics: give the IMU a moment to catch up.
             deadline = time.monotonic() + self.imu_wait_s

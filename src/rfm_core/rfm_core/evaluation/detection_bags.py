@@ -14,8 +14,7 @@ from rfm_core.detection.gravity import GravityFilter
 from rfm_core.evaluation.detection import DetectionEvaluator
 from rfm_core.io.bag import iter_camera_frames
 from rfm_core.io.images import depth_to_meters, image_to_rgb
-from rfm_core.io.messages import frame_detections_from_msg, stamp_to_ns
-from rfm_core.observations import CameraIntrinsics
+from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_msg, imu_reading
 
 __all__ = ['evaluate_bag', 'TOPICS']
 
@@ -38,9 +37,7 @@ def evaluate_bag(path, detector, evaluator: DetectionEvaluator | None = None, ev
             path, t['color'], None if ground_truth_only else t['depth'], t['info'], t['imu'],
             extra_topics=(t['ground_truth'],))):
         for imu in frame['imu']:
-            a, w = imu.linear_acceleration, imu.angular_velocity
-            gyro = None if imu.angular_velocity_covariance[0] == -1 else [w.x, w.y, w.z]
-            gravity.add(stamp_to_ns(imu.header.stamp), [a.x, a.y, a.z], gyro)
+            gravity.add(*imu_reading(imu))
         if i % every:
             continue
         if max_frames is not None and len(latencies) >= max_frames:
@@ -52,13 +49,9 @@ def evaluate_bag(path, detector, evaluator: DetectionEvaluator | None = None, ev
         else:
             if not gravity.ready:
                 continue
-            info = frame['info']
-            k = info.k
             inp = DetectorInput(frame['stamp_ns'], frame['color'].header.frame_id,
-                                CameraIntrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
-                                                 int(info.width), int(info.height)),
-                                gravity.gravity(), image_to_rgb(frame['color']),
-                                depth_to_meters(frame['depth']))
+                                camera_info_intrinsics(frame['info']), gravity.gravity(),
+                                image_to_rgb(frame['color']), depth_to_meters(frame['depth']))
             pred = detector.detect(inp)
         latencies.append(time.perf_counter() - start)
         evaluator.add(pred, truth)

@@ -20,7 +20,8 @@ from rfm_core.observations import CameraIntrinsics, FrameObservations
 
 __all__ = [
     'ROS', 'RosMessages', 'BagMessages', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
-    'camera_info_msg', 'imu_msg', 'object_map_msg', 'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
+    'camera_info_msg', 'imu_msg', 'object_map_msg', 'camera_info_intrinsics', 'imu_reading',
+    'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg',
 ]
@@ -174,6 +175,21 @@ def vector3_to_numpy(v) -> np.ndarray:
 
 def _quat(q) -> np.ndarray:
     return np.array([q.x, q.y, q.z, q.w], dtype=np.float64)
+
+
+def camera_info_intrinsics(info) -> CameraIntrinsics:
+    """sensor_msgs/CameraInfo -> CameraIntrinsics (raises ValueError for zero or bad K)."""
+    k = info.k
+    return CameraIntrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]),
+                            int(info.width), int(info.height))
+
+
+def imu_reading(msg):
+    """sensor_msgs/Imu -> (stamp_ns, specific force (3,), angular velocity (3,) or None when
+    the driver marks it unavailable with covariance[0] = -1)."""
+    a, w = msg.linear_acceleration, msg.angular_velocity
+    gyro = None if msg.angular_velocity_covariance[0] == -1 else [w.x, w.y, w.z]
+    return stamp_to_ns(msg.header.stamp), [a.x, a.y, a.z], gyro
 
 
 def pose_to_matrix(pose) -> np.ndarray:
