@@ -123,7 +123,6 @@ class DetectorNode(Node):
         self.last_latency_ms = float('nan')
         self.last_detections = 0
         self._last_stamp = None
-        self._last_image_stamp = None
         self._synced = 0
         self._pending = None
         self._cv = threading.Condition()
@@ -161,22 +160,27 @@ class DetectorNode(Node):
     def _warn(self, text: str) -> None:
         self.get_logger().warning(text, throttle_duration_sec=5.0)
 
+    def _accept_stamp(self, stamp: int, what: str) -> bool:
+        """Frames must arrive in stamp order; a jump far back (a looping bag) resets state."""
+        last = self._last_stamp
+        if last is not None and stamp <= last:
+            if last - stamp <= _TIME_JUMP_NS:
+                self.counts['dropped_out_of_order'] += 1
+                self._warn(f'{what} dropped: stamp {stamp} is not newer than the last ({last})')
+                return False
+            self.get_logger().info('time jumped backwards (bag loop?): resetting')
+            if self.backend != 'ground_truth':
+                self.sync.reset()
+            self.gravity_filter = GravityFilter(tau_s=self.gravity_filter.tau_s)
+        self._last_stamp = stamp
+        return True
+
     def _add(self, index: int, msg) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
         if index == 0:
             self.counts['received'] += 1
-            last = self._last_image_stamp
-            if last is not None and stamp <= last:
-                if last - stamp > _TIME_JUMP_NS:
-                    self.get_logger().info('time jumped backwards (bag loop?): resetting')
-                    self.sync.reset()
-                    self.gravity_filter = GravityFilter(tau_s=self.gravity_filter.tau_s)
-                    self._last_stamp = None
-                else:
-                    self.counts['dropped_out_of_order'] += 1
-                    self._warn(f'image dropped: stamp {stamp} is not newer than the last ({last})')
-                    return
-            self._last_image_stamp = stamp
+            if not self._accept_stamp(stamp, 'image'):
+                return
         self.sync.add(index, stamp, msg)
 
     def _on_imu(self, msg: Imu) -> None:
@@ -192,6 +196,8 @@ class DetectorNode(Node):
 
     def _on_ground_truth(self, msg: FrameDetections) -> None:
         self.counts['received'] += 1
+        if not self._accept_stamp(stamp_to_ns(msg.header.stamp), 'ground-truth frame'):
+            return
         self._submit(('ground_truth', msg))
 
     def _submit(self, job) -> None:
@@ -236,29 +242,11 @@ class DetectorNode(Node):
             except Exception as exc:  # noqa: BLE001 - e.g. publishing during shutdown
                 self.get_logger().debug(f'publish failed: {exc!r}')
 
-    def _check_order(self, stamp_ns: int) -> bool:
-        last = self._last_stamp
-        if last is not None and stamp_ns <= last:
-            if last - stamp_ns > _TIME_JUMP_NS:
-                self.get_logger().info('time jumped backwards (bag loop?): resetting')
-                self.gravity_filter = GravityFilter(tau_s=self.gravity_filter.tau_s)
-            else:
-                self.counts['dropped_out_of_order'] += 1
-                self._warn(f'frame dropped: stamp {stamp_ns} is not newer than the last ({last})')
-                return False
-        self._last_stamp = stamp_ns
-        return True
-
     def _process(self, kind, payload):
         if kind == 'ground_truth':
-            truth = frame_detections_from_msg(payload)
-            if not self._check_order(truth.stamp_ns):
-                return None
-            return self.detector.perturb(truth)
+            return self.detector.perturb(frame_detections_from_msg(payload))
         rgb_msg, info, depth_msg = (payload + (None,))[:3]
         stamp = stamp_to_ns(rgb_msg.header.stamp)
-        if not self._check_order(stamp):
-            return None
         intrinsics = camera_info_intrinsics(info)
         if self.gravity_source == 'imu':
             # IMU and images travel on different topics: give the IMU a moment to catch up.
