@@ -1,6 +1,5 @@
 """The committed demo bag: regenerable bit-for-bit, and plays without drops at 1x."""
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
@@ -10,6 +9,8 @@ from rclpy.node import Node  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from rfm_core.sim.capture import TOPICS  # noqa: E402
+
+from playback import play_bag  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 DEMO = ROOT / 'bags' / 'demo'
@@ -45,15 +46,7 @@ def test_demo_bag_plays_at_1x_without_drops():
     node.create_subscription(FrameDetections, TOPICS['gt_detections'],
                              lambda m: counts.__setitem__('gt', counts['gt'] + 1), reliable)
     try:
-        player = subprocess.Popen(['rfm', 'play', str(DEMO), '--delay', '3', '--quiet'],
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        start = time.monotonic()
-        while player.poll() is None and time.monotonic() - start < 90:
-            rclpy.spin_once(node, timeout_sec=0.02)
-        end = time.monotonic() + 2
-        while time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.02)
-        assert player.returncode == 0, player.communicate()[0]
+        play_bag(node, DEMO, timeout=90)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

@@ -2,7 +2,6 @@
 import shutil
 import signal
 import subprocess
-import time
 from pathlib import Path
 
 import pytest
@@ -13,6 +12,8 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from rosbags.highlevel import AnyReader  # noqa: E402
 
 from rfm_core.sim.capture import TOPICS, Capture, CaptureConfig  # noqa: E402
+
+from playback import play_bag  # noqa: E402
 
 pytestmark = pytest.mark.ros
 RFM = shutil.which('rfm')
@@ -58,16 +59,7 @@ def test_play_delivers_everything_in_order_with_clock_and_record_replays_identic
                              QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                         reliability=ReliabilityPolicy.RELIABLE))
     try:
-        player = subprocess.Popen([RFM, 'play', str(small_bag), '--delay', '3', '--quiet'],
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        deadline = time.monotonic() + 60
-        while player.poll() is None and time.monotonic() < deadline:
-            rclpy.spin_once(node, timeout_sec=0.05)
-        end = time.monotonic() + 2
-        while time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.05)
-        out = player.communicate()[0]
-        assert player.returncode == 0, out
+        play_bag(node, small_bag)
     finally:
         recorder.send_signal(signal.SIGINT)
         try:
@@ -105,19 +97,9 @@ def test_play_remaps_filters_and_rate(small_bag):
                              QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE))
     seen_topics = set()
     try:
-        start = time.monotonic()
-        player = subprocess.Popen([RFM, 'play', str(small_bag), '--delay', '3', '--quiet',
-                                   '--rate', '4', '--topics', TOPICS['color'],
-                                   '--remap', f'{TOPICS["color"]}:=/renamed/rgb'],
-                                  stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        while player.poll() is None and time.monotonic() - start < 60:
-            rclpy.spin_once(node, timeout_sec=0.05)
-            seen_topics |= {t for t, _ in node.get_topic_names_and_types()}
-        elapsed = time.monotonic() - start
-        end = time.monotonic() + 1
-        while time.monotonic() < end:
-            rclpy.spin_once(node, timeout_sec=0.05)
-        assert player.returncode == 0, player.communicate()[0]
+        elapsed = play_bag(node, small_bag, '--rate', '4', '--topics', TOPICS['color'],
+                           '--remap', f'{TOPICS["color"]}:=/renamed/rgb', drain=1.0,
+                           on_spin=lambda: seen_topics.update(t for t, _ in node.get_topic_names_and_types()))
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
