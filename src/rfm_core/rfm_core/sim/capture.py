@@ -214,12 +214,18 @@ class Capture:
                 self.room.boxes, self.room.labels, np.arange(len(self.room.objects)) + 1,
                 start, 'map', make=make))
             next_imu = 0
-            for frame in self.frames():
-                while next_imu < len(imu_stamps) and imu_stamps[next_imu] <= frame.stamp_ns:
+
+            def write_imu_until(stamp_ns):
+                """IMU samples up to ``stamp_ns``, so the bag stays in time order."""
+                nonlocal next_imu
+                while next_imu < len(imu_stamps) and imu_stamps[next_imu] <= stamp_ns:
                     write('imu', imu_stamps[next_imu], imu_msg(
                         imu.linear_acceleration[next_imu], imu.angular_velocity[next_imu],
                         imu_stamps[next_imu], OPTICAL_FRAME, make=make))
                     next_imu += 1
+
+            for frame in self.frames():
+                write_imu_until(frame.stamp_ns)
                 stamp = frame.stamp_ns
                 image_header = header(make, stamp, OPTICAL_FRAME)
                 write('color', stamp, numpy_to_image(frame.render.rgb, 'rgb8', image_header, make=make))
@@ -238,9 +244,5 @@ class Capture:
                 write('gt_detections', stamp, frame_detections_to_msg(frame.ground_truth, make))
                 if progress is not None:
                     progress(frame.index + 1, len(self.trajectory))
-            while next_imu < len(imu_stamps):
-                write('imu', imu_stamps[next_imu], imu_msg(
-                    imu.linear_acceleration[next_imu], imu.angular_velocity[next_imu],
-                    imu_stamps[next_imu], OPTICAL_FRAME, make=make))
-                next_imu += 1
+            write_imu_until(imu_stamps[-1] if imu_stamps else 0)
         return {'path': str(Path(path)), 'messages': counts, 'objects': len(self.room.objects)}
