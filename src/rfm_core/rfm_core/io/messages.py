@@ -9,6 +9,8 @@ for writing bags without ROS. Builders always pass every field, as rosbags requi
 from __future__ import annotations
 
 import array
+import functools
+import importlib
 
 import numpy as np
 
@@ -29,13 +31,18 @@ __all__ = [
 _NS = 1_000_000_000
 
 
+@functools.lru_cache(maxsize=None)
+def _ros_class(typename: str):
+    """The rclpy class of 'pkg/msg/Type' (looked up once: builders call this per field)."""
+    package, kind, name = typename.split('/')
+    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+
+
 class RosMessages:
     """Builds messages as rclpy message objects (needs ROS): ``make('pkg/msg/Type', **fields)``."""
 
     def __call__(self, typename: str, **fields):
-        import importlib  # noqa: PLC0415
-        package, kind, name = typename.split('/')
-        return getattr(importlib.import_module(f'{package}.{kind}'), name)(**fields)
+        return _ros_class(typename)(**fields)
 
     @staticmethod
     def uint8_array(values: np.ndarray):
