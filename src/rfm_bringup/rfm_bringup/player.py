@@ -7,7 +7,6 @@ remapped, while ``/clock`` carries the bag time so nodes can run with ``use_sim_
 """
 from __future__ import annotations
 
-import importlib
 import sys
 import time
 from dataclasses import dataclass, field
@@ -16,20 +15,9 @@ from pathlib import Path
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-__all__ = ['PlayOptions', 'BagPlayer', 'message_type']
+from rfm_core.io.messages import ros_message_class
 
-
-def message_type(name: str):
-    """The Python class of a ROS message type name such as ``sensor_msgs/msg/Image``."""
-    parts = name.split('/')
-    if len(parts) == 2:                       # pkg/Type (ROS 1 style names)
-        parts = [parts[0], 'msg', parts[1]]
-    package, kind, type_name = parts
-    try:
-        return getattr(importlib.import_module(f'{package}.{kind}'), type_name)
-    except (ImportError, AttributeError) as exc:
-        raise LookupError(f"message type '{name}' is not installed ({exc}); "
-                          'source the workspace that provides it') from exc
+__all__ = ['PlayOptions', 'BagPlayer', 'recorded_qos']
 
 
 def recorded_qos(connection) -> QoSProfile:
@@ -92,7 +80,7 @@ class BagPlayer(Node):
                 continue
             topic = self.options.remaps.get(c.topic, c.topic)
             try:
-                msg_type = message_type(c.msgtype)
+                msg_type = ros_message_class(c.msgtype)
             except LookupError as exc:
                 self.get_logger().error(f'skipping {c.topic}: {exc}')
                 continue

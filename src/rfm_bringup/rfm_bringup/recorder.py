@@ -11,7 +11,7 @@ from __future__ import annotations
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from rfm_bringup.player import message_type
+from rfm_core.io.messages import ros_message_class
 
 __all__ = ['BagRecorder']
 
@@ -57,7 +57,7 @@ class BagRecorder(Node):
             if not self.get_publishers_info_by_topic(topic):
                 continue
             try:
-                msg_type = message_type(types[0])
+                msg_type = ros_message_class(types[0])
             except LookupError as exc:
                 self.get_logger().warning(f'not recording {topic}: {exc}')
                 self._subscriptions_by_topic[topic] = None

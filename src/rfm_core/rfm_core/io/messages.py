@@ -21,7 +21,7 @@ from rfm_core.geometry import (
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 
 __all__ = [
-    'ROS', 'RosMessages', 'BagMessages', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
+    'ROS', 'RosMessages', 'BagMessages', 'ros_message_class', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
     'camera_info_msg', 'imu_msg', 'object_map_msg', 'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
@@ -32,17 +32,25 @@ _NS = 1_000_000_000
 
 
 @functools.lru_cache(maxsize=None)
-def _ros_class(typename: str):
-    """The rclpy class of 'pkg/msg/Type' (looked up once: builders call this per field)."""
-    package, kind, name = typename.split('/')
-    return getattr(importlib.import_module(f'{package}.{kind}'), name)
+def ros_message_class(typename: str):
+    """The rclpy class of 'pkg/msg/Type' (or 'pkg/Type'), looked up once. Raises LookupError
+    saying what to do when the type is not installed."""
+    parts = typename.split('/')
+    if len(parts) == 2:                       # pkg/Type (ROS 1 style names)
+        parts = [parts[0], 'msg', parts[1]]
+    package, kind, name = parts
+    try:
+        return getattr(importlib.import_module(f'{package}.{kind}'), name)
+    except (ImportError, AttributeError) as exc:
+        raise LookupError(f"message type '{typename}' is not installed ({exc}); "
+                          'source the workspace that provides it') from exc
 
 
 class RosMessages:
     """Builds messages as rclpy message objects (needs ROS): ``make('pkg/msg/Type', **fields)``."""
 
     def __call__(self, typename: str, **fields):
-        return _ros_class(typename)(**fields)
+        return ros_message_class(typename)(**fields)
 
     @staticmethod
     def uint8_array(values: np.ndarray):
