@@ -41,8 +41,9 @@ def test_demo_bag_plays_at_1x_without_drops():
         stamps.append(msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec)
     node.create_subscription(Image, TOPICS['color'], on_color, reliable)
     node.create_subscription(Image, TOPICS['depth'], lambda m: counts.__setitem__('depth', counts['depth'] + 1), reliable)
+    # best effort, like the recording: a deep queue holds bursts while this process is busy
     node.create_subscription(Imu, TOPICS['imu'], lambda m: counts.__setitem__('imu', counts['imu'] + 1),
-                             QoSProfile(depth=50, reliability=ReliabilityPolicy.BEST_EFFORT))
+                             QoSProfile(depth=1000, reliability=ReliabilityPolicy.BEST_EFFORT))
     node.create_subscription(FrameDetections, TOPICS['gt_detections'],
                              lambda m: counts.__setitem__('gt', counts['gt'] + 1), reliable)
     try:
