@@ -4,7 +4,8 @@ A simulated detection stream (ground_truth:rgbd detections of one room) is repla
 ViewGraphBuilder that already holds 10, 100 or 1000 keyframes (copies of the room's
 keyframes, so retrieval has real candidates). Reported: median time to process one new
 keyframe (matching against the last keyframe, retrieval, matching and verifying the
-candidates), and the median time of one pair (match + relative pose).
+candidates; classical matcher), and the median time of one pair (match + relative pose)
+for the classical and the learned matcher.
 
     ros_ws/env.sh python bench/bench_matcher.py
 """
@@ -18,6 +19,7 @@ import time  # noqa: E402
 
 from rfm_core.detection import make_detector  # noqa: E402
 from rfm_core.matching.classical import ClassicalMatcher  # noqa: E402
+from rfm_core.matching.learned import LearnedMatcher  # noqa: E402
 from rfm_core.matching.relative_pose import estimate_relative_pose  # noqa: E402
 from rfm_core.matching.view_graph import Keyframe, ViewGraphBuilder, _descriptor  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
@@ -47,16 +49,20 @@ def main():
                 times.append(time.perf_counter() - start)
                 pairs.append(graph.stats.pairs_tested - before)
         print(f'| {size} | {1e3 * statistics.median(times):.1f} | {statistics.median(pairs):.0f} |')
-    matcher = ClassicalMatcher()
-    pair_times = []
-    for a, b in zip(stream[:-1], stream[1:]):
-        start = time.perf_counter()
-        m = matcher.match(b, a)
-        estimate_relative_pose(b.boxes, a.boxes, m)
-        pair_times.append(time.perf_counter() - start)
-    print(f'\nper pair (classical match + relative pose, '
-          f'{statistics.median(len(s) for s in stream):.0f} detections per frame): '
-          f'{1e3 * statistics.median(pair_times):.1f} ms')
+    print(f'\nper pair ({statistics.median(len(s) for s in stream):.0f} detections per frame, one thread):')
+    print('| matcher | match (ms) | match + relative pose (ms) |')
+    print('|---|---|---|')
+    for name, matcher in (('classical', ClassicalMatcher()), ('learned', LearnedMatcher(threads=1))):
+        matcher.match(stream[1], stream[0])                      # load weights, warm up
+        match_times, pair_times = [], []
+        for a, b in zip(stream[:-1], stream[1:]):
+            start = time.perf_counter()
+            m = matcher.match(b, a)
+            mid = time.perf_counter()
+            estimate_relative_pose(b.boxes, a.boxes, m)
+            match_times.append(mid - start)
+            pair_times.append(time.perf_counter() - start)
+        print(f'| {name} | {1e3 * statistics.median(match_times):.1f} | {1e3 * statistics.median(pair_times):.1f} |')
 
 
 if __name__ == '__main__':

@@ -95,9 +95,13 @@ def test_classical_matcher_and_pose_on_simulated_frames():
 
 def test_pair_evaluation_scores_matches_and_poses():
     from rfm_core.evaluation.matching import evaluate_pairs
-    perfect = evaluate_pairs(make_detector('ground_truth', preset='perfect'), ClassicalMatcher(), [2100])
+    from rfm_core.matching.training import labelled_pairs, scene_configs
+    pairs = labelled_pairs(scene_configs([2100], frames=12), ['ground_truth:perfect', 'ground_truth:rgb'],
+                           noise_seeds=(1,), gaps=(2,), min_shared=3, visible=True)
+    perfect = evaluate_pairs(pairs['ground_truth:perfect'], ClassicalMatcher())
     assert perfect.pairs >= 3 and perfect.verified == 1.0
     assert perfect.median_yaw_deg < 0.01 and perfect.median_translation_m < 0.001
     assert perfect.match_precision > 0.8 and perfect.match_recall > 0.8
-    noisy = evaluate_pairs(make_detector('ground_truth', preset='rgb', seed=1), ClassicalMatcher(), [2100])
+    noisy = evaluate_pairs(pairs['ground_truth:rgb'], ClassicalMatcher())
+    assert noisy.pairs == perfect.pairs
     assert noisy.median_translation_m > perfect.median_translation_m

@@ -54,6 +54,7 @@ def test_keyframes_and_edges_agree_with_ground_truth():
         time.sleep(1.0)
     finally:
         executor.shutdown()
+        thread.join(timeout=10)                 # the spin thread is gone before the nodes go
         matcher.destroy_node()
         test.destroy_node()
         rclpy.try_shutdown()

@@ -6,7 +6,8 @@
     rfm record OUT [--topics T ...]
     rfm preview BAG OUT.png [--frames 4]
     rfm eval-detections BAG|SUITE ... [--backend depth_clusters|ground_truth]
-    rfm eval-matching [--presets perfect rgbd rgb]
+    rfm eval-matching [--inputs depth_clusters ground_truth:rgbd ...] [--matchers learned classical]
+    rfm train-matcher [--backend depth_clusters|ground_truth] [--scenes 60 --first-seed 3000]
 
 `sim` needs no ROS; `play` and `record` start rclpy nodes.
 """
@@ -257,18 +258,64 @@ def cmd_eval_detections(args) -> int:
 
 def cmd_eval_matching(args) -> int:
     """Object matching and relative-pose accuracy on simulated frame pairs."""
-    from rfm_core.detection import make_detector  # noqa: PLC0415
     from rfm_core.evaluation.matching import evaluate_pairs  # noqa: PLC0415
     from rfm_core.matching.classical import ClassicalMatcher  # noqa: PLC0415
+    from rfm_core.matching.learned import LearnedMatcher  # noqa: PLC0415
+    from rfm_core.matching.training import labelled_pairs, scene_configs  # noqa: PLC0415
 
     seeds = range(args.first_seed, args.first_seed + args.scenes)
-    print('| input | matcher | pairs | match precision | match recall | verified | '
+    pairs = labelled_pairs(scene_configs(seeds, frames=args.frames), args.inputs,
+                           noise_seeds=(args.noise_seed,), gaps=(args.gap,), min_shared=3,
+                           visible=True, jobs=args.jobs)
+    matchers = {'learned': lambda: LearnedMatcher(weights=args.weights),
+                'classical': ClassicalMatcher}
+    print('| input | matcher | pairs | match precision | match recall | F1 | verified | '
           'median yaw (deg) | median translation (cm) |')
-    print('|---|---|---|---|---|---|---|---|')
-    for preset in args.presets:
-        detector = make_detector('ground_truth', preset=preset, seed=args.noise_seed)
-        result = evaluate_pairs(detector, ClassicalMatcher(), seeds, gap=args.gap)
-        print(f'| ground_truth:{preset} | classical | {result.row()} |', flush=True)
+    print('|---|---|---|---|---|---|---|---|---|')
+    for spec in args.inputs:
+        for name in args.matchers:
+            result = evaluate_pairs(pairs[spec], matchers[name]())
+            print(f'| {spec} | {name} | {result.row()} |', flush=True)
+    return 0
+
+
+def cmd_train_matcher(args) -> int:
+    """Train the learned object matcher on sim pairs through a real detector backend."""
+    from dataclasses import asdict  # noqa: PLC0415
+
+    import torch  # noqa: PLC0415
+
+    from rfm_core.matching.learned import MatcherNetConfig, WEIGHTS_DIR, save_matcher_net  # noqa: PLC0415
+    from rfm_core.matching.training import (  # noqa: PLC0415
+        TrainConfig, labelled_pairs, scene_configs, train_matcher)
+
+    specs = ([f'ground_truth:{p}' for p in args.presets] if args.backend == 'ground_truth'
+             else [args.backend])
+    seeds = range(args.first_seed, args.first_seed + args.scenes)
+    start = time.perf_counter()
+    pairs = labelled_pairs(scene_configs(seeds, frames=args.frames), specs,
+                           noise_seeds=tuple(range(args.noise_draws)), jobs=args.jobs,
+                           progress=lambda i, n: print(f'\rscenes {i}/{n}', end='', flush=True))
+    print()
+    data = [p for spec in specs for p in pairs[spec]]
+    if not data:
+        raise SystemExit('rfm train-matcher: no training pairs (no shared detections)')
+    print(f'{len(data)} pairs from {args.scenes} scenes ({", ".join(specs)}) in '
+          f'{time.perf_counter() - start:.0f} s', flush=True)
+    dim = data[0][0].observations.embeddings.shape[1]
+    config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, learning_rate=args.lr,
+                         seed=args.seed, threads=args.threads)
+    net = train_matcher(data, MatcherNetConfig(embedding_dim=dim, layers=args.layers), config)
+    output = Path(args.output) if args.output else WEIGHTS_DIR / f'object_matcher_{args.backend}.pt'
+    output.parent.mkdir(parents=True, exist_ok=True)
+    metadata = {'command': 'rfm train-matcher ' + ' '.join(sys.argv[2:]) if sys.argv[1:2] == ['train-matcher']
+                else 'rfm train-matcher (API)', 'backend': args.backend, 'inputs': specs,
+                'scene_seeds': [seeds.start, seeds.stop - 1], 'pairs': len(data),
+                'train': asdict(config),
+                'torch': torch.__version__,
+                'seconds': round(time.perf_counter() - start)}
+    save_matcher_net(net, output, metadata)
+    print(f'wrote {output} ({output.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - start:.0f} s)')
     return 0
 
 
@@ -331,14 +378,41 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('eval-matching',
                        help='object matching and relative-pose accuracy on simulated frame pairs')
-    p.add_argument('--presets', nargs='+', default=['perfect', 'rgbd', 'rgb'],
-                   help='ground_truth noise presets to evaluate')
-    p.add_argument('--scenes', type=int, default=6)
+    p.add_argument('--inputs', nargs='+', default=['depth_clusters', 'ground_truth:perfect',
+                                                   'ground_truth:rgbd', 'ground_truth:rgb'],
+                   help='detector inputs: depth_clusters and/or ground_truth:PRESET')
+    p.add_argument('--matchers', nargs='+', default=['learned', 'classical'],
+                   choices=('learned', 'classical'))
+    p.add_argument('--weights', help='learned matcher checkpoint (default: the shipped one per detector)')
+    p.add_argument('--scenes', type=int, default=8)
     p.add_argument('--first-seed', type=int, default=2000,
-                   help='first scene seed (default 2000: disjoint from tuning and the detection suite)')
+                   help='first scene seed (default 2000: disjoint from training, tuning and the suite)')
+    p.add_argument('--frames', type=int, default=12, help='frames per scene (at 2 Hz)')
     p.add_argument('--gap', type=int, default=2, help='frames between the two of a pair (at 2 Hz)')
     p.add_argument('--noise-seed', type=int, default=2)
+    p.add_argument('--jobs', type=int, default=1, help='scenes rendered in parallel')
     p.set_defaults(func=cmd_eval_matching)
+
+    p = sub.add_parser('train-matcher',
+                       help='train the learned object matcher on sim pairs through a detector backend')
+    p.add_argument('--backend', choices=('depth_clusters', 'ground_truth'), default='depth_clusters')
+    p.add_argument('--presets', nargs='+', default=['perfect', 'rgbd', 'rgb'],
+                   help='ground_truth noise presets to mix')
+    p.add_argument('--noise-draws', type=int, default=2,
+                   help='ground_truth: noise draws per frame (different detector seeds)')
+    p.add_argument('--scenes', type=int, default=60)
+    p.add_argument('--first-seed', type=int, default=3000,
+                   help='first scene seed (default 3000: disjoint from every evaluation)')
+    p.add_argument('--frames', type=int, default=24, help='frames per scene (at 2 Hz)')
+    p.add_argument('--epochs', type=int, default=12)
+    p.add_argument('--batch-size', type=int, default=32)
+    p.add_argument('--lr', type=float, default=3e-4)
+    p.add_argument('--layers', type=int, default=3, help='self + cross attention blocks')
+    p.add_argument('--seed', type=int, default=0, help='initialisation and shuffling')
+    p.add_argument('--threads', type=int, default=2, help='torch CPU threads')
+    p.add_argument('--jobs', type=int, default=2, help='scenes rendered in parallel')
+    p.add_argument('--output', help='checkpoint to write (default: the shipped weights of the backend)')
+    p.set_defaults(func=cmd_train_matcher)
 
     p = sub.add_parser('record', help='record topics to an MCAP bag until Ctrl-C')
     p.add_argument('output', help='bag directory to create')

@@ -14,6 +14,7 @@ Thin rclpy wrapper: the algorithms live in rfm_core.detection.
 """
 from __future__ import annotations
 
+import sys
 import threading
 import time
 
@@ -327,6 +328,9 @@ def main(args=None):
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:                 # a bad parameter: say which, exit non-zero
+        print(f'detector: {exc}', file=sys.stderr)
+        raise SystemExit(1) from None
     finally:
         if node is not None:
             node.destroy_node()

@@ -1,17 +1,539 @@
 """rfm mapper node: pose averaging, object tracks, relocalization, map persistence (paper 3.5-3.6).
 
-Thin rclpy wrapper: the algorithms live in rfm_core (no ROS there).
+Subscribes rfm/keyframes and rfm/view_graph/edges (from the matcher), rfm/detections (in
+localization mode: every frame is relocalized), and in posed mode a pose source. Publishes
+rfm/keyframe_poses, rfm/trajectory, rfm/camera_pose, TF (map -> camera), rfm/object_map,
+rfm/object_markers and rfm/status. Services: rfm/relocalize, rfm/save_map, rfm/load_map,
+rfm/reset, rfm/set_mode.
+
+Thin rclpy wrapper: the algorithms live in rfm_core.mapping.
 """
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
 import rclpy
+from geometry_msgs.msg import Point, PoseArray, PoseStamped
+from nav_msgs.msg import Path as PathMsg
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rfm_msgs.msg import FrameDetections, Keyframe, MapperStatus, ObjectMap, ViewGraphEdge
+from rfm_msgs.srv import LoadMap, Relocalize, SaveMap, SetMode
+from std_msgs.msg import ColorRGBA
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from rfm_core.geometry import Pose4, box_corners
+from rfm_core.io.messages import (
+    frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, pose_stamped_msg,
+    pose_to_matrix, stamp_to_ns, transform_stamped_msg, vector3_to_numpy,
+)
+from rfm_core.mapping.averaging import AveragingConfig
+from rfm_core.mapping.map_io import MapFileError, load_map, save_map
+from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig, camera_to_map
+from rfm_core.mapping.tracks import TrackConfig
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.learned import make_matcher
+
+try:                                               # tf2_ros is optional (pip installs lack it)
+    from tf2_ros import TransformBroadcaster
+except ImportError:                                # pragma: no cover - depends on the install
+    TransformBroadcaster = None
+
+_EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
+
+
+def _float(text, lo, hi):
+    return ParameterDescriptor(description=text, floating_point_range=[
+        FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)])
+
+
+def _int(text, lo, hi):
+    return ParameterDescriptor(description=text, integer_range=[
+        IntegerRange(from_value=int(lo), to_value=int(hi), step=1)])
+
+
+def _text(text, read_only=False):
+    return ParameterDescriptor(description=text, read_only=read_only)
+
+
+def _colour(track_id: int) -> ColorRGBA:
+    """A stable, distinct colour per track (golden-ratio hue walk)."""
+    h = (track_id * 0.618033988749895) % 1.0
+    i, f = int(h * 6), h * 6 - int(h * 6)
+    q, t = 1 - f, f
+    r, g, b = [(1, t, 0), (q, 1, 0), (0, 1, t), (0, q, 1), (t, 0, 1), (1, 0, q)][i % 6]
+    return ColorRGBA(r=0.3 + 0.7 * r, g=0.3 + 0.7 * g, b=0.3 + 0.7 * b, a=1.0)
+
+
+def edge_record_from_msg(msg: ViewGraphEdge) -> EdgeRecord:
+    """rfm_msgs/ViewGraphEdge -> EdgeRecord; ValueError when malformed."""
+    t = vector3_to_numpy(msg.translation)
+    if not (np.isfinite(msg.yaw) and np.all(np.isfinite(t))):
+        raise ValueError('edge pose is not finite')
+    inliers = np.array([[m.source_index, m.target_index] for m in msg.inliers], np.int64).reshape(-1, 2)
+    corners = np.array([[c.source_index, c.source_corner, c.target_index, c.target_corner, c.error]
+                        for c in msg.corner_inliers], float).reshape(-1, 5)
+    return EdgeRecord(int(msg.source_id), int(msg.target_id), Pose4(float(msg.yaw), t), inliers,
+                      np.array([m.score for m in msg.inliers], np.float32), corners,
+                      float(np.clip(msg.score, 0.0, 1.0)) if np.isfinite(msg.score) else 0.0)
 
 
 class MapperNode(Node):
 
-    def __init__(self):
-        super().__init__('mapper')
-        self.get_logger().info('mapper ready')
+    def __init__(self, **kwargs):
+        super().__init__('mapper', **kwargs)
+        p = self.declare_parameter
+        a, t, m = AveragingConfig(), TrackConfig(), MatchingConfig()
+        self.map_frame = p('map_frame', 'map', _text('Frame of the map (gravity-aligned, z up)')).value
+        self.publish_tf = p('publish_tf', True, _text(
+            'Broadcast map -> camera frame of the latest registered keyframe on /tf')).value
+        self.tf_child = p('tf_child_frame', '', _text(
+            'Child frame of that transform; empty: the keyframes\' camera optical frame')).value
+        self.map_period = p('map_publish_period_s', 1.0, _float(
+            'Rebuild and publish the object map at most this often (s)', 0.05, 60.0)).value
+        self.map_path = p('map_path', str(Path(os.environ.get('ROS_HOME', '~/.ros')) / 'rfm' / 'map.rfm'),
+                          _text('Map file of save_map / load_map requests with an empty path, and '
+                                'of autosave')).value
+        self.autosave_every = p('autosave_every_n_keyframes', 10, _int(
+            'Save the map to map_path every n new keyframes (0: never)', 0, 100000)).value
+        load_on_start = p('load_map_on_start', False, _text('Load map_path at start-up', True)).value
+        mode = p('mode', 'mapping', _text("Start in 'mapping' or 'localization' mode")).value
+        self.pose_source = p('pose_source', '', _text(
+            "Posed mode: '' (un-posed: averaging), 'topic' (rfm/external_pose, PoseStamped of the "
+            "camera in the map frame) or 'tf' (map_frame -> camera frame lookups)", True)).value
+        averaging = AveragingConfig(
+            rounds=p('averaging_rounds', a.rounds, _int('Outlier-removal rounds (paper: 3)', 1, 20)).value,
+            max_yaw_residual_deg=p('max_yaw_residual_deg', a.max_yaw_residual_deg, _float(
+                'Drop edges whose yaw disagrees by more (deg, paper: 3)', 0.1, 180)).value,
+            max_translation_residual_m=p('max_translation_residual_m', a.max_translation_residual_m, _float(
+                'Drop edges whose translation disagrees by more (m, paper: 0.10)', 0.001, 10)).value,
+            window=p('averaging_window', a.window, _int(
+                'Keyframes re-solved per incremental update', 1, 100000)).value,
+            full_every=p('full_solve_every', a.full_every, _int(
+                'Full re-solve every n keyframes (0: only when a loop closes)', 0, 100000)).value)
+        tracks = TrackConfig(
+            merge_affinity=p('merge_affinity', t.merge_affinity, _float(
+                'Merge duplicate tracks above this affinity (paper: 0.25)', 0, 2)).value,
+            suppress_iou=p('suppress_iou', t.suppress_iou, _float(
+                'Suppress an unmerged track overlapping a stronger one above this IoU3D (paper: 0.15)',
+                0, 1)).value,
+            min_observations=p('min_observations', t.min_observations, _int(
+                'Publish tracks seen in at least this many keyframes', 1, 1000)).value)
+        matching = MatchingConfig(match_threshold=p('match_threshold', m.match_threshold, _float(
+            'Relocalization: object match threshold (paper: 0.5)', 0, 1)).value)
+        kind = p('matcher', 'learned', _text(
+            "Relocalization object matcher: 'learned' or 'classical'", True)).value
+        weights = p('matcher_weights', '', _text('Learned matcher checkpoint; empty: shipped', True)).value
+        config = MapperConfig(averaging=averaging, tracks=tracks, matching=matching,
+                              posed=bool(self.pose_source))
+        if self.pose_source not in ('', 'topic', 'tf'):
+            raise ValueError("pose_source must be '', 'topic' or 'tf'")
+        if mode not in ('mapping', 'localization'):
+            raise ValueError("mode must be 'mapping' or 'localization'")
+        try:
+            matcher = make_matcher(kind, matching, weights or None,
+                                   on_fallback=lambda msg: self.get_logger().warning(msg))
+        except FileNotFoundError as exc:
+            raise ValueError(str(exc)) from exc
+        self.mapper = Mapper(config, matcher=matcher)
+        self.mapper.mode = mode
+
+        self.pending_edges: list = []        # edges whose keyframes have not arrived yet
+        self.pending_keyframes: list = []    # posed mode: keyframes waiting for a pose
+        self.external_poses: list = []       # posed mode (topic): (stamp_ns, frame, 4x4)
+        self.counts = dict(keyframes=0, edges=0, dropped=0, relocalized=0, relocalize_failed=0)
+        self.message = ''
+        self._dirty = False
+        self._map_dirty = False
+        self._last_map_time = 0.0
+        self._since_save = 0
+        self._camera_frame = ''
+        self._last_camera = None             # (stamp_ns, 4x4)
+
+        reliable = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(Keyframe, 'rfm/keyframes', self._on_keyframe, reliable)
+        self.create_subscription(ViewGraphEdge, 'rfm/view_graph/edges', self._on_edge, reliable)
+        self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
+                                 QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
+        if self.pose_source == 'topic':
+            self.create_subscription(PoseStamped, 'rfm/external_pose', self._on_external_pose, reliable)
+        self.tf_buffer = None
+        if self.pose_source == 'tf':
+            try:
+                from tf2_ros import Buffer, TransformListener  # noqa: PLC0415
+            except ImportError as exc:
+                raise ValueError("pose_source 'tf' needs tf2_ros (a full ROS install); "
+                                 "use pose_source 'topic' instead") from exc
+            self.tf_buffer = Buffer()
+            self.tf_listener = TransformListener(self.tf_buffer, self)
+        self.poses_pub = self.create_publisher(PoseArray, 'rfm/keyframe_poses', latched)
+        self.path_pub = self.create_publisher(PathMsg, 'rfm/trajectory', latched)
+        self.camera_pub = self.create_publisher(PoseStamped, 'rfm/camera_pose', 10)
+        self.map_pub = self.create_publisher(ObjectMap, 'rfm/object_map', latched)
+        self.marker_pub = self.create_publisher(MarkerArray, 'rfm/object_markers', latched)
+        self.status_pub = self.create_publisher(MapperStatus, 'rfm/status', 10)
+        self.tf_pub = None
+        if self.publish_tf:
+            if TransformBroadcaster is not None:
+                self.tf_pub = TransformBroadcaster(self)
+            else:
+                from tf2_msgs.msg import TFMessage  # noqa: PLC0415
+                self._tf_raw = self.create_publisher(TFMessage, '/tf', 10)
+        self.create_service(Relocalize, 'rfm/relocalize', self._srv_relocalize)
+        self.create_service(SaveMap, 'rfm/save_map', self._srv_save)
+        self.create_service(LoadMap, 'rfm/load_map', self._srv_load)
+        self.create_service(Trigger, 'rfm/reset', self._srv_reset)
+        self.create_service(SetMode, 'rfm/set_mode', self._srv_set_mode)
+        self.create_timer(0.1, self._tick)
+        self.create_timer(1.0, self._publish_status)
+        if load_on_start:
+            try:
+                header = load_map(self.mapper, self.map_path)
+                self.get_logger().info(f'loaded {self.map_path}: {header["keyframes"]} keyframes')
+                self._dirty = self._map_dirty = True
+            except MapFileError as exc:
+                raise ValueError(f'load_map_on_start: {exc}') from exc
+        self.get_logger().info(
+            f'mapper ready ({mode}, {"posed: " + self.pose_source if self.pose_source else "un-posed"}): '
+            'rfm/keyframes + rfm/view_graph/edges -> rfm/keyframe_poses, rfm/object_map')
+
+    # ------------------------------------------------------------------ input
+
+    def _on_keyframe(self, msg: Keyframe) -> None:
+        try:
+            obs = frame_detections_from_msg(msg.detections)
+        except ValueError as exc:
+            self.counts['dropped'] += 1
+            self.get_logger().warning(f'keyframe {msg.keyframe_id} dropped: {exc}', throttle_duration_sec=5.0)
+            return
+        if self.mapper.mode != 'mapping':
+            return
+        k = int(msg.keyframe_id)
+        self._camera_frame = obs.frame_id or self._camera_frame
+        if self.mapper.config.posed:
+            self.pending_keyframes.append((k, obs))
+            self._attach_external_poses()
+            return
+        if self.mapper.add_keyframe(k, obs):
+            self.counts['keyframes'] += 1
+            self._since_save += 1
+            self._dirty = True
+            self._retry_edges()
+
+    def _on_edge(self, msg: ViewGraphEdge) -> None:
+        try:
+            edge = edge_record_from_msg(msg)
+        except ValueError as exc:
+            self.counts['dropped'] += 1
+            self.get_logger().warning(f'edge dropped: {exc}', throttle_duration_sec=5.0)
+            return
+        self._add_edge(edge)
+
+    def _add_edge(self, edge: EdgeRecord) -> None:
+        if self.mapper.mode != 'mapping':
+            return
+        if edge.source not in self.mapper.keyframes or edge.target not in self.mapper.keyframes:
+            self.pending_edges.append((time.monotonic(), edge))
+            if len(self.pending_edges) > 5000:          # bounded: oldest go first
+                self.pending_edges.pop(0)
+                self.counts['dropped'] += 1
+            return
+        try:
+            if self.mapper.add_edge(edge):
+                self.counts['edges'] += 1
+                self._dirty = True
+        except ValueError as exc:
+            self.counts['dropped'] += 1
+            self.get_logger().warning(f'edge dropped: {exc}', throttle_duration_sec=5.0)
+
+    def _retry_edges(self) -> None:
+        if not self.pending_edges:
+            return
+        pending, self.pending_edges = self.pending_edges, []
+        now = time.monotonic()
+        for stamp, edge in pending:
+            if edge.source in self.mapper.keyframes and edge.target in self.mapper.keyframes:
+                self._add_edge(edge)
+            elif now - stamp < 30.0:
+                self.pending_edges.append((stamp, edge))
+
+    def _on_external_pose(self, msg: PoseStamped) -> None:
+        try:
+            m = pose_to_matrix(msg.pose)
+        except ValueError as exc:
+            self.get_logger().warning(f'external pose dropped: {exc}', throttle_duration_sec=5.0)
+            return
+        self.external_poses.append((stamp_to_ns(msg.header.stamp), m))
+        self.external_poses = self.external_poses[-2000:]
+        self._attach_external_poses()
+
+    def _attach_external_poses(self) -> None:
+        """Posed mode: give waiting keyframes the pose with their stamp (within 5 ms)."""
+        still = []
+        for k, obs in self.pending_keyframes:
+            cam = self._lookup_pose(obs)
+            if cam is None:
+                still.append((k, obs))
+                continue
+            # camera-to-map -> T_aligned_map of the keyframe (its gravity-aligned frame)
+            r = obs.rotation_aligned_from_camera @ cam[:3, :3].T
+            t_k_map = np.eye(4)
+            t_k_map[:3, :3], t_k_map[:3, 3] = r, -r @ cam[:3, 3]
+            try:
+                pose = Pose4.from_matrix(t_k_map, atol=0.05)
+            except ValueError:
+                self.get_logger().warning('external pose disagrees with gravity by > 3 deg; keyframe dropped',
+                                          throttle_duration_sec=5.0)
+                continue
+            if self.mapper.add_keyframe(k, obs):
+                self.mapper.set_keyframe_pose(k, pose)
+                self.counts['keyframes'] += 1
+                self._since_save += 1
+                self._dirty = True
+        self.pending_keyframes = still[-100:]
+        self._retry_edges()
+
+    def _lookup_pose(self, obs):
+        if self.pose_source == 'topic':
+            best = min(self.external_poses, key=lambda sp: abs(sp[0] - obs.stamp_ns), default=None)
+            if best is not None and abs(best[0] - obs.stamp_ns) <= 5_000_000:
+                return best[1]
+            return None
+        try:
+            tf = self.tf_buffer.lookup_transform(self.map_frame, obs.frame_id,
+                                                 rclpy.time.Time(nanoseconds=obs.stamp_ns))
+        except Exception:                                  # noqa: BLE001 - not there yet
+            return None
+        q, v = tf.transform.rotation, tf.transform.translation
+        from rfm_core.geometry import matrix_from_quaternion  # noqa: PLC0415
+        m = np.eye(4)
+        m[:3, :3] = matrix_from_quaternion([q.x, q.y, q.z, q.w])
+        m[:3, 3] = [v.x, v.y, v.z]
+        return m
+
+    def _on_detections(self, msg: FrameDetections) -> None:
+        """Localization mode: relocalize every frame and publish its pose."""
+        if self.mapper.mode != 'localization':
+            return
+        try:
+            obs = frame_detections_from_msg(msg)
+        except ValueError as exc:
+            self.get_logger().warning(f'detections dropped: {exc}', throttle_duration_sec=5.0)
+            return
+        reloc = self.mapper.relocalize(obs)
+        if reloc is None:
+            self.counts['relocalize_failed'] += 1
+            return
+        self.counts['relocalized'] += 1
+        cam = camera_to_map(reloc.pose, obs)
+        self._publish_camera(obs.stamp_ns, obs.frame_id, cam)
+
+    # ------------------------------------------------------------------ output
+
+    def _tick(self) -> None:
+        if self._dirty:
+            self._dirty = False
+            try:
+                self.mapper.update()
+            except Exception as exc:                        # noqa: BLE001 - never die on a solve
+                self.message = f'update failed: {exc}'
+                self.get_logger().error(self.message, throttle_duration_sec=5.0)
+                return
+            self._map_dirty = True
+            self._publish_poses()
+            if self.autosave_every and self._since_save >= self.autosave_every:
+                self._save(self.map_path, quiet=True)
+        if self._map_dirty and time.monotonic() - self._last_map_time >= self.map_period:
+            self._map_dirty = False
+            self._last_map_time = time.monotonic()
+            self._publish_map()
+
+    def _stamp(self, k: int) -> int:
+        return self.mapper.keyframes[k].stamp_ns
+
+    def _publish_poses(self) -> None:
+        poses = self.mapper.camera_poses()
+        if not poses:
+            return
+        ids = sorted(poses)
+        stamp = ns_to_stamp(self._stamp(ids[-1]))
+        arr = PoseArray()
+        arr.header.stamp, arr.header.frame_id = stamp, self.map_frame
+        arr.poses = [matrix_to_pose(poses[k]) for k in ids]
+        self.poses_pub.publish(arr)
+        path = PathMsg()
+        path.header.stamp, path.header.frame_id = stamp, self.map_frame
+        path.poses = [pose_stamped_msg(poses[k], self._stamp(k), self.map_frame) for k in ids]
+        self.path_pub.publish(path)
+        last = ids[-1]
+        self._publish_camera(self._stamp(last), self.mapper.keyframes[last].frame_id, poses[last])
+
+    def _publish_camera(self, stamp_ns: int, frame_id: str, cam) -> None:
+        self._last_camera = (stamp_ns, cam)
+        self.camera_pub.publish(pose_stamped_msg(cam, stamp_ns, self.map_frame))
+        child = self.tf_child or frame_id or 'camera'
+        if self.publish_tf:
+            tf = transform_stamped_msg(cam, stamp_ns, self.map_frame, child)
+            if self.tf_pub is not None:
+                self.tf_pub.sendTransform(tf)
+            else:
+                from tf2_msgs.msg import TFMessage  # noqa: PLC0415
+                self._tf_raw.publish(TFMessage(transforms=[tf]))
+
+    def _publish_map(self) -> None:
+        tracks = self.mapper.tracks()
+        stamp_ns = max((f.stamp_ns for f in self.mapper.keyframes.values()), default=0)
+        msg = object_map_msg(np.array([t.box for t in tracks]).reshape(-1, 7), [t.label for t in tracks],
+                             [t.track_id for t in tracks], stamp_ns, self.map_frame,
+                             scores=[t.score for t in tracks], revision=self.mapper.revision)
+        for obj, t in zip(msg.objects, tracks):
+            names = sorted(t.class_distribution)
+            obj.class_names = names
+            obj.class_probabilities = [float(t.class_distribution[n]) for n in names]
+            obj.embedding = [float(v) for v in t.embedding]
+            obj.observation_keyframe_ids = [int(k) for k in t.observations[:, 0]]
+            obj.observation_indices = [int(i) for i in t.observations[:, 1]]
+        self.map_pub.publish(msg)
+        self.marker_pub.publish(self._markers(tracks, stamp_ns))
+
+    def _markers(self, tracks, stamp_ns: int) -> MarkerArray:
+        out = MarkerArray()
+        clear = Marker(action=Marker.DELETEALL)
+        clear.header.frame_id = self.map_frame
+        out.markers.append(clear)
+        stamp = ns_to_stamp(stamp_ns)
+        for t in tracks:
+            colour = _colour(t.track_id)
+            box = Marker(type=Marker.LINE_LIST, action=Marker.ADD, ns='boxes', id=int(t.track_id % 2**31))
+            box.header.frame_id, box.header.stamp = self.map_frame, stamp
+            box.pose.orientation.w = 1.0
+            box.scale.x = 0.02
+            box.color = colour
+            c = box_corners(t.box)
+            box.points = [Point(x=float(c[i][0]), y=float(c[i][1]), z=float(c[i][2])) for e in _EDGES for i in e]
+            text = Marker(type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, ns='labels', id=int(t.track_id % 2**31))
+            text.header.frame_id, text.header.stamp = self.map_frame, stamp
+            text.pose.position = Point(x=float(t.box[0]), y=float(t.box[1]), z=float(t.box[2] + t.box[5] / 2 + 0.08))
+            text.pose.orientation.w = 1.0
+            text.scale.z = 0.1
+            text.color = colour
+            text.text = f'{t.label or "object"} {t.score:.2f} ({t.num_observations})'
+            out.markers += [box, text]
+        return out
+
+    def _publish_status(self) -> None:
+        mp = self.mapper
+        msg = MapperStatus()
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.header.frame_id = self.map_frame
+        msg.mode = MapperStatus.MODE_MAPPING if mp.mode == 'mapping' else MapperStatus.MODE_LOCALIZATION
+        msg.num_keyframes = len(mp.keyframes)
+        msg.num_registered = len(mp.poses)
+        active = len(mp.active_edges())
+        msg.num_edges = active
+        msg.num_edges_rejected = len(mp.edges) - active
+        msg.num_objects = len(mp._tracks) if mp._tracks is not None else 0
+        msg.num_components = mp.num_components()
+        msg.last_update_seconds = float(mp.last_update_seconds)
+        msg.message = self.message
+        self.status_pub.publish(msg)
+
+    # ------------------------------------------------------------------ services
+
+    def _srv_relocalize(self, request, response):
+        try:
+            obs = frame_detections_from_msg(request.query)
+        except ValueError as exc:
+            response.success, response.message = False, f'bad query: {exc}'
+            return response
+        if len(obs) < 2:
+            response.success, response.message = False, f'the query has {len(obs)} detections; need >= 2'
+            return response
+        if not self.mapper.poses:
+            response.success, response.message = False, 'the map is empty: nothing to relocalize against'
+            return response
+        reloc = self.mapper.relocalize(obs)
+        if reloc is None:
+            self.counts['relocalize_failed'] += 1
+            response.success = False
+            response.message = 'no keyframe verified a pose for the query (too few matching objects)'
+            return response
+        self.counts['relocalized'] += 1
+        response.success = True
+        response.message = (f'relocalized against keyframe {reloc.keyframe_id}: {reloc.num_inliers} inliers, '
+                            f'{reloc.agreeing} agreeing keyframes')
+        response.pose = pose_stamped_msg(camera_to_map(reloc.pose, obs), obs.stamp_ns, self.map_frame)
+        response.num_inliers = int(reloc.num_inliers)
+        response.keyframe_id = int(reloc.keyframe_id)
+        return response
+
+    def _save(self, path: str, quiet: bool = False):
+        try:
+            written = save_map(self.mapper, path or self.map_path)
+        except (OSError, ValueError) as exc:
+            self.message = f'saving the map to {path or self.map_path} failed: {exc}'
+            self.get_logger().error(self.message, throttle_duration_sec=5.0)
+            return None, self.message
+        self._since_save = 0
+        text = f'saved {len(self.mapper.keyframes)} keyframes to {written}'
+        (self.get_logger().debug if quiet else self.get_logger().info)(text)
+        return written, text
+
+    def _srv_save(self, request, response):
+        written, text = self._save(request.path)
+        response.success = written is not None
+        response.message = text
+        response.path = str(written or '')
+        return response
+
+    def _srv_load(self, request, response):
+        path = request.path or self.map_path
+        try:
+            header = load_map(self.mapper, path)
+        except MapFileError as exc:
+            response.success, response.message = False, f'{exc} (the current map is unchanged)'
+            return response
+        self.pending_edges.clear()
+        self._dirty = self._map_dirty = True
+        self._since_save = 0
+        response.success = True
+        response.num_keyframes = len(self.mapper.keyframes)
+        response.num_objects = len(self.mapper.tracks())
+        response.message = f'loaded {path}: {header["keyframes"]} keyframes, {response.num_objects} objects'
+        self.get_logger().info(response.message)
+        self._publish_poses()
+        self._publish_map()
+        return response
+
+    def _srv_reset(self, request, response):
+        mode = self.mapper.mode
+        self.mapper.reset()
+        self.mapper.mode = mode
+        self.pending_edges.clear()
+        self.pending_keyframes.clear()
+        self._map_dirty = True
+        response.success, response.message = True, 'map cleared'
+        self.get_logger().info('map cleared')
+        return response
+
+    def _srv_set_mode(self, request, response):
+        modes = {SetMode.Request.MODE_MAPPING: 'mapping', SetMode.Request.MODE_LOCALIZATION: 'localization'}
+        if request.mode not in modes:
+            response.success, response.message = False, f'unknown mode {request.mode}: 0 mapping, 1 localization'
+            return response
+        self.mapper.mode = modes[request.mode]
+        response.success, response.message = True, f'mode: {self.mapper.mode}'
+        self.get_logger().info(response.message)
+        return response
 
 
 def main(args=None):
@@ -22,8 +544,13 @@ def main(args=None):
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:                 # a bad parameter: say which, exit non-zero
+        print(f'mapper: {exc}', file=sys.stderr)
+        raise SystemExit(1) from None
     finally:
         if node is not None:
+            if node.autosave_every and node.mapper.keyframes and node._since_save:
+                node._save(node.map_path, quiet=True)
             node.destroy_node()
         rclpy.try_shutdown()
 

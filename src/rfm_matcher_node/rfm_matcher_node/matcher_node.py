@@ -10,6 +10,8 @@ Thin rclpy wrapper: the algorithms live in rfm_core.matching.
 """
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import rclpy
 from geometry_msgs.msg import Vector3
@@ -21,6 +23,7 @@ from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, Vi
 
 from rfm_core.io.messages import frame_detections_from_msg, ns_to_stamp
 from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.learned import make_matcher
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 
 
@@ -67,14 +70,27 @@ class MatcherNode(Node):
                 'Match a new keyframe against this many latest keyframes', 0, 100)).value,
             retrieved_keyframes=p('retrieved_keyframes', k.retrieved_keyframes, _int(
                 'Plus this many most similar older keyframes (retrieval)', 0, 100)).value)
-        self.graph = ViewGraphBuilder(matching, keyframes)
+        kind = p('matcher', 'learned', ParameterDescriptor(
+            description="Object matcher: 'learned' (LightGlue-style, shipped weights per detector; "
+                        "falls back to 'classical' for detectors without weights) or 'classical' "
+                        '(embedding similarity + size gate, Hungarian)', read_only=True)).value
+        weights = p('matcher_weights', '', ParameterDescriptor(
+            description='Learned matcher checkpoint (rfm train-matcher); empty: the shipped weights '
+                        "for the frames' detector", read_only=True)).value
+        try:
+            matcher = make_matcher(kind, matching, weights or None,
+                                   on_fallback=lambda msg: self.get_logger().warning(msg))
+        except FileNotFoundError as exc:
+            raise ValueError(str(exc)) from exc
+        self.graph = ViewGraphBuilder(matching, keyframes, matcher=matcher)
         deep = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                           reliability=ReliabilityPolicy.RELIABLE)
         self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', deep)
         self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', deep)
         self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
-        self.get_logger().info('matcher ready: rfm/detections -> rfm/keyframes, rfm/view_graph/edges')
+        self.get_logger().info(f'matcher ready ({kind} object matcher): rfm/detections -> rfm/keyframes, '
+                               'rfm/view_graph/edges')
 
     def _on_detections(self, msg: FrameDetections) -> None:
         try:
@@ -120,6 +136,9 @@ def main(args=None):
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except ValueError as exc:                 # a bad parameter: say which, exit non-zero
+        print(f'matcher: {exc}', file=sys.stderr)
+        raise SystemExit(1) from None
     finally:
         if node is not None:
             node.destroy_node()

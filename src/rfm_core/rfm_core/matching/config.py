@@ -18,4 +18,6 @@ class MatchingConfig:
     min_matches: int = 2                  #: a minimal sample is two matched objects
     size_consistency: float = 0.35        #: max relative footprint-size difference of a box
                                           #: pair under a yaw hypothesis (yaw symmetry)
-    refine: bool = True                   #: refit the winner on all inlier corners (not in the paper)
+    refine: bool = True                   #: refit the winner on all inlier matches (not in the paper)
+    refine_sigma_m: float = 0.02          #: refit weights: detection error at the camera ...
+    refine_sigma_per_m: float = 0.01      #: ... growing by this per metre of range

@@ -7,8 +7,8 @@ IoU3D >= ``inlier_iou``. A sample is accepted when its own two matches are inlie
 least ``min_inlier_ratio`` of all matches are; the accepted sample with the lowest mean
 matching error (1 - IoU3D over all matches) wins. Corners of inlier matches that land within
 ``corner_inlier_m`` of their counterparts are kept for bundle adjustment. Beyond the paper,
-the winning pose is refitted on the corners of all its inlier matches (``refine``) and kept
-when that lowers the mean error.
+the winning pose is refitted on all its inlier matches, weighted by their distance from the
+camera (``refine``), and kept when it still verifies.
 
 The yaw symmetry of boxes (a quarter turn with swapped sizes is the same box) is resolved
 geometrically: the first object of a sample proposes every quarter turn consistent with its
@@ -100,22 +100,8 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
         return None
     error, pose, ious, inlier = best
     if cfg.refine:
-        # Local optimisation: refit on the corners of every inlier match (each with the
-        # quarter turn that agrees with the sample's yaw); keep it if it explains the
-        # matches better.
-        src, dst = [], []
-        for m in np.flatnonzero(inlier):
-            pick = _best_turn(turns[m], pose.yaw)
-            if pick is not None:
-                src.append(corners_a[m])
-                dst.append(corners_b[m][corner_permutation(pick[0])])
-        if len(src) >= 2:
-            refit = kabsch_4dof(np.concatenate(src), np.concatenate(dst))
-            refit_ious = iou_3d_paired(refit.transform_boxes(a), b)
-            refit_error = float(np.mean(1.0 - refit_ious))
-            if refit_error <= error and np.mean(refit_ious >= cfg.inlier_iou) >= cfg.min_inlier_ratio:
-                error, pose, ious = refit_error, refit, refit_ious
-                inlier = ious >= cfg.inlier_iou
+        pose, ious, error = _refine(pose, a, b, turns, inlier, ious, error, cfg)
+        inlier = ious >= cfg.inlier_iou
     idx = np.flatnonzero(inlier)
     return RelativePose(
         pose=pose,
@@ -123,6 +109,37 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
         inlier_ious=ious[idx], inlier_scores=np.asarray(matches.scores)[idx],
         mean_error=error, num_matches=n,
         corner_inliers=_corner_inliers(pose, a, b, matches, idx, cfg))
+
+
+def _refine(pose, a, b, turns, inlier, ious, error, cfg):
+    """Local optimisation (not in the paper): refit the pose on all inlier matches, each
+    weighted by the inverse variance of a detection at its distance (sigma = refine_sigma_m
+    + refine_sigma_per_m x range): box centres when there are three or more inliers (their
+    spread fixes the yaw better than noisy box orientations), else the corners (each with
+    the quarter turn that agrees with the sample's yaw). Kept when it still verifies."""
+    src, dst, weights = [], [], []
+    for m in np.flatnonzero(inlier):
+        pick = _best_turn(turns[m], pose.yaw)
+        if pick is not None:
+            src.append(box_corners(a[m]))
+            dst.append(box_corners(b[m])[corner_permutation(pick[0])])
+            rng = 0.5 * (np.linalg.norm(a[m, :3]) + np.linalg.norm(b[m, :3]))
+            weights.append(1.0 / (cfg.refine_sigma_m + cfg.refine_sigma_per_m * rng) ** 2)
+    if len(src) < 2:
+        return pose, ious, error
+    src, dst, weights = np.array(src), np.array(dst), np.array(weights)
+    if len(src) >= 3:
+        cs, cd = src.mean(1), dst.mean(1)
+        refit = kabsch_4dof(cs, cd, weights)
+        for _ in range(3):                  # robust: a wrong inlier (a look-alike) loses its say
+            r = np.linalg.norm(refit.transform_points(cs) - cd, axis=1)
+            refit = kabsch_4dof(cs, cd, weights / (1.0 + (r / 0.05) ** 2))
+    else:
+        refit = kabsch_4dof(src.reshape(-1, 3), dst.reshape(-1, 3), np.repeat(weights, 8))
+    refit_ious = iou_3d_paired(refit.transform_boxes(a), b)
+    if np.mean(refit_ious >= cfg.inlier_iou) < cfg.min_inlier_ratio:
+        return pose, ious, error
+    return refit, refit_ious, float(np.mean(1.0 - refit_ious))
 
 
 def _corner_inliers(pose: Pose4, a, b, matches, idx, cfg) -> list:

@@ -30,6 +30,9 @@ class KeyframeConfig:
     recent_keyframes: int = 3         #: always match against this many latest keyframes
     retrieved_keyframes: int = 5      #: plus this many most similar older ones
     min_retrieval_similarity: float = 0.3
+    min_retrieved_inliers: int = 3    #: edges to retrieved (not recent) keyframes need this many
+                                      #: verified objects: two objects verify nothing beyond
+                                      #: the minimal sample, and repeated furniture aliases
 
 
 @dataclass
@@ -132,11 +135,12 @@ class ViewGraphBuilder:
         cand = self.candidates(descriptor)
         self.stats.last_candidates = [self.keyframes[i].keyframe_id for i in cand]
         last = len(self.keyframes) - 1
+        recent = max(0, len(self.keyframes) - self.config.recent_keyframes)
         for i in cand:
             source = self.keyframes[i]
             self.stats.pairs_tested += 1
             rel = last_rel if i == last else self._relative(source.observations, obs)
-            if rel is not None:
+            if rel is not None and (i >= recent or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
         n = len(self.keyframes)
         if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe

@@ -76,6 +76,7 @@ class CaptureConfig:
     min_visible_fraction: float = 0.001   #: ground-truth detections need this share of the image
     num_objects: tuple = (10, 40)
     noise: NoiseModel = field(default_factory=NoiseModel)
+    trajectory_seed: int = -1             #: >= 0: another trajectory through the same room
 
     def __post_init__(self):
         if self.room_style not in STYLES:
@@ -97,7 +98,10 @@ class CaptureConfig:
                                 self.width, self.height)
 
     def to_json(self) -> str:
-        return json.dumps(asdict(self), sort_keys=True)
+        d = asdict(self)
+        if d['trajectory_seed'] < 0:          # the default: left out (older bags stay identical)
+            del d['trajectory_seed']
+        return json.dumps(d, sort_keys=True)
 
 
 @dataclass
@@ -136,9 +140,10 @@ class Capture:
         seeds = np.random.SeedSequence(config.seed).spawn(4)
         self.room: Room = generate_room(int(seeds[0].generate_state(1)[0]), config.room_style,
                                         config.num_objects)
+        trajectory_seed = (int(seeds[1].generate_state(1)[0]) if config.trajectory_seed < 0 else
+                           int(np.random.SeedSequence([config.seed, config.trajectory_seed]).generate_state(1)[0]))
         self.trajectory: Trajectory = make_trajectory(
-            self.room, config.capture, config.frames, config.fps,
-            seed=int(seeds[1].generate_state(1)[0]))
+            self.room, config.capture, config.frames, config.fps, seed=trajectory_seed)
         self.intrinsics = config.intrinsics
         self.renderer = Renderer(self.room, self.intrinsics, config.noise)
         self._noise_seed = int(seeds[2].generate_state(1)[0])

@@ -1,0 +1,31 @@
+"""Mapping accuracy as in the paper: scene-level AP/AR of the map's boxes at IoU 0.15/0.25.
+
+The map's object boxes (with their track scores) are matched to the room's ground-truth
+boxes. Ground-truth objects the capture never saw well (best visibility below
+``min_visibility``) are ignore regions. Un-posed maps are first expressed in the ground
+truth's frame by the 4-DoF (yaw + translation) alignment of the keyframe camera centres:
+gravity is shared, and the paper aligns by SE(3) without scale.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from rfm_core.evaluation.detection import THRESHOLDS, average_precision, match_detections
+
+__all__ = ['evaluate_map']
+
+
+def evaluate_map(boxes, scores, gt_boxes, gt_ignore=None, thresholds=THRESHOLDS) -> dict:
+    """AP and AR of map boxes (N, 7) with scores against ground truth (M, 7)."""
+    boxes = np.asarray(boxes, float).reshape(-1, 7)
+    scores = np.asarray(scores, float).reshape(-1)
+    gt_boxes = np.asarray(gt_boxes, float).reshape(-1, 7)
+    ignore = np.zeros(len(gt_boxes), bool) if gt_ignore is None else np.asarray(gt_ignore, bool)
+    num_gt = int(np.count_nonzero(~ignore))
+    out = {'objects': len(boxes), 'ground_truth': num_gt}
+    for t in thresholds:
+        tp, counted, matched = match_detections(boxes, scores, gt_boxes, ignore, t)
+        key = f'{int(round(t * 100))}'
+        out[f'AP{key}'] = average_precision(tp[counted], scores[counted], num_gt)
+        out[f'AR{key}'] = matched / num_gt if num_gt else float('nan')
+    return out

@@ -1,0 +1,76 @@
+"""Localization accuracy as in the paper: ATE and ARE after alignment, and registration.
+
+Estimated camera poses (camera-to-map, 4x4) are aligned to the ground truth without scale
+(boxes are metric): by default with the 4-DoF transform (yaw about gravity + translation)
+that best fits the camera centres — the map frame is gravity-aligned by construction, so
+this is the paper's SE(3) alignment without the tilt that a short, nearly straight
+trajectory leaves unconstrained (``align='se3'`` gives the general one). With too little
+horizontal motion the yaw comes from the camera orientations instead. ATE is the distance
+between aligned and true camera centres, ARE the angle of the relative rotation. Frames the
+system did not register count in ``registered`` only.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ['align_se3', 'align_4dof', 'trajectory_errors']
+
+
+def align_se3(source: np.ndarray, target: np.ndarray):
+    """(R, t) minimising sum |R source_i + t - target_i|^2 (proper rotation)."""
+    source = np.asarray(source, float).reshape(-1, 3)
+    target = np.asarray(target, float).reshape(-1, 3)
+    if len(source) == 0:
+        return np.eye(3), np.zeros(3)
+    ms, mt = source.mean(0), target.mean(0)
+    if len(source) < 3:
+        return np.eye(3), mt - ms
+    u, _, vt = np.linalg.svd((target - mt).T @ (source - ms))
+    d = np.sign(np.linalg.det(u @ vt)) or 1.0
+    r = u @ np.diag([1.0, 1.0, d]) @ vt
+    return r, mt - r @ ms
+
+
+def align_4dof(est: np.ndarray, gt: np.ndarray):
+    """(R, t), R a rotation about z, best mapping estimated poses (N, 4, 4) onto true ones."""
+    ce, cg = est[:, :3, 3], gt[:, :3, 3]
+    me, mg = ce.mean(0), cg.mean(0)
+    a, b = ce[:, :2] - me[:2], cg[:, :2] - mg[:2]
+    if len(est) >= 2 and np.ptp(ce[:, :2], axis=0).max() > 0.1:
+        yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b))
+    else:                                    # no baseline: from the orientations' x axes
+        xe, xg = est[:, :2, 0], gt[:, :2, 0]
+        d = np.arctan2(xg[:, 1], xg[:, 0]) - np.arctan2(xe[:, 1], xe[:, 0])
+        yaw = np.arctan2(np.sin(d).sum(), np.cos(d).sum())
+    c, s = np.cos(yaw), np.sin(yaw)
+    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return r, mg - r @ me
+
+
+def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') -> dict:
+    """``estimated`` / ``truth``: {frame key: 4x4 camera-to-map}. Errors over the frames
+    present in both; ``registered`` = share of ``truth`` frames that were estimated.
+    ``align``: '4dof' (default), 'se3', or False (posed: already in the truth's frame)."""
+    keys = [k for k in truth if k in estimated]
+    out = {'frames': len(truth), 'registered': len(keys) / max(len(truth), 1)}
+    if not keys:
+        out.update(ATE_median=float('nan'), ATE_rmse=float('nan'), ARE_median=float('nan'),
+                   ARE_rmse=float('nan'))
+        return out
+    est = np.array([estimated[k] for k in keys], float)
+    gt = np.array([truth[k] for k in keys], float)
+    if align == 'se3':
+        r, t = align_se3(est[:, :3, 3], gt[:, :3, 3])
+    elif align:
+        r, t = align_4dof(est, gt)
+    else:
+        r, t = np.eye(3), np.zeros(3)
+    centres = est[:, :3, 3] @ r.T + t
+    rot = np.einsum('ij,njk->nik', r, est[:, :3, :3])
+    ate = np.linalg.norm(centres - gt[:, :3, 3], axis=1)
+    rel = np.einsum('nji,njk->nik', gt[:, :3, :3], rot)
+    cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
+    are = np.degrees(np.arccos(cos))
+    out.update(ATE_median=float(np.median(ate)), ATE_rmse=float(np.sqrt(np.mean(ate ** 2))),
+               ARE_median=float(np.median(are)), ARE_rmse=float(np.sqrt(np.mean(are ** 2))))
+    return out

@@ -1,0 +1,549 @@
+"""Global 4-DoF poses from relative ones: yaw averaging, then translation averaging (paper 3.5).
+
+Unknowns per keyframe k: the yaw theta_k of T_k_map (gravity is known, so rotation is 1-DoF)
+and the camera centre c_k in the map frame (so T_k_map = (theta_k, -Rz(theta_k) c_k)). An
+edge T_s_t (source s, target t) measures
+
+    theta_s - theta_t = yaw_st                      (circular)
+    c_t - c_s         = Rz(theta_s)^T t_st          (linear once the yaws are known)
+
+Both start from a spanning tree grown from the anchor, each keyframe placed where most of
+its edges to already placed keyframes agree (a vote, so that an outlier edge on the tree
+cannot throw a whole branch off). Yaw averaging is then Gauss-Newton on wrapped residuals
+with robust (Cauchy) IRLS weights; translation averaging is a sparse linear
+least-squares problem per axis with Cauchy IRLS weights (metric scale: boxes are metric).
+Each is run for ``rounds`` rounds, dropping edges that disagree by more than
+``max_yaw_residual_deg`` / ``max_translation_residual_m``; only the largest connected
+component of the surviving edges is registered. The gauge is the component's first
+keyframe (identity pose).
+
+:class:`IncrementalAverager` keeps the solution live: a new keyframe is placed by the same
+vote from its edges and only a window of recent keyframes is re-solved (warm-started,
+bounded cost); edges inside the window that disagree are dropped; a full re-solve runs when
+``loop_min_edges`` edges to keyframes outside the window disagree (a loop closing over
+drift), when another component outgrows the registered one, or every ``full_every``
+keyframes.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import spsolve
+
+from rfm_core.geometry import Pose4, wrap_angle
+
+__all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager',
+           'largest_component']
+
+
+@dataclass(frozen=True)
+class AveragingConfig:
+    rounds: int = 3                          #: outlier-removal rounds of each stage (paper: 3)
+    max_yaw_residual_deg: float = 3.0        #: drop edges disagreeing by more (paper: 3 deg)
+    max_translation_residual_m: float = 0.10  #: ... or by more than this (paper: 10 cm)
+    yaw_scale_deg: float = 1.0               #: robust (Cauchy) loss scale of yaw residuals
+    translation_scale_m: float = 0.03        #: ... and of translation residuals
+    iterations: int = 8                      #: Gauss-Newton / IRLS iterations per round
+    window: int = 30                         #: incremental: keyframes re-solved per update
+    full_every: int = 100                    #: incremental: full re-solve every n keyframes (0: never)
+    loop_min_edges: int = 2                  #: incremental: full re-solve once this many edges to
+                                             #: keyframes outside the window disagree
+
+
+@dataclass
+class AveragingResult:
+    poses: dict                              #: keyframe id -> Pose4 T_k_map (registered only)
+    inlier_edges: np.ndarray                 #: (E,) bool over the input edges
+    yaw_residual_deg: np.ndarray             #: (E,) NaN for edges outside the component
+    translation_residual_m: np.ndarray
+    seconds: float = 0.0
+
+
+def _robust(residual, scale):
+    """IRLS weights of the Cauchy loss: outliers (many scales off) lose almost all weight,
+    which is safe because the initial poses come from a robust vote."""
+    return 1.0 / (1.0 + (np.asarray(residual) / scale) ** 2)
+
+
+def largest_component(nodes: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Mask over ``nodes`` (indices 0..n-1) of the largest connected component of the edges;
+    ties go to the component holding the lowest index."""
+    n = len(nodes)
+    if n == 0:
+        return np.zeros(0, bool)
+    graph = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    counts = np.bincount(labels)
+    best = np.flatnonzero(counts == counts.max())
+    first = min(best, key=lambda lab: np.flatnonzero(labels == lab)[0])
+    return labels == first
+
+
+def _hypotheses(k, incident, src, dst, yaw, trans, theta, centres):
+    """Pose hypotheses (yaw, centre) for node k from its edges to placed nodes."""
+    hyp = []
+    for i in incident:
+        if src[i] == k:          # theta_k - theta_u = yaw;  c_u - c_k = R_k^T t
+            u = dst[i]
+            th = wrap_angle(theta[u] + yaw[i])
+            c = centres[u] - Pose4(th, (0, 0, 0)).rotation.T @ trans[i]
+        else:                    # theta_u - theta_k = yaw;  c_k - c_u = R_u^T t
+            u = src[i]
+            th = wrap_angle(theta[u] - yaw[i])
+            c = centres[u] + Pose4(theta[u], (0, 0, 0)).rotation.T @ trans[i]
+        hyp.append((th, c))
+    return hyp
+
+
+def _vote(hyp, weights, cfg: AveragingConfig):
+    """The hypothesis most edge weight agrees with (within the outlier thresholds), refined
+    as the weighted mean of its supporters. Returns (yaw, centre, supporting weight)."""
+    th = np.array([h[0] for h in hyp])
+    c = np.array([h[1] for h in hyp])
+    w = np.asarray(weights, float)
+    yaw_ok = np.degrees(np.abs(wrap_angle(th[:, None] - th[None, :]))) <= cfg.max_yaw_residual_deg
+    t_ok = np.linalg.norm(c[:, None] - c[None, :], axis=-1) <= cfg.max_translation_residual_m
+    support = (yaw_ok & t_ok).astype(float) @ w
+    best = int(np.argmax(support))
+    sup = yaw_ok[best] & t_ok[best]
+    ws = w[sup]
+    mean_th = float(np.arctan2(np.sum(ws * np.sin(th[sup])), np.sum(ws * np.cos(th[sup]))))
+    return mean_th, (ws[:, None] * c[sup]).sum(0) / ws.sum(), float(support[best])
+
+
+def _propagate(n, src, dst, yaw, trans, weight, root, cfg, theta=None, centres=None, placed=None):
+    """Robust initial poses: grow from the placed nodes (or ``root`` at identity), always
+    placing next the node whose edges to placed nodes agree best (agreeing weight minus half
+    the disagreeing weight), at the pose they agree on; a node whose edges disagree waits
+    for more placed neighbours. Unreached nodes stay NaN."""
+    import heapq  # noqa: PLC0415
+
+    theta = np.full(n, np.nan) if theta is None else theta.copy()
+    centres = np.full((n, 3), np.nan) if centres is None else centres.copy()
+    placed = np.zeros(n, bool) if placed is None else placed.copy()
+    if not np.any(placed):
+        theta[root], centres[root] = 0.0, 0.0
+        placed[root] = True
+    adj = [[] for _ in range(n)]
+    for i, (s, t) in enumerate(zip(src, dst)):
+        adj[s].append(i)
+        adj[t].append(i)
+    votes, keys = {}, {}
+    heap = []
+
+    def refresh(v):
+        incident = [i for i in adj[v] if placed[dst[i] if src[i] == v else src[i]]]
+        votes[v] = _vote(_hypotheses(v, incident, src, dst, yaw, trans, theta, centres), weight[incident], cfg)
+        # agreement counts for a node, disagreement against it (placed last: more evidence)
+        key = votes[v][2] - 0.5 * (float(np.sum(weight[incident])) - votes[v][2])
+        keys[v] = key
+        heapq.heappush(heap, (-key, int(v)))
+
+    frontier = {int(dst[i] if src[i] == u else src[i]) for u in np.flatnonzero(placed) for i in adj[u]}
+    for v in frontier:
+        if not placed[v]:
+            refresh(v)
+    while heap:
+        neg, v = heapq.heappop(heap)
+        if placed[v] or -neg != keys[v]:
+            continue
+        theta[v], centres[v], _ = votes[v]
+        placed[v] = True
+        for i in adj[v]:
+            u = dst[i] if src[i] == v else src[i]
+            if not placed[u]:
+                refresh(u)
+    return theta, centres, placed
+
+
+def _solve_yaw(theta, src, dst, yaw, weight, free, cfg: AveragingConfig):
+    """Robust Gauss-Newton on wrapped yaw residuals; only ``free`` nodes move."""
+    n = len(theta)
+    theta = theta.copy()
+    index = -np.ones(n, np.int64)
+    index[free] = np.arange(np.count_nonzero(free))
+    m = int(np.count_nonzero(free))
+    if m == 0 or len(src) == 0:
+        return theta
+    delta = np.radians(cfg.yaw_scale_deg)
+    rows = np.arange(len(src))
+    for _ in range(cfg.iterations):
+        r = wrap_angle(theta[src] - theta[dst] - yaw)
+        w = weight * _robust(r, delta)
+        a_src, a_dst = index[src], index[dst]
+        data = np.r_[np.ones(np.count_nonzero(a_src >= 0)), -np.ones(np.count_nonzero(a_dst >= 0))]
+        rr = np.r_[rows[a_src >= 0], rows[a_dst >= 0]]
+        cc = np.r_[a_src[a_src >= 0], a_dst[a_dst >= 0]]
+        jac = sp.csr_matrix((data, (rr, cc)), shape=(len(src), m))
+        jw = jac.multiply(w[:, None]).tocsr()
+        h = (jac.T @ jw).tocsc() + sp.identity(m, format='csc') * 1e-9
+        step = -spsolve(h, jw.T @ r)
+        theta[free] = wrap_angle(theta[free] + step)
+        if np.max(np.abs(step)) < 1e-9:
+            break
+    return theta
+
+
+def _solve_centres(theta, centres, src, dst, trans, weight, free, cfg: AveragingConfig):
+    """Robust sparse least squares for camera centres; only ``free`` nodes move."""
+    n = len(theta)
+    centres = centres.copy()
+    m = int(np.count_nonzero(free))
+    if m == 0 or len(src) == 0:
+        return centres
+    index = -np.ones(n, np.int64)
+    index[free] = np.arange(m)
+    c, s = np.cos(theta[src]), np.sin(theta[src])
+    # Rz(theta_s)^T t_st
+    meas = np.stack([c * trans[:, 0] + s * trans[:, 1], -s * trans[:, 0] + c * trans[:, 1], trans[:, 2]], 1)
+    a_src, a_dst = index[src], index[dst]
+    rows = np.arange(len(src))
+    data = np.r_[-np.ones(np.count_nonzero(a_src >= 0)), np.ones(np.count_nonzero(a_dst >= 0))]
+    rr = np.r_[rows[a_src >= 0], rows[a_dst >= 0]]
+    cc = np.r_[a_src[a_src >= 0], a_dst[a_dst >= 0]]
+    jac = sp.csr_matrix((data, (rr, cc)), shape=(len(src), m))
+    # the fixed nodes move to the right-hand side
+    known = np.zeros((len(src), 3))
+    known[a_src < 0] -= centres[src[a_src < 0]]
+    known[a_dst < 0] += centres[dst[a_dst < 0]]
+    rhs = meas - known
+    x = centres[free]
+    for _ in range(cfg.iterations):
+        resid = jac @ x - rhs
+        w = weight * _robust(np.linalg.norm(resid, axis=1), cfg.translation_scale_m)
+        jw = jac.multiply(w[:, None]).tocsr()
+        h = (jac.T @ jw).tocsc() + sp.identity(m, format='csc') * 1e-9
+        new = spsolve(h, jw.T @ rhs).reshape(m, 3)
+        done = np.max(np.abs(new - x)) < 1e-7
+        x = new
+        if done:
+            break
+    centres[free] = x
+    return centres
+
+
+def _residuals(theta, centres, src, dst, yaw, trans):
+    yaw_r = np.degrees(np.abs(wrap_angle(theta[src] - theta[dst] - yaw)))
+    c, s = np.cos(theta[src]), np.sin(theta[src])
+    meas = np.stack([c * trans[:, 0] + s * trans[:, 1], -s * trans[:, 0] + c * trans[:, 1], trans[:, 2]], 1)
+    t_r = np.linalg.norm(centres[dst] - centres[src] - meas, axis=1)
+    return yaw_r, t_r
+
+
+def _poses(theta, centres):
+    return [Pose4(float(th), -(Pose4(float(th), (0, 0, 0)).rotation @ ctr)) for th, ctr in zip(theta, centres)]
+
+
+def _pose_params(pose: Pose4):
+    """(yaw, camera centre) of T_k_map."""
+    return pose.yaw, -(pose.rotation.T @ pose.t)
+
+
+def average_poses(ids, edges, config: AveragingConfig | None = None) -> AveragingResult:
+    """Batch averaging. ``edges``: [(source id, target id, Pose4 T_source_target, weight), ...].
+
+    Returns the registered poses (largest component after outlier removal) and per-edge
+    inlier flags and residuals.
+    """
+    start = time.perf_counter()
+    cfg = config or AveragingConfig()
+    ids = list(ids)
+    pos = {k: i for i, k in enumerate(ids)}
+    n, e = len(ids), len(edges)
+    src = np.array([pos[s] for s, _, _, _ in edges], np.int64)
+    dst = np.array([pos[t] for _, t, _, _ in edges], np.int64)
+    yaw = np.array([p.yaw for _, _, p, _ in edges], float)
+    trans = np.array([p.t for _, _, p, _ in edges], float).reshape(e, 3)
+    weight = np.array([w for *_, w in edges], float)
+    theta, centres, active, comp = _solve_all(n, src, dst, yaw, trans, weight, cfg)
+    yaw_r = np.full(e, np.nan)
+    t_r = np.full(e, np.nan)
+    inside = comp[src] & comp[dst] if e else np.zeros(0, bool)
+    if e:
+        yr, tr = _residuals(theta, centres, src, dst, yaw, trans)
+        yaw_r[inside], t_r[inside] = yr[inside], tr[inside]
+    poses = {ids[k]: p for k, p in enumerate(_poses(theta, centres)) if comp[k]}
+    return AveragingResult(poses, active & inside, yaw_r, t_r, time.perf_counter() - start)
+
+
+def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None):
+    """Full robust solve. Returns theta, centres (NaN outside the component), active edge
+    mask, component mask."""
+    active = np.ones(len(src), bool)
+    theta = np.full(n, np.nan)
+    centres = np.full((n, 3), np.nan)
+    comp = np.zeros(n, bool)
+    if n == 0:
+        return theta, centres, active, comp
+    order = np.arange(n) if anchor_order is None else anchor_order
+
+    def component():
+        c = largest_component(np.arange(n), src[active], dst[active])
+        return c, next(k for k in order if c[k])
+
+    comp, root = component()
+    use = active & comp[src] & comp[dst]
+    theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg)
+    for stage in ('yaw', 'translation'):
+        for _ in range(max(cfg.rounds, 1)):
+            use = active & comp[src] & comp[dst]
+            free = comp.copy()
+            free[root] = False
+            if stage == 'yaw':
+                theta = _solve_yaw(np.where(comp, theta, 0.0), src[use], dst[use], yaw[use], weight[use],
+                                   free, cfg)
+                yr, _ = _residuals(theta, np.zeros((n, 3)), src, dst, yaw, trans)
+                bad = use & (yr > cfg.max_yaw_residual_deg)
+            else:
+                centres = _solve_centres(theta, np.where(comp[:, None], centres, 0.0), src[use], dst[use],
+                                         trans[use], weight[use], free, cfg)
+                _, tr = _residuals(theta, centres, src, dst, yaw, trans)
+                bad = use & (tr > cfg.max_translation_residual_m)
+            if not np.any(bad):
+                break
+            active &= ~bad
+            new_comp, new_root = component()
+            if new_root != root:            # the anchor left the component: re-initialise it
+                use = active & new_comp[src] & new_comp[dst]
+                theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use],
+                                               new_root, cfg)
+            comp, root = new_comp, new_root
+    theta = np.where(comp, theta, np.nan)
+    centres = np.where(comp[:, None], centres, np.nan)
+    return theta, centres, active, comp
+
+
+@dataclass
+class _Edge:
+    source: int
+    target: int
+    yaw: float
+    t: np.ndarray
+    weight: float
+    active: bool = True
+
+
+@dataclass
+class UpdateStats:
+    kind: str = 'none'                       #: none | local | full
+    seconds: float = 0.0
+    registered: int = 0
+    edges_rejected: int = 0
+
+
+@dataclass
+class IncrementalAverager:
+    """Live averaging: feed keyframes and edges, call :meth:`update`, read :attr:`poses`."""
+
+    config: AveragingConfig = field(default_factory=AveragingConfig)
+
+    def __post_init__(self):
+        self.ids: list = []                  # keyframe ids in arrival order
+        self._index: dict = {}
+        self.edges: list = []
+        self._theta = np.zeros(0)
+        self._centres = np.zeros((0, 3))
+        self._registered = np.zeros(0, bool)
+        self._new: list = []
+        self._new_edges = False
+        self._since_full = 0
+        self._needs_full = False
+        self._loop_votes = 0
+        self.stats = UpdateStats()
+
+    # ------------------------------------------------------------------ input
+
+    def add_keyframe(self, keyframe_id: int) -> None:
+        if keyframe_id in self._index:
+            return
+        self._index[keyframe_id] = len(self.ids)
+        self.ids.append(keyframe_id)
+        self._theta = np.r_[self._theta, np.nan]
+        self._centres = np.r_[self._centres, np.full((1, 3), np.nan)]
+        self._registered = np.r_[self._registered, False]
+        self._new.append(keyframe_id)
+
+    def add_edge(self, source_id: int, target_id: int, pose: Pose4, weight: float = 1.0) -> None:
+        """An edge T_source_target; unknown keyframes are added."""
+        for k in (source_id, target_id):
+            self.add_keyframe(k)
+        s, t = self._index[source_id], self._index[target_id]
+        if s == t:
+            return
+        self.edges.append(_Edge(s, t, float(pose.yaw), np.asarray(pose.t, float), float(weight)))
+        self._new_edges = True
+
+    def remove_keyframe_edges(self, keyframe_id: int) -> None:
+        """Forget every edge of a keyframe (e.g. its detections were found bad)."""
+        k = self._index.get(keyframe_id)
+        if k is not None:
+            self.edges = [e for e in self.edges if k not in (e.source, e.target)]
+            self._needs_full = True
+
+    # ------------------------------------------------------------------ output
+
+    @property
+    def poses(self) -> dict:
+        """keyframe id -> Pose4 T_k_map of the registered keyframes."""
+        out = {}
+        for k in np.flatnonzero(self._registered):
+            th, c = self._theta[k], self._centres[k]
+            out[self.ids[k]] = Pose4(float(th), -(Pose4(float(th), (0, 0, 0)).rotation @ c))
+        return out
+
+    def pose(self, keyframe_id: int) -> Pose4 | None:
+        k = self._index.get(keyframe_id)
+        if k is None or not self._registered[k]:
+            return None
+        th, c = self._theta[k], self._centres[k]
+        return Pose4(float(th), -(Pose4(float(th), (0, 0, 0)).rotation @ c))
+
+    def active_edges(self) -> list:
+        """[(source id, target id)] of the edges the current solution keeps."""
+        return [(self.ids[e.source], self.ids[e.target]) for e in self.edges if e.active]
+
+    # ------------------------------------------------------------------ solving
+
+    def _arrays(self):
+        e = self.edges
+        src = np.array([x.source for x in e], np.int64)
+        dst = np.array([x.target for x in e], np.int64)
+        yaw = np.array([x.yaw for x in e], float)
+        trans = np.array([x.t for x in e], float).reshape(len(e), 3)
+        weight = np.array([x.weight for x in e], float)
+        return src, dst, yaw, trans, weight
+
+    def _edge_residual(self, edge: _Edge):
+        th = self._theta
+        yr = np.degrees(abs(wrap_angle(th[edge.source] - th[edge.target] - edge.yaw)))
+        c, s = np.cos(th[edge.source]), np.sin(th[edge.source])
+        meas = np.array([c * edge.t[0] + s * edge.t[1], -s * edge.t[0] + c * edge.t[1], edge.t[2]])
+        tr = float(np.linalg.norm(self._centres[edge.target] - self._centres[edge.source] - meas))
+        return yr, tr
+
+    def update(self, force_full: bool = False) -> UpdateStats:
+        """Fold in the keyframes and edges added since the last call."""
+        start = time.perf_counter()
+        cfg = self.config
+        kind = 'none'
+        if self._new or self._new_edges or force_full or self._needs_full:
+            self._since_full += len(self._new)
+            full = (force_full or self._needs_full or not np.any(self._registered)
+                    or (cfg.full_every and self._since_full >= cfg.full_every)
+                    or self._outgrown())
+            if full:
+                self._full()
+                kind = 'full'
+            else:
+                kind = 'local' if self._local() else 'full'
+            self._new = []
+            self._new_edges = False
+        self.stats = UpdateStats(kind, time.perf_counter() - start, int(self._registered.sum()),
+                                 sum(not e.active for e in self.edges))
+        return self.stats
+
+    def restore(self, poses: dict, active_edges) -> None:
+        """Set the solution (e.g. from a map file) without solving: ``poses`` {id: Pose4
+        T_k_map} of the registered keyframes, ``active_edges`` the (source, target) pairs
+        kept. Keyframes and edges must have been added."""
+        self.update()                            # fold pending input first, then overwrite
+        keep = set(map(tuple, active_edges))
+        for e in self.edges:
+            e.active = (self.ids[e.source], self.ids[e.target]) in keep
+        self._registered[:] = False
+        self._theta[:] = np.nan
+        self._centres[:] = np.nan
+        for k, pose in poses.items():
+            i = self._index.get(k)
+            if i is not None:
+                self._theta[i], self._centres[i] = _pose_params(pose)
+                self._registered[i] = True
+        self._since_full = 0
+        self._needs_full = False
+        self._loop_votes = 0
+
+    def _outgrown(self) -> bool:
+        """Whether the keyframes outside the registered component (with edges among
+        themselves) outnumber it: then another component may be the largest."""
+        if not self.edges:
+            return False
+        src, dst = self._arrays()[:2]
+        linked = np.zeros(len(self.ids), bool)
+        linked[src] = linked[dst] = True
+        return np.count_nonzero(linked & ~self._registered) > np.count_nonzero(self._registered)
+
+    def _full(self):
+        src, dst, yaw, trans, weight = self._arrays()
+        n = len(self.ids)
+        # anchor: the earliest registered keyframe keeps the map frame stable
+        order = np.r_[np.flatnonzero(self._registered), np.flatnonzero(~self._registered)]
+        theta, centres, active, comp = _solve_all(n, src, dst, yaw, trans, weight, self.config, order)
+        if np.any(self._registered & comp):
+            # keep the previous gauge: express the new solution relative to the anchor's old pose
+            anchor = next(k for k in order if comp[k])
+            if self._registered[anchor]:
+                theta, centres = _regauge(theta, centres, anchor, self._theta[anchor], self._centres[anchor])
+        for e, a in zip(self.edges, active):
+            e.active = bool(a)
+        self._theta, self._centres, self._registered = theta, centres, comp
+        self._since_full = 0
+        self._needs_full = False
+        self._loop_votes = 0
+
+    def _local(self) -> bool:
+        """Register the new keyframes from their edges and re-solve a window around them.
+        Returns False when it fell back to a full solve."""
+        cfg = self.config
+        src, dst, yaw, trans, weight = self._arrays()
+        n = len(self.ids)
+        theta, centres = self._theta.copy(), self._centres.copy()
+        registered = self._registered.copy()
+        active = np.array([e.active for e in self.edges], bool)
+        # place new keyframes from their edges to registered ones (robust vote)
+        # (edges with an unregistered end: a chain of new keyframes is placed link by link)
+        use = active & ~(registered[src] & registered[dst])
+        if np.any(registered) and np.any(use):
+            theta, centres, registered = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use],
+                                                    None, cfg, theta, centres, registered)
+        # window: the latest registered keyframes (by arrival) plus the new ones
+        reg_idx = np.flatnonzero(registered)
+        free = np.zeros(n, bool)
+        free[reg_idx[-cfg.window:]] = True
+        free[[self._index[k] for k in self._new if registered[self._index[k]]]] = True
+        anchor = np.flatnonzero(self._registered)
+        if len(anchor):
+            free[anchor[0]] = False
+        use = active & registered[src] & registered[dst] & (free[src] | free[dst])
+        if not np.any(use):
+            self._theta, self._centres, self._registered = theta, centres, registered
+            return True
+        theta = _solve_yaw(theta, src[use], dst[use], yaw[use], weight[use], free, cfg)
+        centres = _solve_centres(theta, centres, src[use], dst[use], trans[use], weight[use], free, cfg)
+        yr, tr = _residuals(theta, centres, src[use], dst[use], yaw[use], trans[use])
+        bad = (yr > cfg.max_yaw_residual_deg) | (tr > cfg.max_translation_residual_m)
+        idx = np.flatnonzero(use)[bad]
+        inside = free[src[idx]] & free[dst[idx]]
+        for i in idx[inside]:                      # local outliers: drop
+            self.edges[i].active = False
+        # edges to keyframes outside the window that the window cannot explain: a loop
+        # closing over drift (several agree) or outliers; a full solve decides
+        self._loop_votes += int(np.count_nonzero(~inside))
+        self._theta, self._centres, self._registered = theta, centres, registered
+        if self._loop_votes >= cfg.loop_min_edges:
+            self._full()
+            return False
+        return True
+
+
+def _regauge(theta, centres, anchor, old_theta, old_centre):
+    """Rigidly move a solution so that ``anchor`` has its old yaw and centre."""
+    d = wrap_angle(old_theta - theta[anchor])
+    # T_k_map' = T_k_map @ G^-1 with G mapping the new map frame to the old: yaw' = yaw + d ...
+    # centres rotate by -d about the anchor's centre and shift onto the old centre
+    rot = Pose4(-d, (0, 0, 0)).rotation
+    new_centres = (centres - centres[anchor]) @ rot.T + old_centre
+    return wrap_angle(theta + d), new_centres

@@ -1,0 +1,212 @@
+"""Map files: versioned, self-describing, written atomically, validated on load.
+
+A map file is a NumPy ``.npz`` archive (no pickles) holding a JSON header (format name,
+version, counts, the mapper's mode and settings that matter for reuse) and flat arrays:
+every keyframe with its detections (boxes, scores, labels, embeddings, 2D boxes, gravity,
+intrinsics, stamp, frame id), every edge with its verified object and corner matches, and
+the keyframe poses. Object tracks are derived data and are rebuilt on load.
+
+Writing goes to a temporary file in the same directory, is flushed to disk, then renamed
+over the target: a crash leaves either the old file or the new one, never half of one.
+Loading checks everything before touching the mapper: a corrupt or wrong-version file
+raises :class:`MapFileError` with the reason and the current map stays as it was.
+"""
+from __future__ import annotations
+
+import io
+import json
+import os
+import tempfile
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from rfm_core.geometry import Pose4
+from rfm_core.mapping.mapper import EdgeRecord, Mapper
+from rfm_core.observations import CameraIntrinsics, FrameObservations
+
+__all__ = ['FORMAT', 'VERSION', 'MapFileError', 'save_map', 'load_map', 'read_map']
+
+FORMAT = 'rfm-map'
+VERSION = 1
+
+
+class MapFileError(ValueError):
+    """A map file that cannot be used; the message says why."""
+
+
+def _keyframe_arrays(mapper: Mapper) -> dict:
+    ids = sorted(mapper.keyframes)
+    frames = [mapper.keyframes[k] for k in ids]
+    counts = np.array([len(f) for f in frames], np.int64)
+    dims = {f.embeddings.shape[1] for f in frames if len(f)}
+    dim = dims.pop() if len(dims) == 1 else 0
+    def cat(get, width, dtype):
+        parts = [np.asarray(get(f), dtype).reshape(len(f), *width) for f in frames]
+        return np.concatenate(parts) if parts else np.zeros((0, *width), dtype)
+    intr = np.array([[f.intrinsics.width, f.intrinsics.height, f.intrinsics.fx, f.intrinsics.fy,
+                      f.intrinsics.cx, f.intrinsics.cy] if f.intrinsics is not None else [0] * 6
+                     for f in frames], float).reshape(-1, 6)
+    return {
+        'kf_ids': np.array(ids, np.int64), 'kf_counts': counts,
+        'kf_stamps': np.array([f.stamp_ns for f in frames], np.int64),
+        'kf_gravity': np.array([f.gravity_cam for f in frames], float).reshape(-1, 3),
+        'kf_intrinsics': intr,
+        'det_boxes': cat(lambda f: f.boxes, (7,), np.float64),
+        'det_scores': cat(lambda f: f.scores, (), np.float32),
+        'det_embeddings': cat(lambda f: f.embeddings if dim else np.zeros((len(f), 0)), (dim,), np.float32),
+        'det_boxes_2d': cat(lambda f: f.boxes_2d, (4,), np.float32),
+    }, {'kf_frame_ids': [f.frame_id for f in frames],
+        'kf_backends': [f.backend for f in frames],
+        'det_labels': [lab for f in frames for lab in (f.labels if len(f.labels) == len(f) else [''] * len(f))]}
+
+
+def _edge_arrays(mapper: Mapper) -> dict:
+    edges = list(mapper.edges.values())
+    active = {(e.source, e.target) for e in mapper.active_edges()}
+    return {
+        'edge_ids': np.array([[e.source, e.target] for e in edges], np.int64).reshape(-1, 2),
+        'edge_poses': np.array([[e.pose.yaw, *e.pose.t] for e in edges], float).reshape(-1, 4),
+        'edge_scores': np.array([e.score for e in edges], float),
+        'edge_active': np.array([(e.source, e.target) in active for e in edges], bool),
+        'edge_inlier_counts': np.array([len(e.inliers) for e in edges], np.int64),
+        'edge_inliers': (np.concatenate([e.inliers for e in edges]).astype(np.int64)
+                         if edges else np.zeros((0, 2), np.int64)).reshape(-1, 2),
+        'edge_inlier_scores': (np.concatenate([e.scores for e in edges]).astype(np.float32)
+                               if edges else np.zeros(0, np.float32)),
+        'edge_corner_counts': np.array([len(e.corner_inliers) for e in edges], np.int64),
+        'edge_corners': (np.concatenate([np.asarray(e.corner_inliers, float).reshape(-1, 5) for e in edges])
+                         if edges else np.zeros((0, 5))).reshape(-1, 5),
+    }
+
+
+def save_map(mapper: Mapper, path) -> Path:
+    """Write the mapper's map to ``path`` atomically. Returns the path."""
+    path = Path(path).expanduser()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arrays, lists = _keyframe_arrays(mapper)
+    arrays.update(_edge_arrays(mapper))
+    poses = mapper.poses
+    pose_ids = sorted(poses)
+    arrays['pose_ids'] = np.array(pose_ids, np.int64)
+    arrays['pose_values'] = np.array([[poses[k].yaw, *poses[k].t] for k in pose_ids], float).reshape(-1, 4)
+    header = {'format': FORMAT, 'version': VERSION, 'keyframes': len(mapper.keyframes),
+              'edges': len(mapper.edges), 'registered': len(pose_ids), 'posed': mapper.config.posed,
+              'revision': mapper.revision, **lists}
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
+    fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
+    try:
+        with os.fdopen(fd, 'wb') as f:
+            f.write(buffer.getvalue())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_map(path) -> dict:
+    """Read and validate a map file; returns {'header', 'keyframes', 'edges', 'poses'}."""
+    path = Path(path).expanduser()
+    if not path.is_file():
+        raise MapFileError(f'no map file at {path}')
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            data = {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise MapFileError(f'{path} is not a readable rfm map file ({exc})') from None
+    if 'header' not in data:
+        raise MapFileError(f'{path} is not an rfm map file (no header)')
+    try:
+        header = json.loads(bytes(data['header']).decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise MapFileError(f'{path}: corrupt header ({exc})') from None
+    if header.get('format') != FORMAT:
+        raise MapFileError(f'{path} is not an rfm map file (format {header.get("format")!r})')
+    if header.get('version') != VERSION:
+        raise MapFileError(f'{path} has map format version {header.get("version")}; this rfm reads '
+                           f'version {VERSION}')
+    need = ['kf_ids', 'kf_counts', 'kf_stamps', 'kf_gravity', 'kf_intrinsics', 'det_boxes', 'det_scores',
+            'det_embeddings', 'det_boxes_2d', 'edge_ids', 'edge_poses', 'edge_scores', 'edge_active', 'edge_inlier_counts',
+            'edge_inliers', 'edge_inlier_scores', 'edge_corner_counts', 'edge_corners', 'pose_ids', 'pose_values']
+    missing = [k for k in need if k not in data]
+    if missing:
+        raise MapFileError(f'{path}: missing arrays {missing}')
+    n_kf, n_det, n_edge = len(data['kf_ids']), int(data['kf_counts'].sum()), len(data['edge_ids'])
+    checks = [
+        (len(data['kf_counts']) == n_kf and len(data['kf_stamps']) == n_kf, 'keyframe arrays differ in length'),
+        (data['kf_gravity'].shape == (n_kf, 3) and data['kf_intrinsics'].shape == (n_kf, 6), 'keyframe shapes'),
+        (np.all(data['kf_counts'] >= 0), 'negative detection counts'),
+        (data['det_boxes'].shape == (n_det, 7) and len(data['det_scores']) == n_det, 'detection arrays'),
+        (len(data['det_embeddings']) == n_det and data['det_boxes_2d'].shape == (n_det, 4), 'detection arrays'),
+        (len(header.get('det_labels', [])) == n_det, 'detection labels'),
+        (len(header.get('kf_frame_ids', [])) == n_kf, 'keyframe frame ids'),
+        (data['edge_poses'].shape == (n_edge, 4) and len(data['edge_scores']) == n_edge
+         and len(data['edge_active']) == n_edge, 'edge arrays'),
+        (int(data['edge_inlier_counts'].sum()) == len(data['edge_inliers']), 'edge inlier counts'),
+        (len(data['edge_inlier_scores']) == len(data['edge_inliers']), 'edge inlier scores'),
+        (int(data['edge_corner_counts'].sum()) == len(data['edge_corners']), 'edge corner counts'),
+        (data['pose_values'].shape == (len(data['pose_ids']), 4), 'pose arrays'),
+        (len(np.unique(data['kf_ids'])) == n_kf, 'duplicate keyframe ids'),
+        (np.all(np.isin(data['edge_ids'], data['kf_ids'])), 'edges reference unknown keyframes'),
+        (np.all(np.isin(data['pose_ids'], data['kf_ids'])), 'poses reference unknown keyframes'),
+        (all(np.all(np.isfinite(data[k])) for k in ('det_boxes', 'edge_poses', 'pose_values', 'kf_gravity')),
+         'non-finite values'),
+    ]
+    for ok, what in checks:
+        if not ok:
+            raise MapFileError(f'{path}: inconsistent map file ({what})')
+    keyframes = {}
+    offsets = np.r_[0, np.cumsum(data['kf_counts'])]
+    labels = header['det_labels']
+    for i, k in enumerate(data['kf_ids']):
+        a, b = offsets[i], offsets[i + 1]
+        w, h, fx, fy, cx, cy = data['kf_intrinsics'][i]
+        intr = CameraIntrinsics(fx, fy, cx, cy, int(w), int(h)) if w > 0 else None
+        try:
+            keyframes[int(k)] = FrameObservations(
+                stamp_ns=int(data['kf_stamps'][i]), frame_id=header['kf_frame_ids'][i], intrinsics=intr,
+                gravity_cam=data['kf_gravity'][i], boxes=data['det_boxes'][a:b], scores=data['det_scores'][a:b],
+                labels=list(labels[a:b]), embeddings=data['det_embeddings'][a:b],
+                boxes_2d=data['det_boxes_2d'][a:b], backend=header.get('kf_backends', [''] * n_kf)[i])
+        except ValueError as exc:
+            raise MapFileError(f'{path}: keyframe {int(k)}: {exc}') from None
+    edges = []
+    io_, ic = np.r_[0, np.cumsum(data['edge_inlier_counts'])], np.r_[0, np.cumsum(data['edge_corner_counts'])]
+    for i, (s, t) in enumerate(data['edge_ids']):
+        inl = data['edge_inliers'][io_[i]:io_[i + 1]]
+        if len(inl) and (inl[:, 0].max() >= len(keyframes[int(s)]) or inl[:, 1].max() >= len(keyframes[int(t)])
+                         or inl.min() < 0):
+            raise MapFileError(f'{path}: edge {int(s)}->{int(t)} references missing detections')
+        yaw, *tr = data['edge_poses'][i]
+        edges.append(EdgeRecord(int(s), int(t), Pose4(float(yaw), tr), inl,
+                                data['edge_inlier_scores'][io_[i]:io_[i + 1]],
+                                data['edge_corners'][ic[i]:ic[i + 1]], float(data['edge_scores'][i])))
+    poses = {int(k): Pose4(float(v[0]), v[1:]) for k, v in zip(data['pose_ids'], data['pose_values'])}
+    active = [(int(s), int(t)) for (s, t), a in zip(data['edge_ids'], data['edge_active']) if a]
+    return {'header': header, 'keyframes': keyframes, 'edges': edges, 'poses': poses, 'active_edges': active}
+
+
+def load_map(mapper: Mapper, path) -> dict:
+    """Replace the mapper's map with the one in ``path`` (validated first: on error the
+    mapper is untouched). The saved poses and edge decisions are restored as they were;
+    new keyframes continue from them. Returns the file header."""
+    content = read_map(path)
+    mode = mapper.mode
+    mapper.reset()
+    for k in sorted(content['keyframes']):
+        mapper.add_keyframe(k, content['keyframes'][k])
+    for e in content['edges']:
+        mapper.add_edge(e)
+    if mapper.config.posed:
+        for k, p in content['poses'].items():
+            mapper.set_keyframe_pose(k, p)
+    else:
+        mapper.averager.restore(content['poses'], content['active_edges'])
+    mapper.revision = int(content['header'].get('revision', 0)) + 1
+    mapper.mode = mode
+    return content['header']

@@ -1,0 +1,294 @@
+"""The live mapper: keyframes and view-graph edges in; poses, object tracks and
+relocalization out (paper 3.5-3.6 and appendix). No ROS here; the node wraps it.
+
+Keyframe poses are 4-DoF ``T_k_map`` (map frame: gravity-aligned, z up). A keyframe's full
+camera pose (optical frame to map) composes that with the keyframe's gravity:
+``T_map_cam = T_k_map^-1 * R_aligned_cam``.
+
+Modes: ``mapping`` (keyframes and edges extend the map) and ``localization`` (the map is
+frozen; frames are only relocalized). ``posed`` mode takes keyframe poses from outside
+(e.g. TF or a pose topic; the paper's "posed" rows) instead of averaging.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from rfm_core.geometry import Pose4, iou_3d_paired, kabsch_4dof
+from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
+from rfm_core.mapping.tracks import TrackConfig, build_tracks
+from rfm_core.matching.classical import ClassicalMatcher
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.relative_pose import estimate_relative_pose
+from rfm_core.observations import FrameObservations
+
+__all__ = ['MapperConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
+
+MODES = ('mapping', 'localization')
+
+
+@dataclass(frozen=True)
+class MapperConfig:
+    averaging: AveragingConfig = field(default_factory=AveragingConfig)
+    tracks: TrackConfig = field(default_factory=TrackConfig)
+    matching: MatchingConfig = field(default_factory=MatchingConfig)
+    relocalization_candidates: int = 10      #: keyframes tried per relocalization query
+    relocalization_min_inliers: int = 4      #: query objects verified by the agreeing keyframes
+    relocalization_min_keyframe_inliers: int = 3  #: a keyframe's vote needs this many inliers
+                                             #: (two verify nothing beyond the minimal sample)
+    posed: bool = False                      #: poses come from outside (set_keyframe_pose)
+
+
+@dataclass
+class EdgeRecord:
+    source: int
+    target: int
+    pose: Pose4                              #: T_source_target
+    inliers: np.ndarray                      #: (K, 2) detection indices (source, target)
+    scores: np.ndarray                       #: (K,) match scores
+    corner_inliers: np.ndarray               #: (C, 5) source idx, corner, target idx, corner, error
+    score: float = 1.0
+
+    @property
+    def weight(self) -> float:
+        """Averaging weight: more verified objects, more trust."""
+        return float(max(len(self.inliers), 1)) * max(self.score, 1e-3)
+
+
+@dataclass
+class Relocalization:
+    pose: Pose4                              #: T_query_map (4-DoF, the query's aligned frame)
+    keyframe_id: int
+    num_inliers: int
+    inliers: np.ndarray                      #: (K, 2) query index, keyframe index
+    candidates: int                          #: keyframes tried
+    support: int = 0                         #: inliers of all keyframes agreeing on the pose
+    agreeing: int = 1                        #: keyframes agreeing on the pose
+
+    def camera_to_map(self, query: FrameObservations) -> np.ndarray:
+        return camera_to_map(self.pose, query)
+
+
+def camera_to_map(t_k_map: Pose4, obs: FrameObservations) -> np.ndarray:
+    """4x4 pose of a frame's camera optical frame in the map frame."""
+    m = t_k_map.inverse().matrix()
+    out = np.eye(4)
+    out[:3, :3] = m[:3, :3] @ obs.rotation_aligned_from_camera
+    out[:3, 3] = m[:3, 3]
+    return out
+
+
+def _descriptor(obs: FrameObservations) -> np.ndarray:
+    if len(obs) == 0 or obs.embeddings.shape[1] == 0:
+        return np.zeros(0)
+    v = obs.embeddings.astype(np.float64).mean(0)
+    return v / max(np.linalg.norm(v), 1e-9)
+
+
+class Mapper:
+    """Feed :meth:`add_keyframe` / :meth:`add_edge`, call :meth:`update`, read the map."""
+
+    def __init__(self, config: MapperConfig | None = None, matcher=None):
+        self.config = config or MapperConfig()
+        self.matcher = matcher or ClassicalMatcher(self.config.matching)
+        self.reset()
+
+    def reset(self) -> None:
+        self.keyframes: dict = {}            # id -> FrameObservations
+        self.edges: dict = {}                # (source, target) -> EdgeRecord
+        self.averager = IncrementalAverager(self.config.averaging)
+        self.external_poses: dict = {}       # posed mode: id -> Pose4 T_k_map
+        self.mode = 'mapping'
+        self.revision = 0
+        self._tracks = None
+        self._descriptors: dict = {}
+        self.last_update_seconds = 0.0
+
+    # ------------------------------------------------------------------ input
+
+    def add_keyframe(self, keyframe_id: int, obs: FrameObservations) -> bool:
+        """Add a keyframe; False (ignored) in localization mode or when already known."""
+        if self.mode != 'mapping' or keyframe_id in self.keyframes:
+            return False
+        self.keyframes[keyframe_id] = obs
+        self._descriptors[keyframe_id] = _descriptor(obs)
+        if not self.config.posed:
+            self.averager.add_keyframe(keyframe_id)
+        self._tracks = None
+        return True
+
+    def add_edge(self, edge: EdgeRecord) -> bool:
+        """Add a verified edge; False when ignored (localization mode, unknown keyframe,
+        duplicate, or malformed)."""
+        if self.mode != 'mapping':
+            return False
+        key = (edge.source, edge.target)
+        if key in self.edges or edge.source == edge.target:
+            return False
+        for k, col in ((edge.source, 0), (edge.target, 1)):
+            if k not in self.keyframes:
+                return False
+            if len(edge.inliers) and (edge.inliers[:, col].max() >= len(self.keyframes[k])
+                                      or edge.inliers[:, col].min() < 0):
+                raise ValueError(f'edge {key}: inlier index out of range for keyframe {k}')
+        self.edges[key] = edge
+        if not self.config.posed:
+            self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight)
+        self._tracks = None
+        return True
+
+    def set_keyframe_pose(self, keyframe_id: int, t_k_map: Pose4) -> None:
+        """Posed mode: the keyframe's pose from outside."""
+        self.external_poses[keyframe_id] = t_k_map
+        self._tracks = None
+
+    def update(self, force_full: bool = False):
+        """Fold new keyframes and edges into the poses; returns the averaging stats."""
+        start = time.perf_counter()
+        stats = None
+        if not self.config.posed:
+            stats = self.averager.update(force_full)
+            if stats.kind != 'none':
+                self.revision += 1
+                self._tracks = None
+        else:
+            self.revision += 1
+        self.last_update_seconds = time.perf_counter() - start
+        return stats
+
+    # ------------------------------------------------------------------ output
+
+    @property
+    def poses(self) -> dict:
+        """{keyframe id: Pose4 T_k_map} of the registered keyframes."""
+        if self.config.posed:
+            return {k: p for k, p in self.external_poses.items() if k in self.keyframes}
+        return self.averager.poses
+
+    def camera_poses(self) -> dict:
+        """{keyframe id: 4x4 camera optical frame -> map} of the registered keyframes."""
+        return {k: camera_to_map(p, self.keyframes[k]) for k, p in self.poses.items()}
+
+    def num_components(self) -> int:
+        """Connected components of the keyframes over the kept edges."""
+        ids = sorted(self.keyframes)
+        if not ids:
+            return 0
+        index = {k: i for i, k in enumerate(ids)}
+        edges = [(index[e.source], index[e.target]) for e in self.active_edges()]
+        src = [s for s, _ in edges]
+        dst = [t for _, t in edges]
+        graph = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(len(ids), len(ids)))
+        return int(connected_components(graph, directed=False)[0])
+
+    def active_edges(self) -> list:
+        if self.config.posed:
+            return list(self.edges.values())
+        return [self.edges[k] for k in self.averager.active_edges() if k in self.edges]
+
+    def tracks(self) -> list:
+        """Object tracks of the current map (cached until the map changes)."""
+        if self._tracks is None:
+            matches = []
+            for e in self.active_edges():
+                for ia, ib in e.inliers:
+                    matches.append((e.source, int(ia), e.target, int(ib)))
+            self._tracks = build_tracks(self.keyframes, self.poses, matches, self.config.tracks)
+        return self._tracks
+
+    # ------------------------------------------------------------------ relocalization
+
+    def _refine_on_tracks(self, query: FrameObservations, pose: Pose4, verified) -> Pose4:
+        """Refit a relocalized pose on the map's object tracks: each query detection matched
+        (as a verified inlier) to an observation of a track is paired with the track's
+        centre — the median of all its lifted observations, so much less noisy than one
+        keyframe's detection — and the 4-DoF pose is refitted on those centres, weighted
+        by range like the relative-pose refit. Kept only when it still verifies."""
+        cfg = self.config
+        owner = {}
+        for t in self.tracks():
+            for kf, det in t.observations:
+                owner[(int(kf), int(det))] = t
+        votes = {}
+        for k, rel, _ in verified:
+            for iq, ik in rel.inliers:
+                t = owner.get((k, int(ik)))
+                if t is not None:
+                    votes.setdefault(int(iq), []).append(t.track_id)
+        by_id = {t.track_id: t for t in self.tracks()}
+        pairs = []
+        for iq, ids in votes.items():
+            tid = max(set(ids), key=ids.count)
+            pairs.append((iq, by_id[tid]))
+        if len(pairs) < 3:
+            return pose
+        q = query.boxes[[iq for iq, _ in pairs]]
+        target = np.array([np.median(t.boxes[:, :3], axis=0) for _, t in pairs])
+        rng = np.linalg.norm(q[:, :3], axis=1)
+        w = 1.0 / (cfg.matching.refine_sigma_m + cfg.matching.refine_sigma_per_m * rng) ** 2
+        t_map_q = kabsch_4dof(q[:, :3], target, w)
+        moved = t_map_q.transform_boxes(q)
+        reps = np.array([t.box for _, t in pairs])
+        if np.mean(iou_3d_paired(moved, reps) >= cfg.matching.inlier_iou) < cfg.matching.min_inlier_ratio:
+            return pose
+        return t_map_q.inverse()
+
+    def relocalize(self, query: FrameObservations) -> Relocalization | None:
+        """The paper's procedure, made more robust: match the query against registered
+        keyframes (the ``relocalization_candidates`` most similar by bag-of-objects
+        descriptor) and verify each relative pose. The paper takes the keyframe with the most
+        object inliers; here every keyframe verified with at least
+        ``relocalization_min_keyframe_inliers`` objects votes for its pose; the pose whose
+        agreeing keyframes (within the averaging outlier thresholds) verify the most distinct
+        query objects wins, needs ``relocalization_min_inliers`` of them, is averaged over
+        the agreeing keyframes and refitted on the map's tracks. ``keyframe_id`` is the
+        agreeing keyframe with the most inliers."""
+        cfg = self.config
+        poses = self.poses
+        if len(query) < 2 or not poses:
+            return None
+        ids = [k for k in poses if self._descriptors.get(k) is not None and len(self.keyframes[k]) >= 2]
+        desc = _descriptor(query)
+        if desc.size and ids and all(self._descriptors[k].size == desc.size for k in ids):
+            sims = np.array([self._descriptors[k] @ desc for k in ids])
+            order = np.argsort(-sims)[:cfg.relocalization_candidates]
+            candidates = [ids[i] for i in order]
+        else:
+            candidates = ids[-cfg.relocalization_candidates:]
+        found = []
+        for k in candidates:
+            kf = self.keyframes[k]
+            matches = self.matcher.match(query, kf)
+            rel = estimate_relative_pose(query.boxes, kf.boxes, matches, cfg.matching)
+            if rel is None or len(rel.inliers) < cfg.relocalization_min_keyframe_inliers:
+                continue
+            # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
+            found.append((k, rel, rel.pose.inverse() @ poses[k]))
+        if not found:
+            return None
+        # consensus: each verified keyframe votes for its pose; the pose whose agreeing
+        # keyframes verify the most distinct query objects wins, averaged over them
+        supports = []
+        for _, _, pose in found:
+            agree = [j for j, (_, r2, p2) in enumerate(found)
+                     if np.degrees(pose.angle_to(p2)) <= cfg.averaging.max_yaw_residual_deg
+                     and np.linalg.norm(pose.inverse().t - p2.inverse().t) <= cfg.averaging.max_translation_residual_m]
+            seen = {int(iq) for j in agree for iq in found[j][1].inliers[:, 0]}
+            supports.append((len(seen), agree))
+        total, agree = max(supports, key=lambda s: s[0])
+        if total < cfg.relocalization_min_inliers:
+            return None
+        best = max(agree, key=lambda j: (len(found[j][1].inliers), -found[j][1].mean_error))
+        k, rel, _ = found[best]
+        w = np.array([len(found[j][1].inliers) for j in agree], float)
+        yaws = np.array([found[j][2].yaw for j in agree])
+        centres = np.array([found[j][2].inverse().t for j in agree])
+        yaw = float(np.arctan2(np.sum(w * np.sin(yaws)), np.sum(w * np.cos(yaws))))
+        centre = (w[:, None] * centres).sum(0) / w.sum()
+        pose = Pose4(yaw, -(Pose4(yaw, (0, 0, 0)).rotation @ centre))
+        pose = self._refine_on_tracks(query, pose, [found[j] for j in agree])
+        return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), int(total), len(agree))

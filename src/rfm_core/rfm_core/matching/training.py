@@ -1,0 +1,225 @@
+"""Training data and training loop of the learned object matcher.
+
+Pairs come from rendered sim captures run through a real detector backend. Supervision is
+the ground-truth object id of each detection: the ``ground_truth`` backend keeps the ids
+of the objects it perturbs; detections of an image-based backend (``depth_clusters``) get
+the id of the visible ground-truth box they overlap best (one-to-one, IoU3D >= 0.25), or
+none. Two detections match when they carry the same id.
+"""
+from __future__ import annotations
+
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, replace
+
+import numpy as np
+import torch
+from scipy.optimize import linear_sum_assignment
+
+from rfm_core.detection import make_detector
+from rfm_core.detection.base import DetectorInput
+from rfm_core.geometry import Pose4, iou_3d
+from rfm_core.matching.learned import MatcherNetConfig, ObjectMatcherNet, batch_inputs
+from rfm_core.observations import FrameObservations
+from rfm_core.sim.capture import Capture, CaptureConfig
+
+__all__ = ['LabelledFrame', 'assign_object_ids', 'labelled_capture', 'frame_pairs', 'scene_configs',
+           'labelled_pairs', 'TrainConfig', 'train_matcher', 'match_targets']
+
+
+@dataclass
+class LabelledFrame:
+    observations: FrameObservations      #: detections, object_ids = ground-truth ids (-1: none)
+    aligned_from_map: Pose4              #: true T_aligned_map of the frame
+    visible_ids: np.ndarray              #: ids of the objects visible in the frame
+
+
+def assign_object_ids(pred: FrameObservations, truth: FrameObservations, min_iou: float = 0.25) -> np.ndarray:
+    """Ground-truth object id per detection: one-to-one by IoU3D >= min_iou, else -1."""
+    ids = np.full(len(pred), -1, np.int64)
+    if len(pred) == 0 or len(truth) == 0:
+        return ids
+    iou = iou_3d(pred.boxes, truth.boxes)
+    rows, cols = linear_sum_assignment(-iou)
+    ok = iou[rows, cols] >= min_iou
+    ids[rows[ok]] = truth.object_ids[cols[ok]]
+    return ids
+
+
+def _detector(spec: str, noise_seed: int):
+    backend, _, preset = spec.partition(':')
+    if backend == 'ground_truth':
+        return make_detector('ground_truth', preset=preset or 'rgbd', seed=noise_seed)
+    return make_detector(backend)
+
+
+def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,)) -> dict:
+    """{(spec, noise_seed): [LabelledFrame, ...]} for one capture (rendered once)."""
+    detectors = {(spec, s): _detector(spec, s) for spec in specs
+                 for s in (noise_seeds if spec.startswith('ground_truth') else (0,))}
+    out = {key: [] for key in detectors}
+    capture = Capture(config)
+    for frame in capture.frames():
+        truth = frame.ground_truth
+        pose = frame.aligned_from_map()
+        for key, det in detectors.items():
+            if key[0].startswith('ground_truth'):
+                obs = det.perturb(truth)
+            else:
+                inp = DetectorInput(frame.stamp_ns, truth.frame_id, capture.intrinsics,
+                                    truth.gravity_cam, frame.render.rgb, frame.render.depth)
+                obs = det.detect(inp)
+                obs = replace(obs, object_ids=assign_object_ids(obs, truth))
+            out[key].append(LabelledFrame(obs, pose, truth.object_ids))
+    return out
+
+
+def frame_pairs(frames, gaps=(1, 2, 3, 4), min_shared: int = 2, visible: bool = False):
+    """(a, b) pairs ``gap`` frames apart whose detections (or, with ``visible``, whose
+    visible objects) share >= min_shared objects."""
+    pairs = []
+    for gap in gaps:
+        for fa, fb in zip(frames[:-gap], frames[gap:]):
+            if visible:
+                ia, ib = fa.visible_ids, fb.visible_ids
+            else:
+                ia, ib = fa.observations.object_ids, fb.observations.object_ids
+            if len(set(ia[ia > 0]) & set(ib[ib > 0])) >= min_shared:
+                pairs.append((fa, fb))
+    return pairs
+
+
+def _capture_job(args):
+    config, specs, noise_seeds = args
+    return labelled_capture(config, specs, noise_seeds)
+
+
+def scene_configs(seeds, frames: int = 24, fps: float = 2.0):
+    """Mixed styles and captures, as the evaluation suites."""
+    styles = (('plain', 'handheld'), ('textured', 'sparse'), ('plain', 'sparse'), ('textured', 'handheld'))
+    return [CaptureConfig(seed=s, room_style=styles[i % 4][0], capture=styles[i % 4][1],
+                          frames=frames, fps=fps) for i, s in enumerate(seeds)]
+
+
+def labelled_pairs(configs, specs, noise_seeds=(0,), gaps=(1, 2, 3, 4), min_shared: int = 2,
+                   visible: bool = False, jobs: int = 1, progress=None) -> dict:
+    """{spec: [(LabelledFrame a, LabelledFrame b), ...]} over captures, in parallel."""
+    pairs = {spec: [] for spec in specs}
+    work = [(c, tuple(specs), tuple(noise_seeds)) for c in configs]
+    if jobs > 1:
+        with ProcessPoolExecutor(jobs) as pool:
+            results = pool.map(_capture_job, work)
+            for i, result in enumerate(results):
+                _collect(pairs, result, gaps, min_shared, visible)
+                if progress:
+                    progress(i + 1, len(work))
+    else:
+        for i, w in enumerate(work):
+            _collect(pairs, _capture_job(w), gaps, min_shared, visible)
+            if progress:
+                progress(i + 1, len(work))
+    return pairs
+
+
+def _collect(pairs, result, gaps, min_shared, visible):
+    for (spec, _), frames in result.items():
+        pairs[spec].extend(frame_pairs(frames, gaps, min_shared, visible))
+
+
+def match_targets(ids_a: np.ndarray, ids_b: np.ndarray):
+    """(matches (K, 2), unmatched a, unmatched b) from ground-truth ids."""
+    index_b = {int(v): j for j, v in enumerate(ids_b) if v > 0}
+    matches = [(i, index_b[int(v)]) for i, v in enumerate(ids_a) if v > 0 and int(v) in index_b]
+    ma = {i for i, _ in matches}
+    mb = {j for _, j in matches}
+    return (np.array(matches, dtype=np.int64).reshape(-1, 2),
+            np.array([i for i in range(len(ids_a)) if i not in ma], np.int64),
+            np.array([j for j in range(len(ids_b)) if j not in mb], np.int64))
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    epochs: int = 12
+    batch_size: int = 32
+    learning_rate: float = 3e-4
+    weight_decay: float = 1e-4
+    drop_detections: float = 0.15        #: augmentation: drop each detection with this probability
+    balance: float = 0.5                 #: weight of the match term vs the unmatched term
+    seed: int = 0
+    threads: int = 2
+
+
+def _subsample(obs: FrameObservations, keep: np.ndarray) -> FrameObservations:
+    idx = np.flatnonzero(keep)
+    return replace(obs, boxes=obs.boxes[idx], scores=obs.scores[idx],
+                   labels=[obs.labels[i] for i in idx], embeddings=obs.embeddings[idx],
+                   boxes_2d=obs.boxes_2d[idx], visibility=obs.visibility[idx],
+                   object_ids=obs.object_ids[idx])
+
+
+def _loss(log_assignment: torch.Tensor, targets, balance: float) -> torch.Tensor:
+    """LightGlue's negative log-likelihood: matched entries and the unmatched row/column."""
+    pos, neg = [], []
+    for k, (matches, un_a, un_b) in enumerate(targets):
+        la = log_assignment[k]
+        if len(matches):
+            pos.append(la[matches[:, 0], matches[:, 1]])
+        neg.append(la[un_a, -1])
+        neg.append(la[-1, un_b])
+    pos_t = torch.cat(pos) if pos else log_assignment.new_zeros(0)
+    neg_t = torch.cat(neg) if neg else log_assignment.new_zeros(0)
+    loss = log_assignment.new_zeros(())
+    if pos_t.numel():
+        loss = loss - balance * pos_t.mean()
+    if neg_t.numel():
+        loss = loss - (1 - balance) * neg_t.mean()
+    return loss
+
+
+def train_matcher(pairs, net_config: MatcherNetConfig, config: TrainConfig = TrainConfig(),
+                  log=print) -> ObjectMatcherNet:
+    """Train on [(LabelledFrame, LabelledFrame), ...]; both orders of each pair are used."""
+    torch.manual_seed(config.seed)
+    torch.set_num_threads(config.threads)
+    rng = np.random.default_rng(config.seed)
+    net = ObjectMatcherNet(net_config)
+    net.train()
+    examples = [(a.observations, b.observations) for a, b in pairs]
+    examples += [(b, a) for a, b in examples]
+    steps = config.epochs * ((len(examples) + config.batch_size - 1) // config.batch_size)
+    opt = torch.optim.AdamW(net.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay)
+    sched = torch.optim.lr_scheduler.OneCycleLR(opt, max_lr=config.learning_rate, total_steps=steps,
+                                                pct_start=0.1)
+    start = time.perf_counter()
+    for epoch in range(config.epochs):
+        order = rng.permutation(len(examples))
+        total, count = 0.0, 0
+        for s in range(0, len(order), config.batch_size):
+            batch_a, batch_b, targets = [], [], []
+            for i in order[s:s + config.batch_size]:
+                a, b = examples[i]
+                if config.drop_detections > 0:
+                    ka = rng.random(len(a)) >= config.drop_detections
+                    kb = rng.random(len(b)) >= config.drop_detections
+                    if ka.sum() >= 1 and kb.sum() >= 1:
+                        a, b = _subsample(a, ka), _subsample(b, kb)
+                if len(a) == 0 or len(b) == 0:
+                    continue
+                batch_a.append(a)
+                batch_b.append(b)
+                targets.append(match_targets(a.object_ids, b.object_ids))
+            if not batch_a:
+                continue
+            la = net(*batch_inputs(batch_a, batch_b))
+            loss = _loss(la, targets, config.balance)
+            opt.zero_grad()
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+            opt.step()
+            sched.step()
+            total += float(loss.detach()) * len(batch_a)
+            count += len(batch_a)
+        log(f'epoch {epoch + 1}/{config.epochs}: loss {total / max(count, 1):.4f} '
+            f'({time.perf_counter() - start:.0f} s)')
+    net.eval()
+    return net

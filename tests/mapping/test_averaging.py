@@ -1,0 +1,106 @@
+"""Yaw + translation averaging on synthetic view graphs (batch and incremental)."""
+import numpy as np
+import pytest
+
+from rfm_core.evaluation.trajectory import trajectory_errors
+from rfm_core.geometry import Pose4
+from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, average_poses
+from rfm_core.mapping.synthetic import synthetic_view_graph
+
+
+def _camera_to_map(poses: dict) -> dict:
+    return {k: p.inverse().matrix() for k, p in poses.items()}
+
+
+def _errors(poses, truth):
+    return trajectory_errors(_camera_to_map(poses), _camera_to_map(truth))
+
+
+def _incremental(edges, n, config=None):
+    inc = IncrementalAverager(config or AveragingConfig())
+    by_target = {}
+    for e in edges:
+        by_target.setdefault(max(e[0], e[1]), []).append(e)
+    kinds = []
+    for k in range(n):
+        inc.add_keyframe(k)
+        for s, t, pose, w in by_target.get(k, []):
+            inc.add_edge(s, t, pose, w)
+        kinds.append(inc.update().kind)
+    return inc, kinds
+
+
+def test_exact_recovery_from_noise_free_edges():
+    truth, edges, _ = synthetic_view_graph(120, seed=3)
+    result = average_poses(range(120), edges)
+    assert len(result.poses) == 120 and result.inlier_edges.all()
+    # the gauge is the first keyframe: poses equal the truth expressed relative to it
+    g = truth[0]
+    for k, pose in result.poses.items():
+        expect = truth[k] @ g.inverse()
+        assert pose.angle_to(expect) < 1e-9
+        np.testing.assert_allclose(pose.t, expect.t, atol=1e-6)
+    inc, kinds = _incremental(edges, 120)
+    assert kinds.count('local') > 100                  # warm-started window updates
+    err = _errors(inc.poses, truth)
+    assert err['registered'] == 1.0 and err['ATE_median'] < 1e-5 and err['ARE_median'] < 1e-5
+
+
+@pytest.mark.parametrize('incremental', [False, True])
+def test_outlier_edges_are_removed(incremental):
+    n = 150
+    truth, edges, outlier = synthetic_view_graph(n, seed=7, neighbours=5, yaw_noise_deg=0.2,
+                                                 translation_noise_m=0.01, outliers=0.2)
+    assert 0.15 < outlier.mean() < 0.25
+    if incremental:
+        inc, _ = _incremental(edges, n)
+        poses = inc.poses
+        kept = {(s, t) for s, t in inc.active_edges()}
+        kept_flags = np.array([(s, t) in kept for s, t, _, _ in edges])
+    else:
+        result = average_poses(range(n), edges)
+        poses, kept_flags = result.poses, result.inlier_edges
+    assert not np.any(kept_flags & outlier), 'an outlier edge survived'
+    assert np.mean(kept_flags[~outlier]) > 0.95
+    err = _errors(poses, truth)
+    assert err['registered'] == 1.0
+    assert err['ATE_median'] < 0.02 and err['ARE_median'] < 0.5, err
+
+
+def test_yaw_wraps_around_pi():
+    """A camera turning in place through several full turns, crossing +/-pi many times."""
+    n = 60
+    truth = {k: Pose4(np.pi - 0.05 + 0.4 * k, (0.05 * np.sin(k), 0.0, 0.02 * k)) for k in range(n)}
+    edges = [(i, j, truth[i] @ truth[j].inverse(), 1.0) for i in range(n) for j in range(i + 1, min(n, i + 3))]
+    result = average_poses(range(n), edges)
+    g = truth[0]
+    for k, pose in result.poses.items():
+        assert pose.angle_to(truth[k] @ g.inverse()) < 1e-9
+
+
+def test_only_the_largest_component_is_registered():
+    a_truth, a_edges, _ = synthetic_view_graph(30, seed=1)
+    _, b_edges, _ = synthetic_view_graph(12, seed=2)
+    b_edges = [(s + 100, t + 100, p, w) for s, t, p, w in b_edges]
+    ids = list(range(30)) + list(range(100, 112)) + [500]          # 500: no edges at all
+    result = average_poses(ids, a_edges + b_edges)
+    assert set(result.poses) == set(range(30))
+    assert np.all(np.isnan(result.yaw_residual_deg[len(a_edges):]))
+    inc = IncrementalAverager()
+    for s, t, p, w in b_edges + a_edges:
+        inc.add_edge(s, t, p, w)
+        inc.update()
+    assert set(inc.poses) == set(range(30))
+    assert inc.pose(105) is None and inc.pose(500) is None
+
+
+def test_incremental_map_frame_stays_put():
+    """Earlier keyframes keep their poses (gauge and window) as the map grows."""
+    truth, edges, _ = synthetic_view_graph(80, seed=5, yaw_noise_deg=0.1, translation_noise_m=0.005)
+    inc, _ = _incremental(edges[: len(edges) // 2], 80)
+    before = inc.poses
+    inc2, _ = _incremental(edges, 80)
+    after = inc2.poses
+    assert after[0].angle_to(Pose4(0.0, (0, 0, 0))) < 1e-12 and np.allclose(after[0].t, 0)
+    moved = [np.linalg.norm(before[k].t - after[k].t) for k in before if k < 20]
+    assert np.median(moved) < 0.05

@@ -1,0 +1,136 @@
+"""The mapper on simulated captures: poses, tracks, map files, relocalization."""
+import numpy as np
+import pytest
+
+from rfm_core.evaluation.pipeline import detections_for, run_capture
+from rfm_core.evaluation.trajectory import align_4dof, trajectory_errors
+from rfm_core.geometry import Pose4
+from rfm_core.mapping.map_io import MapFileError, load_map, read_map, save_map
+from rfm_core.mapping.mapper import Mapper, camera_to_map
+from rfm_core.mapping.tracks import TrackConfig, build_tracks
+from rfm_core.observations import FrameObservations
+from rfm_core.sim.capture import Capture, CaptureConfig
+
+SCENE = CaptureConfig(seed=40, frames=50, fps=5)
+
+
+@pytest.fixture(scope='module')
+def mapped():
+    return run_capture(SCENE, 'ground_truth:rgbd', noise_seed=3)
+
+
+def test_unposed_localization_and_mapping(mapped):
+    loc, m = mapped.localization, mapped.mapping
+    assert mapped.keyframes >= 8
+    assert loc['registered'] >= 0.95
+    assert loc['ATE_median'] < 0.03 and loc['ARE_median'] < 1.0, loc
+    assert m['AP25'] > 0.7 and m['AR25'] > 0.7, m
+
+
+def test_posed_mapping_uses_the_given_poses():
+    r = run_capture(SCENE, 'ground_truth:rgbd', noise_seed=3, posed=True)
+    assert r.localization['registered'] == 1.0
+    assert r.localization['ATE_median'] < 1e-9 and r.localization['ARE_median'] < 1e-6
+    assert r.mapping['AP25'] > 0.7, r.mapping
+
+
+def _obs(boxes, embeddings, scores=None):
+    boxes = np.asarray(boxes, float).reshape(-1, 7)
+    n = len(boxes)
+    emb = np.asarray(embeddings, np.float32).reshape(n, -1)
+    return FrameObservations(0, 'cam', None, np.array([0, 1.0, 0]), boxes=boxes,
+                             scores=np.full(n, 0.9, np.float32) if scores is None else scores,
+                             labels=['chair'] * n, embeddings=emb / np.linalg.norm(emb, axis=1, keepdims=True))
+
+
+def test_tracks_union_find_merging_and_suppression():
+    e1, e2 = [1.0, 0.0], [-1.0, 0.0]                     # e2: opposite appearance
+    chair = [2.0, 0.0, 0.4, 0.5, 0.5, 0.8, 0.0]
+    near = [2.6, 0.0, 0.4, 0.5, 0.5, 0.8, 0.0]            # touching neighbour, same look
+    keyframes = {0: _obs([chair, near], [e1, e1]),
+                 1: _obs([chair, near], [e1, e1]),
+                 # the same chair seen again later, never matched to the first sightings
+                 2: _obs([np.add(chair, [0.03, 0, 0, 0, 0, 0, 0])], [e1]),
+                 # something else on top of the neighbour's place, looking different
+                 3: _obs([np.add(near, [0.05, 0, 0, 0, 0, 0, 0])], [e2], scores=np.array([0.3], np.float32))}
+    poses = {k: Pose4(0.0, (0, 0, 0)) for k in keyframes}
+    matches = [(0, 0, 1, 0), (0, 1, 1, 1)]
+    tracks = build_tracks(keyframes, poses, matches)
+    assert len(tracks) == 2                             # chair (merged with kf 2) and neighbour
+    by_size = sorted(tracks, key=lambda t: -t.num_observations)
+    assert by_size[0].num_observations == 3 and by_size[1].num_observations == 2
+    assert {tuple(o) for o in by_size[0].observations} == {(0, 0), (1, 0), (2, 0)}
+    assert by_size[0].label == 'chair' and by_size[0].class_distribution == {'chair': 1.0}
+    # without merging, the weaker of two overlapping tracks is suppressed
+    loose = build_tracks(keyframes, poses, matches, TrackConfig(merge_affinity=2.0))
+    assert sorted(tuple(map(tuple, t.observations)) for t in loose) == [((0, 0), (1, 0)), ((0, 1), (1, 1))]
+
+
+def test_map_file_round_trip_and_refusals(mapped, tmp_path):
+    mapper = mapped.mapper
+    path = save_map(mapper, tmp_path / 'room.rfm')
+    assert not list(tmp_path.glob('*.tmp'))
+    fresh = Mapper()
+    header = load_map(fresh, path)
+    assert header['keyframes'] == len(mapper.keyframes)
+    before, after = mapper.poses, fresh.poses
+    assert set(before) == set(after)
+    for k in before:
+        assert after[k].angle_to(before[k]) < 1e-12 and np.allclose(after[k].t, before[k].t, atol=1e-12)
+    k0 = min(mapper.keyframes)
+    a, b = mapper.keyframes[k0], fresh.keyframes[k0]
+    assert a.intrinsics == b.intrinsics and a.stamp_ns == b.stamp_ns and a.frame_id == b.frame_id
+    np.testing.assert_allclose(a.boxes, b.boxes)
+    np.testing.assert_allclose(a.embeddings, b.embeddings)
+    t0, t1 = mapper.tracks(), fresh.tracks()
+    assert [t.track_id for t in t0] == [t.track_id for t in t1]
+    np.testing.assert_allclose([t.box for t in t0], [t.box for t in t1], atol=1e-9)
+
+    good = fresh.poses
+    for name, content in [('junk.rfm', b'not a map'), ('trunc.rfm', path.read_bytes()[:2000])]:
+        bad = tmp_path / name
+        bad.write_bytes(content)
+        with pytest.raises(MapFileError):
+            load_map(fresh, bad)
+    with pytest.raises(MapFileError, match='no map file'):
+        load_map(fresh, tmp_path / 'missing.rfm')
+    # a future version is refused by name
+    data = dict(np.load(path))
+    import json
+    header = json.loads(bytes(data['header']).decode())
+    header['version'] = 99
+    data['header'] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+    np.savez(tmp_path / 'future.npz', **data)
+    with pytest.raises(MapFileError, match='version 99'):
+        read_map(tmp_path / 'future.npz')
+    assert fresh.poses.keys() == good.keys()            # refused loads left the map alone
+
+
+def test_relocalization_of_a_second_trajectory(tmp_path):
+    """Paper appendix: map one capture, save, load fresh, relocalize another capture."""
+    scene = CaptureConfig(seed=41, frames=50, fps=5)
+    mapped = run_capture(scene, 'ground_truth:rgbd', noise_seed=3)
+    path = save_map(mapped.mapper, tmp_path / 'room.rfm')
+    mapper = Mapper()
+    load_map(mapper, path)
+    mapper.mode = 'localization'
+    # map frame -> world, from the mapped keyframes (scoring only)
+    est = mapper.camera_poses()
+    keys = sorted(k for k in mapped.truth if k in est)
+    r, t = align_4dof(np.array([est[k] for k in keys]), np.array([mapped.truth[k] for k in keys]))
+    world = np.eye(4)
+    world[:3, :3], world[:3, 3] = r, t
+    second = Capture(CaptureConfig(seed=scene.seed, frames=20, fps=2, trajectory_seed=1))
+    detect = detections_for('ground_truth:rgbd', second, noise_seed=11)
+    relocalized, truth = {}, {}
+    for frame in second.frames():
+        obs = detect(frame)
+        truth[frame.index] = frame.pose_matrix
+        reloc = mapper.relocalize(obs)
+        if reloc is not None:
+            relocalized[frame.index] = world @ camera_to_map(reloc.pose, obs)
+    err = trajectory_errors(relocalized, truth, align=False)
+    assert err['registered'] >= 0.85, err
+    assert err['ARE_median'] < 2.0 and err['ATE_median'] < 0.05, err
+    assert err['ATE_rmse'] < 0.1, err                  # no gross failures
+    assert len(mapper.keyframes) == len(mapped.mapper.keyframes)      # the map did not change

@@ -1,0 +1,174 @@
+"""The mapper node with real rclpy: keyframes and edges in, poses and the map out; services."""
+import threading
+import time
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip('rclpy')
+from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.node import Node  # noqa: E402
+from rclpy.parameter import Parameter  # noqa: E402
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
+
+from rfm_core.evaluation.pipeline import detections_for  # noqa: E402
+from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: E402
+from rfm_core.io.messages import frame_detections_to_msg, pose_to_matrix  # noqa: E402
+from rfm_core.matching.view_graph import ViewGraphBuilder  # noqa: E402
+from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+
+def _graph_messages():
+    """Keyframe and edge messages of a sim capture, as the matcher node would publish them."""
+    from rfm_matcher_node.matcher_node import MatcherNode
+    from rfm_msgs.msg import Keyframe
+
+    capture = Capture(CaptureConfig(seed=40, frames=50, fps=5))
+    detect = detections_for('ground_truth:rgbd', capture, noise_seed=3)
+    graph = ViewGraphBuilder()
+    messages, truth, frames = [], {}, []
+    for frame in capture.frames():
+        obs = detect(frame)
+        frames.append((frame, obs))
+        keyframe, edges = graph.add(obs)
+        if keyframe is None:
+            continue
+        det = frame_detections_to_msg(obs)
+        messages.append(Keyframe(header=det.header, keyframe_id=keyframe.keyframe_id, detections=det))
+        messages += [MatcherNode._edge_msg(e, obs.stamp_ns) for e in edges]
+        truth[keyframe.keyframe_id] = frame.pose_matrix
+    return messages, truth, frames
+
+
+class _Harness:
+    def __init__(self, mapper):
+        from geometry_msgs.msg import PoseArray
+        from rfm_msgs.msg import Keyframe, ObjectMap, ViewGraphEdge
+        self.mapper = mapper
+        self.node = Node('mapper_test')
+        reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.poses, self.maps = [], []
+        self.node.create_subscription(PoseArray, 'rfm/keyframe_poses', self.poses.append, latched)
+        self.node.create_subscription(ObjectMap, 'rfm/object_map', self.maps.append, latched)
+        self.kf_pub = self.node.create_publisher(Keyframe, 'rfm/keyframes', reliable)
+        self.edge_pub = self.node.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', reliable)
+        self.executor = MultiThreadedExecutor()
+        self.executor.add_node(mapper)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def call(self, srv_type, name, request, timeout=20.0):
+        client = self.node.create_client(srv_type, name)
+        assert client.wait_for_service(timeout_sec=timeout), name
+        future = client.call_async(request)
+        deadline = time.monotonic() + timeout
+        while not future.done() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        assert future.done(), f'{name} timed out'
+        return future.result()
+
+    def wait(self, predicate, timeout=30.0):
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline and not predicate():
+            time.sleep(0.05)
+        return predicate()
+
+    def close(self):
+        if self.executor is None:
+            return
+        self.executor.shutdown()
+        self.thread.join(timeout=10)            # the spin thread is gone before the nodes go
+        self.mapper.destroy_node()
+        self.node.destroy_node()
+        self.executor = None
+
+
+def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
+    from rfm_mapper_node.mapper_node import MapperNode
+    from rfm_msgs.msg import FrameDetections, Keyframe
+    from rfm_msgs.srv import LoadMap, Relocalize, SaveMap, SetMode
+    from std_srvs.srv import Trigger
+
+    messages, truth, frames = _graph_messages()
+    map_path = str(tmp_path / 'auto.rfm')
+    rclpy.init()
+    harnesses = []
+    try:
+        mapper = MapperNode(parameter_overrides=[Parameter('map_path', value=map_path),
+                                                 Parameter('autosave_every_n_keyframes', value=5),
+                                                 Parameter('map_publish_period_s', value=0.2)])
+        h = _Harness(mapper)
+        harnesses.append(h)
+        assert h.wait(lambda: h.kf_pub.get_subscription_count() > 0 and h.edge_pub.get_subscription_count() > 0)
+        bad = Keyframe(keyframe_id=999, detections=FrameDetections())      # fx = 0: dropped, logged
+        h.kf_pub.publish(bad)
+        for msg in messages:
+            (h.kf_pub if isinstance(msg, Keyframe) else h.edge_pub).publish(msg)
+        n_kf = len(truth)
+        n_edges = sum(not isinstance(m, Keyframe) for m in messages)
+        done = h.wait(lambda: len(mapper.mapper.keyframes) == n_kf and not mapper.pending_edges
+                      and mapper.counts['edges'] == n_edges and not mapper._dirty
+                      and h.poses and len(h.poses[-1].poses) == n_kf)
+        assert done, (len(mapper.mapper.keyframes), n_kf, len(mapper.pending_edges),
+                      len(h.poses[-1].poses) if h.poses else None, mapper.counts, mapper.message)
+        assert mapper.counts['dropped'] >= 1
+        assert h.wait(lambda: h.maps and len(h.maps[-1].objects) >= 5)
+        # published poses agree with the ground truth
+        ids = sorted(truth)
+        est = {k: pose_to_matrix(p) for k, p in zip(ids, h.poses[-1].poses)}
+        err = trajectory_errors(est, truth)
+        assert err['ATE_median'] < 0.03 and err['ARE_median'] < 1.0, err
+        # autosave happened (every 5 keyframes) and is a loadable map
+        assert (tmp_path / 'auto.rfm').is_file()
+
+        # --- services
+        saved = h.call(SaveMap, 'rfm/save_map', SaveMap.Request(path=str(tmp_path / 'room.rfm')))
+        assert saved.success and saved.path.endswith('room.rfm'), saved.message
+        missing = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=str(tmp_path / 'nope.rfm')))
+        assert not missing.success and 'no map file' in missing.message
+        (tmp_path / 'corrupt.rfm').write_bytes(b'\x00' * 100)
+        corrupt = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=str(tmp_path / 'corrupt.rfm')))
+        assert not corrupt.success and 'unchanged' in corrupt.message
+        assert len(mapper.mapper.keyframes) == n_kf                     # untouched
+        empty = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=FrameDetections()))
+        assert not empty.success and empty.message
+        frame, obs = frames[len(frames) // 2]
+        query = frame_detections_to_msg(obs)
+        reloc = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=query))
+        assert reloc.success, reloc.message
+        assert reloc.num_inliers >= 3
+        bad_mode = h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=7))
+        assert not bad_mode.success
+        assert h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=1)).success
+        h.kf_pub.publish(messages[0])                                   # ignored in localization mode
+        time.sleep(0.3)
+        assert len(mapper.mapper.keyframes) == n_kf
+        poses_before = mapper.mapper.poses
+        tracks_before = [(t.track_id, t.box) for t in mapper.mapper.tracks()]
+        assert h.call(Trigger, 'rfm/reset', Trigger.Request()).success
+        assert not mapper.mapper.keyframes
+        h.close()
+
+        # --- "kill" the mapper; a fresh one loads the saved map on start
+        fresh = MapperNode(parameter_overrides=[Parameter('map_path', value=str(tmp_path / 'room.rfm')),
+                                                Parameter('load_map_on_start', value=True)])
+        h2 = _Harness(fresh)
+        harnesses.append(h2)
+        restored = fresh.mapper.poses
+        assert set(restored) == set(poses_before)
+        for k in restored:
+            assert np.allclose(restored[k].t, poses_before[k].t, atol=1e-12)
+        tracks_after = [(t.track_id, t.box) for t in fresh.mapper.tracks()]
+        assert [i for i, _ in tracks_after] == [i for i, _ in tracks_before]
+        np.testing.assert_allclose([b for _, b in tracks_after], [b for _, b in tracks_before], atol=1e-9)
+        assert h2.wait(lambda: h2.maps and len(h2.maps[-1].objects) == len(tracks_before))
+        h2.close()
+    finally:
+        for harness in harnesses:
+            harness.close()
+        rclpy.try_shutdown()
