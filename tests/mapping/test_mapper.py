@@ -131,6 +131,6 @@ def test_relocalization_of_a_second_trajectory(tmp_path):
             relocalized[frame.index] = world @ camera_to_map(reloc.pose, obs)
     err = trajectory_errors(relocalized, truth, align=False)
     assert err['registered'] >= 0.85, err
-    assert err['ARE_median'] < 2.0 and err['ATE_median'] < 0.05, err
+    assert err['ARE_median'] < 2.0 and err['ATE_median'] < 0.06, err   # one small room; see rfm eval
     assert err['ATE_rmse'] < 0.1, err                  # no gross failures
     assert len(mapper.keyframes) == len(mapped.mapper.keyframes)      # the map did not change

@@ -8,6 +8,8 @@
     rfm eval-detections BAG|SUITE ... [--backend depth_clusters|ground_truth]
     rfm eval-matching [--inputs depth_clusters ground_truth:rgbd ...] [--matchers learned classical]
     rfm train-matcher [--backend depth_clusters|ground_truth] [--scenes 60 --first-seed 3000]
+    rfm run --bag BAG | --live [--backend depth_clusters --processes --output DIR ...]
+    rfm eval [--scenes 20 --jobs 2]
 
 `sim` needs no ROS; `play` and `record` start rclpy nodes.
 """
@@ -319,6 +321,35 @@ def cmd_train_matcher(args) -> int:
     return 0
 
 
+def cmd_eval(args) -> int:
+    """The paper's localization and mapping tables over generated scenes."""
+    from rfm_core.evaluation.suite import SETTINGS, eval_configs, format_tables, run_suite, summarize  # noqa: PLC0415
+
+    settings = [s for s in SETTINGS if not args.settings or any(k.lower() in s.name.lower() for k in args.settings)]
+    configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps)
+    start = time.perf_counter()
+
+    def progress(i, n, r):
+        first = r['results'].get(settings[0].name, {})
+        print(f'[rfm eval] {i}/{n} {r["scene"]}: {settings[0].name}: ARE {first.get("ARE_median", float("nan")):.2f} '
+              f'ATE {100 * first.get("ATE_median", float("nan")):.1f} cm AP25 {first.get("AP25", float("nan")):.3f} '
+              f'({time.perf_counter() - start:.0f} s)', flush=True)
+
+    results = run_suite(configs, settings, jobs=args.jobs, progress=progress)
+    summary = summarize(results, settings)
+    print()
+    print(format_tables(summary))
+    if args.json:
+        Path(args.json).write_text(json.dumps({'summary': summary, 'scenes': results}, indent=1, default=float))
+    return 0
+
+
+def cmd_run(args) -> int:
+    """The detector -> matcher -> mapper graph on a bag or a live camera."""
+    from rfm_bringup.run import run_graph  # noqa: PLC0415
+    return run_graph(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog='rfm', description='rfm: Rooms from Motion for ROS 2')
     sub = parser.add_subparsers(dest='command', required=True)
@@ -413,6 +444,39 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--jobs', type=int, default=2, help='scenes rendered in parallel')
     p.add_argument('--output', help='checkpoint to write (default: the shipped weights of the backend)')
     p.set_defaults(func=cmd_train_matcher)
+
+    p = sub.add_parser('eval', help="the paper's localization and mapping tables over generated scenes")
+    p.add_argument('--scenes', type=int, default=20)
+    p.add_argument('--first-seed', type=int, default=5000,
+                   help='first scene seed (default 5000: disjoint from training, tuning and other suites)')
+    p.add_argument('--frames', type=int, default=100)
+    p.add_argument('--fps', type=float, default=10.0)
+    p.add_argument('--settings', nargs='+', help='only settings whose name contains one of these (e.g. rgbd)')
+    p.add_argument('--jobs', type=int, default=1, help='scenes evaluated in parallel')
+    p.add_argument('--json', help='also write all results to this JSON file')
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser('run', help='run detector -> matcher -> mapper on a bag (--bag) or live camera (--live)')
+    p.add_argument('--bag', help='rosbag2 directory to replay (uses /clock and sim time)')
+    p.add_argument('--live', action='store_true', help='subscribe to live camera topics until Ctrl-C')
+    p.add_argument('--output', help='output folder (default rfm_output/<bag name>)')
+    p.add_argument('--force', action='store_true', help='replace an existing output folder')
+    p.add_argument('--backend', default='depth_clusters', choices=('depth_clusters', 'ground_truth', 'cutr'))
+    p.add_argument('--preset', default='rgbd', help='ground_truth noise preset (perfect, rgbd, rgb)')
+    p.add_argument('--cutr-checkpoint', help='cutr: path to cutr_rgb.pth / cutr_rgbd.pth')
+    p.add_argument('--matcher', default='learned', choices=('learned', 'classical'))
+    p.add_argument('--posed', action='store_true',
+                   help="posed mapping: poses from the bag's /ground_truth/camera_pose (as rfm/external_pose)")
+    p.add_argument('--processes', action='store_true', help='run the nodes as separate processes')
+    p.add_argument('--rate', type=float, default=1.0, help='bag playback speed')
+    p.add_argument('--remap', nargs='+', metavar='FROM:=TO',
+                   help='detector input remaps (defaults: RealSense-style /camera/... and /imu/data)')
+    p.add_argument('--param', nargs='+', metavar='NODE.NAME:=VALUE',
+                   help='node parameters, e.g. matcher.keyframe_max_translation_m:=0.3')
+    p.add_argument('--settle', type=float, default=3.0,
+                   help='after the bag ends, stop once nothing changed for this long (s)')
+    p.add_argument('--quiet', action='store_true', help='no progress line')
+    p.set_defaults(func=cmd_run)
 
     p = sub.add_parser('record', help='record topics to an MCAP bag until Ctrl-C')
     p.add_argument('output', help='bag directory to create')

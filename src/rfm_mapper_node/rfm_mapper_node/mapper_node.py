@@ -20,6 +20,7 @@ import rclpy
 from geometry_msgs.msg import Point, PoseArray, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -193,8 +194,11 @@ class MapperNode(Node):
         self.create_service(LoadMap, 'rfm/load_map', self._srv_load)
         self.create_service(Trigger, 'rfm/reset', self._srv_reset)
         self.create_service(SetMode, 'rfm/set_mode', self._srv_set_mode)
-        self.create_timer(0.1, self._tick)
-        self.create_timer(1.0, self._publish_status)
+        # wall-clock timers: with use_sim_time a finished bag stops /clock, and the map must
+        # still be brought up to date
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(0.1, self._tick, clock=steady)
+        self.create_timer(1.0, self._publish_status, clock=steady)
         if load_on_start:
             try:
                 header = load_map(self.mapper, self.map_path)

@@ -60,21 +60,26 @@ def detections_for(spec: str, capture: Capture, noise_seed: int = 0):
 
 
 def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matcher=None,
-                posed: bool = False, noise_seed: int = 0, mapper_config: MapperConfig | None = None,
-                keyframe_config: KeyframeConfig | None = None, min_visibility: float = 0.2) -> PipelineResult:
-    """Run detector -> view graph -> mapper over a capture and score it."""
-    capture = Capture(config)
+                posed: bool = False, bundle_adjustment: bool = False, noise_seed: int = 0, mapper_config: MapperConfig | None = None,
+                keyframe_config: KeyframeConfig | None = None, min_visibility: float = 0.2,
+                capture: Capture | None = None, frames=None) -> PipelineResult:
+    """Run detector -> view graph -> mapper over a capture and score it. ``capture`` and
+    ``frames`` (its rendered SimFrames) may be passed in to reuse one rendering."""
+    capture = capture or Capture(config)
     detect = detections_for(detector, capture, noise_seed)
     mcfg = mapper_config or MapperConfig()
-    if posed:
-        mcfg = replace(mcfg, posed=True)
+    mcfg = replace(mcfg, posed=posed or mcfg.posed,
+                   bundle_adjustment=bundle_adjustment or mcfg.bundle_adjustment)
+    if keyframe_config is None:
+        # a sparse capture stands for an unordered photo collection: no motion prior
+        keyframe_config = KeyframeConfig(motion_prior=config.capture != 'sparse')
     graph = ViewGraphBuilder(mcfg.matching, keyframe_config, matcher=matcher)
     mapper = Mapper(mcfg, matcher=graph.matcher)
     truth, times = {}, {'detect': 0.0, 'match': 0.0, 'map': 0.0}
     best_visibility = np.zeros(len(capture.room.objects))
-    frames = 0
-    for frame in capture.frames():
-        frames += 1
+    n_frames = 0
+    for frame in (frames if frames is not None else capture.frames()):
+        n_frames += 1
         gt = frame.ground_truth
         np.maximum.at(best_visibility, gt.object_ids - 1, gt.visibility)
         t0 = time.perf_counter()
@@ -114,4 +119,4 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     boxes = align.transform_boxes(np.array([t.box for t in tracks]).reshape(-1, 7))
     scores = np.array([t.score for t in tracks])
     mapping = evaluate_map(boxes, scores, capture.room.boxes, best_visibility < min_visibility)
-    return PipelineResult(loc, mapping, len(truth), frames, times, mapper, truth, align)
+    return PipelineResult(loc, mapping, len(truth), n_frames, times, mapper, truth, align)

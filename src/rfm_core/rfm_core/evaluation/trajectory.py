@@ -2,10 +2,10 @@
 
 Estimated camera poses (camera-to-map, 4x4) are aligned to the ground truth without scale
 (boxes are metric): by default with the 4-DoF transform (yaw about gravity + translation)
-that best fits the camera centres — the map frame is gravity-aligned by construction, so
-this is the paper's SE(3) alignment without the tilt that a short, nearly straight
-trajectory leaves unconstrained (``align='se3'`` gives the general one). With too little
-horizontal motion the yaw comes from the camera orientations instead. ATE is the distance
+that best fits the camera centres and a point 1 m along each optical axis — the map frame
+is gravity-aligned by construction, so this is the paper's SE(3) alignment without the
+tilt, and with orientations in the fit so that a short or nearly straight trajectory does
+not leave the yaw undetermined (``align='se3'``: the general fit of the centres). ATE is the distance
 between aligned and true camera centres, ARE the angle of the relative rotation. Frames the
 system did not register count in ``registered`` only.
 """
@@ -31,20 +31,19 @@ def align_se3(source: np.ndarray, target: np.ndarray):
     return r, mt - r @ ms
 
 
-def align_4dof(est: np.ndarray, gt: np.ndarray):
-    """(R, t), R a rotation about z, best mapping estimated poses (N, 4, 4) onto true ones."""
+def align_4dof(est: np.ndarray, gt: np.ndarray, lever_m: float = 1.0):
+    """(R, t), R a rotation about z, best mapping estimated poses (N, 4, 4) onto true ones:
+    the yaw fits the camera centres and, ``lever_m`` ahead of each, a point on its optical
+    axis (so orientations count too: a short or straight trajectory leaves the yaw of a
+    centres-only fit poorly determined); t aligns the centroids of the centres."""
     ce, cg = est[:, :3, 3], gt[:, :3, 3]
-    me, mg = ce.mean(0), cg.mean(0)
-    a, b = ce[:, :2] - me[:2], cg[:, :2] - mg[:2]
-    if len(est) >= 2 and np.ptp(ce[:, :2], axis=0).max() > 0.1:
-        yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b))
-    else:                                    # no baseline: from the orientations' x axes
-        xe, xg = est[:, :2, 0], gt[:, :2, 0]
-        d = np.arctan2(xg[:, 1], xg[:, 0]) - np.arctan2(xe[:, 1], xe[:, 0])
-        yaw = np.arctan2(np.sin(d).sum(), np.cos(d).sum())
+    pe = np.concatenate([ce, ce + lever_m * est[:, :3, 2]])
+    pg = np.concatenate([cg, cg + lever_m * gt[:, :3, 2]])
+    a, b = pe[:, :2] - pe[:, :2].mean(0), pg[:, :2] - pg[:, :2].mean(0)
+    yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a * b))
     c, s = np.cos(yaw), np.sin(yaw)
     r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return r, mg - r @ me
+    return r, cg.mean(0) - r @ ce.mean(0)
 
 
 def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') -> dict:

@@ -20,6 +20,7 @@ from scipy.sparse.csgraph import connected_components
 
 from rfm_core.geometry import Pose4, iou_3d_paired, kabsch_4dof
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
+from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
@@ -41,6 +42,8 @@ class MapperConfig:
     relocalization_min_keyframe_inliers: int = 3  #: a keyframe's vote needs this many inliers
                                              #: (two verify nothing beyond the minimal sample)
     posed: bool = False                      #: poses come from outside (set_keyframe_pose)
+    bundle_adjustment: bool = False          #: refine track boxes by partial BA (paper 3.6)
+    bundle: BundleConfig = field(default_factory=BundleConfig)
 
 
 @dataclass
@@ -197,7 +200,10 @@ class Mapper:
             for e in self.active_edges():
                 for ia, ib in e.inliers:
                     matches.append((e.source, int(ia), e.target, int(ib)))
-            self._tracks = build_tracks(self.keyframes, self.poses, matches, self.config.tracks)
+            tracks = build_tracks(self.keyframes, self.poses, matches, self.config.tracks)
+            if self.config.bundle_adjustment:
+                tracks = refine_tracks(tracks, self.keyframes, self.poses, self.config.bundle)
+            self._tracks = tracks
         return self._tracks
 
     # ------------------------------------------------------------------ relocalization

@@ -21,3 +21,5 @@ class MatchingConfig:
     refine: bool = True                   #: refit the winner on all inlier matches (not in the paper)
     refine_sigma_m: float = 0.02          #: refit weights: detection error at the camera ...
     refine_sigma_per_m: float = 0.01      #: ... growing by this per metre of range
+    refine_max_error_increase: float = 0.0   #: keep the refit only if the mean box error
+                                          #: (1 - IoU3D) grows by at most this (< 0: always)

@@ -8,7 +8,7 @@ least ``min_inlier_ratio`` of all matches are; the accepted sample with the lowe
 matching error (1 - IoU3D over all matches) wins. Corners of inlier matches that land within
 ``corner_inlier_m`` of their counterparts are kept for bundle adjustment. Beyond the paper,
 the winning pose is refitted on all its inlier matches, weighted by their distance from the
-camera (``refine``), and kept when it still verifies.
+camera (``refine``), and kept when it still verifies and explains the matches as well.
 
 The yaw symmetry of boxes (a quarter turn with swapped sizes is the same box) is resolved
 geometrically: the first object of a sample proposes every quarter turn consistent with its
@@ -116,7 +116,9 @@ def _refine(pose, a, b, turns, inlier, ious, error, cfg):
     weighted by the inverse variance of a detection at its distance (sigma = refine_sigma_m
     + refine_sigma_per_m x range): box centres when there are three or more inliers (their
     spread fixes the yaw better than noisy box orientations), else the corners (each with
-    the quarter turn that agrees with the sample's yaw). Kept when it still verifies."""
+    the quarter turn that agrees with the sample's yaw). Kept when it still verifies and
+    its mean box error grows by at most ``refine_max_error_increase`` (partial boxes of a
+    depth-only detector have biased centres; the IoU criterion notices)."""
     src, dst, weights = [], [], []
     for m in np.flatnonzero(inlier):
         pick = _best_turn(turns[m], pose.yaw)
@@ -138,6 +140,8 @@ def _refine(pose, a, b, turns, inlier, ious, error, cfg):
         refit = kabsch_4dof(src.reshape(-1, 3), dst.reshape(-1, 3), np.repeat(weights, 8))
     refit_ious = iou_3d_paired(refit.transform_boxes(a), b)
     if np.mean(refit_ious >= cfg.inlier_iou) < cfg.min_inlier_ratio:
+        return pose, ious, error
+    if cfg.refine_max_error_increase >= 0 and np.mean(1.0 - refit_ious) > error + cfg.refine_max_error_increase:
         return pose, ious, error
     return refit, refit_ious, float(np.mean(1.0 - refit_ious))
 

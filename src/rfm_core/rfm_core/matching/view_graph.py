@@ -30,6 +30,11 @@ class KeyframeConfig:
     recent_keyframes: int = 3         #: always match against this many latest keyframes
     retrieved_keyframes: int = 5      #: plus this many most similar older ones
     min_retrieval_similarity: float = 0.3
+    max_yaw_rate_deg_s: float = 90.0  #: motion prior: an edge turning faster than this ...
+    max_speed_m_s: float = 1.5        #: ... or moving faster (plus the slack below) is rejected
+    motion_slack_deg: float = 10.0    #: allowance on top of rate x time (detector noise)
+    motion_slack_m: float = 0.3
+    motion_prior: bool = True         #: off for unordered collections (stamps mean nothing)
     min_retrieved_inliers: int = 3    #: edges to retrieved (not recent) keyframes need this many
                                       #: verified objects: two objects verify nothing beyond
                                       #: the minimal sample, and repeated furniture aliases
@@ -67,6 +72,7 @@ class _Stats:
     keyframes: int = 0
     pairs_tested: int = 0
     edges: int = 0
+    implausible: int = 0
     last_candidates: list = field(default_factory=list)
 
 
@@ -91,6 +97,19 @@ class ViewGraphBuilder:
             return None
         rel.inliers = rel.inliers[:, ::-1].copy()        # as (source, target) index pairs
         rel.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in rel.corner_inliers]
+        return rel
+
+    def _plausible(self, rel: RelativePose | None, stamp_a: int, stamp_b: int) -> RelativePose | None:
+        """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
+        quarter-turn flips and look-alike matches that two objects cannot rule out."""
+        cfg = self.config
+        if rel is None or not cfg.motion_prior:
+            return rel
+        dt = abs(stamp_b - stamp_a) / 1e9
+        if (np.degrees(abs(rel.pose.yaw)) > cfg.max_yaw_rate_deg_s * dt + cfg.motion_slack_deg
+                or np.linalg.norm(rel.pose.t) > cfg.max_speed_m_s * dt + cfg.motion_slack_m):
+            self.stats.implausible += 1
+            return None
         return rel
 
     def _is_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None) -> bool:
@@ -125,7 +144,9 @@ class ViewGraphBuilder:
             self.stats.skipped += 1
             return None, []
         # the pose to the last keyframe decides, and is reused as that candidate's edge
-        last_rel = self._relative(self.keyframes[-1].observations, obs) if self.keyframes else None
+        last_rel = (self._plausible(self._relative(self.keyframes[-1].observations, obs),
+                                    self.keyframes[-1].observations.stamp_ns, obs.stamp_ns)
+                    if self.keyframes else None)
         if not self._is_keyframe(obs, last_rel):
             return None, []
         descriptor = _descriptor(obs)
@@ -139,7 +160,8 @@ class ViewGraphBuilder:
         for i in cand:
             source = self.keyframes[i]
             self.stats.pairs_tested += 1
-            rel = last_rel if i == last else self._relative(source.observations, obs)
+            rel = last_rel if i == last else self._plausible(
+                self._relative(source.observations, obs), source.observations.stamp_ns, obs.stamp_ns)
             if rel is not None and (i >= recent or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
         n = len(self.keyframes)

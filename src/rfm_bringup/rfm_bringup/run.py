@@ -1,0 +1,345 @@
+"""`rfm run`: the detector -> matcher -> mapper graph on a bag or a live camera.
+
+In one process (each node on its own executor thread, the default) or, with ``--processes``, as three
+node processes talking over DDS. With ``--bag`` the bag is replayed by ``rfm play`` (with
+``/clock``; the nodes use sim time); when it ends, the graph is given time to settle, the
+map is saved, and the output folder is written: ``map.rfm``, ``trajectory.tum``,
+``objects.json``, ``outputs.mcap/`` (the output topics, for Foxglove), ``report.md`` and
+``top_down.png`` (with the ground truth overlaid when the bag has it). With ``--live`` it
+runs until Ctrl-C, then writes the same folder.
+"""
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+__all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
+
+# The detector's inputs on a RealSense-style driver (and on rfm's sim bags).
+BAG_REMAPS = {'rgb/image': '/camera/color/image_raw', 'rgb/camera_info': '/camera/color/camera_info',
+              'depth/image': '/camera/depth/image_raw', 'imu': '/imu/data',
+              'ground_truth/detections': '/ground_truth/detections'}
+OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/keyframe_poses',
+                 '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map', '/rfm/object_markers', '/rfm/status',
+                 '/rfm/detection_markers', '/tf', '/tf_static', '/camera/color/image_raw']
+
+
+def _params(args, output: Path) -> dict:
+    """Parameters of each node from the command line (name: {param: value})."""
+    sim_time = bool(args.bag)
+    detector = {'backend': args.backend, 'use_sim_time': sim_time}
+    if args.backend == 'ground_truth':
+        detector['ground_truth_preset'] = args.preset
+    if args.cutr_checkpoint:
+        detector['cutr_checkpoint'] = args.cutr_checkpoint
+    matcher = {'matcher': args.matcher, 'use_sim_time': sim_time}
+    mapper = {'map_path': str(output / 'map.rfm'), 'use_sim_time': sim_time, 'matcher': args.matcher}
+    if args.posed:
+        mapper['pose_source'] = 'topic'
+    nodes = {'detector': detector, 'matcher': matcher, 'mapper': mapper}
+    for item in args.param or []:
+        try:
+            name, value = item.split(':=', 1)
+            node, param = name.split('.', 1)
+        except ValueError:
+            raise SystemExit(f'rfm run: --param {item!r}: expected NODE.NAME:=VALUE') from None
+        if node not in nodes:
+            raise SystemExit(f'rfm run: --param {item!r}: node must be one of {sorted(nodes)}')
+        nodes[node][param] = _parse_value(value)
+    return nodes
+
+
+def _parse_value(text: str):
+    for cast in (int, float):
+        try:
+            return cast(text)
+        except ValueError:
+            pass
+    if text.lower() in ('true', 'false'):
+        return text.lower() == 'true'
+    return text
+
+
+def _remaps(args) -> dict:
+    remaps = dict(BAG_REMAPS)
+    for item in args.remap or []:
+        if ':=' not in item:
+            raise SystemExit(f'rfm run: --remap {item!r}: expected FROM:=TO')
+        a, b = item.split(':=', 1)
+        remaps[a] = b
+    return remaps
+
+
+class _InProcessGraph:
+    """The three nodes in this process, each spun by its own single-threaded executor in its
+    own thread (rclpy's multi-threaded executor keeps the GIL so busy that the detector's
+    worker thread starves)."""
+
+    def __init__(self, params: dict, remaps: dict):
+        from rclpy.parameter import Parameter  # noqa: PLC0415
+        from rfm_detector_node.detector_node import DetectorNode  # noqa: PLC0415
+        from rfm_mapper_node.mapper_node import MapperNode  # noqa: PLC0415
+        from rfm_matcher_node.matcher_node import MatcherNode  # noqa: PLC0415
+
+        def overrides(p):
+            return [Parameter(k, value=v) for k, v in p.items()]
+
+        rules = [f'{a}:={b}' for a, b in remaps.items()]
+        self.detector = DetectorNode(parameter_overrides=overrides(params['detector']),
+                                     cli_args=['--ros-args'] + [x for r in rules for x in ('-r', r)])
+        self.matcher = MatcherNode(parameter_overrides=overrides(params['matcher']))
+        self.mapper = MapperNode(parameter_overrides=overrides(params['mapper']))
+        self.nodes = [self.detector, self.matcher, self.mapper]
+        self.executors, self.threads = [], []
+
+    def add(self, node):
+        self.nodes.append(node)
+
+    def start(self):
+        from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
+        for node in self.nodes:
+            executor = SingleThreadedExecutor()
+            executor.add_node(node)
+            thread = threading.Thread(target=executor.spin, daemon=True, name=f'spin_{node.get_name()}')
+            thread.start()
+            self.executors.append(executor)
+            self.threads.append(thread)
+
+    def progress(self) -> dict:
+        mp = self.mapper.mapper
+        return {'frames': self.detector.counts['processed'], 'dropped': self.detector.counts['dropped_busy'],
+                'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
+                'registered': len(mp.poses), 'objects': len(mp._tracks) if mp._tracks is not None else 0,
+                'busy': self.mapper._dirty or self.detector._pending is not None}
+
+    def save(self, path) -> bool:
+        written, text = self.mapper._save(str(path))
+        return written is not None
+
+    def stop(self):
+        for executor in self.executors:
+            executor.shutdown()
+        for thread in self.threads:
+            thread.join(timeout=10)
+        for node in (self.detector, self.matcher, self.mapper):
+            node.destroy_node()
+
+
+class _ProcessGraph:
+    """The three nodes as separate processes (proves the graph over DDS)."""
+
+    def __init__(self, params: dict, remaps: dict, log_dir: Path):
+        from ament_index_python.packages import get_package_prefix  # noqa: PLC0415
+        from rclpy.node import Node  # noqa: PLC0415
+        from rfm_msgs.msg import MapperStatus  # noqa: PLC0415
+
+        self.procs = []
+        self.logs = []
+        for package, exe in (('rfm_detector_node', 'detector'), ('rfm_matcher_node', 'matcher'),
+                             ('rfm_mapper_node', 'mapper')):
+            cmd = [os.path.join(get_package_prefix(package), 'lib', package, exe), '--ros-args']
+            for k, v in params[exe].items():
+                cmd += ['-p', f'{k}:={json.dumps(v) if isinstance(v, str) else str(v).lower() if isinstance(v, bool) else v}']
+            if exe == 'detector':
+                for a, b in remaps.items():
+                    cmd += ['-r', f'{a}:={b}']
+            log = open(log_dir / f'{exe}.log', 'w')
+            self.logs.append(log)
+            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT))
+        self.node = Node('rfm_run')
+        self.status = None
+        self.detections = 0
+        self.node.create_subscription(MapperStatus, 'rfm/status', self._on_status, 10)
+        from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+
+    def _on_status(self, msg):
+        self.status = msg
+
+    def add(self, node):
+        self.executor.add_node(node)
+
+    def start(self):
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            names = set(self.node.get_node_names())
+            if {'detector', 'matcher', 'mapper'} <= names and self.status is not None:
+                return
+            for p in self.procs:
+                if p.poll() is not None:
+                    raise SystemExit(f'rfm run: a node exited at start-up (see {self.logs[self.procs.index(p)].name})')
+            time.sleep(0.2)
+        raise SystemExit('rfm run: the nodes did not come up within 60 s')
+
+    def progress(self) -> dict:
+        s = self.status
+        return {'frames': self.detections, 'dropped': 0, 'detections': self.detections,
+                'keyframes': s.num_keyframes if s else 0, 'registered': s.num_registered if s else 0,
+                'objects': s.num_objects if s else 0, 'busy': False}
+
+    def save(self, path) -> bool:
+        from rfm_msgs.srv import SaveMap  # noqa: PLC0415
+        client = self.node.create_client(SaveMap, 'rfm/save_map')
+        if not client.wait_for_service(timeout_sec=20):
+            return False
+        future = client.call_async(SaveMap.Request(path=str(path)))
+        deadline = time.monotonic() + 60
+        while not future.done() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        return future.done() and future.result().success
+
+    def stop(self):
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in self.procs:
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        self.executor.shutdown()
+        self.thread.join(timeout=10)
+        self.node.destroy_node()
+        for log in self.logs:
+            log.close()
+
+
+def _bag_seconds(bag) -> float:
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415
+    with AnyReader([Path(bag)]) as reader:
+        return (reader.end_time - reader.start_time) / 1e9
+
+
+def run_graph(args) -> int:
+    import rclpy  # noqa: PLC0415
+
+    from rfm_bringup.recorder import BagRecorder  # noqa: PLC0415
+
+    if bool(args.bag) == bool(args.live):
+        raise SystemExit('rfm run: give either --bag PATH or --live')
+    bag = Path(args.bag).expanduser() if args.bag else None
+    if bag is not None and not (bag / 'metadata.yaml').is_file():
+        raise SystemExit(f'rfm run: {bag} is not a rosbag2 directory (no metadata.yaml)')
+    output = Path(args.output or (Path('rfm_output') / (bag.name if bag else 'live'))).expanduser()
+    if output.exists():
+        if not args.force:
+            raise SystemExit(f'rfm run: {output} exists; pass --force to replace it')
+        shutil.rmtree(output)
+    output.mkdir(parents=True)
+    params = _params(args, output)
+    remaps = _remaps(args)
+    rclpy.init()
+    graph = None
+    recorder = None
+    start = time.monotonic()
+    try:
+        graph = (_ProcessGraph(params, remaps, output) if args.processes else _InProcessGraph(params, remaps))
+        recorder = BagRecorder(str(output / 'outputs.mcap'), topics=OUTPUT_TOPICS, node_name='rfm_run_recorder')
+        graph.add(recorder)
+        graph.start()
+        player = None
+        play_start = time.monotonic() + 2.0
+        if bag is not None:
+            rfm = shutil.which('rfm') or sys.argv[0]
+            cmd = [rfm, 'play', str(bag), '--delay', '2', '--quiet', '--rate', str(args.rate)]
+            if args.posed:
+                cmd += ['--remap', '/ground_truth/camera_pose:=/rfm/external_pose']
+            player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        last_line = 0.0
+        settle_since, last_state = None, None
+        interrupted = False
+        while True:
+            time.sleep(0.2)
+            now = time.monotonic()
+            state = graph.progress()
+            if args.processes:
+                state['frames'] = state['detections'] = recorder.counts.get('/rfm/detections', 0)
+            if now - last_line >= 1.0 and not args.quiet:
+                last_line = now
+                elapsed = now - start
+                sys.stderr.write(f'\r[rfm run] {elapsed:6.1f} s  frames {state["frames"]:5d}  keyframes '
+                                 f'{state["keyframes"]:4d}  registered {state["registered"]:4d}  objects '
+                                 f'{state["objects"]:4d}  {state["frames"] / max(elapsed, 1e-9):5.1f} frames/s ')
+                sys.stderr.flush()
+            if player is not None and player.poll() is None:
+                continue
+            if bag is None:
+                continue
+            key = (state['frames'], state['keyframes'], state['registered'])
+            if key != last_state or state['busy']:
+                last_state, settle_since = key, now
+            elif now - settle_since >= args.settle:
+                done_at = settle_since
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        wall = (done_at if 'done_at' in locals() else time.monotonic()) - (play_start if bag else start)
+        if not args.quiet:
+            sys.stderr.write('\n')
+        ok = graph.save(output / 'map.rfm') if graph is not None else False
+        final = graph.progress() if graph is not None else {}
+        if args.processes and recorder is not None:
+            final['frames'] = final['detections'] = recorder.counts.get('/rfm/detections', 0)
+        if recorder is not None:
+            recorder.close()
+        if graph is not None:
+            graph.stop()
+        if recorder is not None:
+            recorder.destroy_node()
+        rclpy.try_shutdown()
+        if 'player' in locals() and player is not None and player.poll() is None:
+            player.kill()
+    if not ok:
+        print(f'rfm run: the map could not be saved to {output / "map.rfm"}', file=sys.stderr)
+        return 1
+    summary = write_outputs(output, bag, params, final, max(wall, 1e-3), posed=args.posed)
+    print(f'\nrfm run: results in {output}/')
+    acc = summary.get('accuracy')
+    line = (f'  {summary["keyframes"]} keyframes ({summary["registered"]} registered), {summary["objects"]} objects, '
+            f'processed at {summary["realtime"]:.2f}x real time')
+    print(line)
+    if acc:
+        loc, m = acc['localization'], acc['mapping']
+        print(f'  vs ground truth: ARE {loc["ARE_median"]:.2f} deg, ATE {100 * loc["ATE_median"]:.1f} cm, '
+              f'registered {100 * loc["registered"]:.0f}%, AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}')
+    print(f'  report: {output / "report.md"}, picture: {output / "top_down.png"}')
+    return 130 if interrupted and bag is not None else 0
+
+
+def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float, posed: bool = False) -> dict:
+    """Everything but the recording, from the saved map (which this also validates)."""
+    from rfm_core.evaluation.report import (  # noqa: PLC0415
+        GroundTruth, evaluate_run, read_ground_truth, render_top_down, write_object_json, write_report, write_tum)
+    from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
+    from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
+
+    mapper = Mapper(MapperConfig(posed=posed))
+    load_map(mapper, output / 'map.rfm')
+    truth = read_ground_truth(bag) if bag is not None else GroundTruth()
+    accuracy = evaluate_run(mapper, truth, posed=posed) if truth and len(truth.boxes) else None
+    write_tum(output / 'trajectory.tum', mapper)
+    write_object_json(output / 'objects.json', mapper)
+    render_top_down(output / 'top_down.png', mapper, truth if truth else None,
+                    accuracy['alignment'] if accuracy else None)
+    bag_s = _bag_seconds(bag) if bag is not None else wall_s
+    summary = {'input': str(bag) if bag else 'live camera', 'date': datetime.datetime.now().isoformat(timespec='seconds'),
+               'backend': params['detector']['backend'], 'matcher': params['matcher']['matcher'], 'posed': posed,
+               'frames': progress.get('frames', 0), 'detections': progress.get('detections', 0),
+               'dropped': progress.get('dropped', 0), 'keyframes': len(mapper.keyframes),
+               'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),
+               'edges_rejected': len(mapper.edges) - len(mapper.active_edges()), 'objects': len(mapper.tracks()),
+               'wall_s': wall_s, 'bag_s': bag_s, 'realtime': bag_s / max(wall_s, 1e-9), 'accuracy': accuracy}
+    write_report(output / 'report.md', summary)
+    return summary
