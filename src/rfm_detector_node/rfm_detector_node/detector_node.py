@@ -22,7 +22,6 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -38,7 +37,7 @@ from rfm_core.geometry import box_corners
 from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import (
     camera_info_intrinsics, frame_detections_from_msg, frame_detections_to_msg, imu_reading,
-    stamp_to_ns,
+    parameter_descriptor, stamp_to_ns,
 )
 from rfm_core.io.sync import ApproximateTimeSynchronizer
 
@@ -48,14 +47,7 @@ _TIME_JUMP_NS = 2_000_000_000      # a stamp this much older than the last one: 
 
 
 def _describe(text, lo=None, hi=None, step=None, integer=False):
-    desc = ParameterDescriptor(description=text)
-    if lo is not None:
-        if integer:
-            desc.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=int(step or 1))]
-        else:
-            desc.floating_point_range = [FloatingPointRange(from_value=float(lo), to_value=float(hi),
-                                                            step=float(step or 0.0))]
-    return desc
+    return parameter_descriptor(text, lo, hi, integer=integer)
 
 
 class DetectorNode(Node):

@@ -19,7 +19,6 @@ import numpy as np
 import rclpy
 from geometry_msgs.msg import Point, PoseArray, PoseStamped
 from nav_msgs.msg import Path as PathMsg
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -32,7 +31,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from rfm_core.geometry import Pose4, box_corners
 from rfm_core.io.messages import (
-    frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, pose_stamped_msg,
+    frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, parameter_descriptor, pose_stamped_msg,
     pose_to_matrix, stamp_to_ns, transform_stamped_msg, vector3_to_numpy,
 )
 from rfm_core.mapping.averaging import AveragingConfig
@@ -51,17 +50,15 @@ _EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4)
 
 
 def _float(text, lo, hi):
-    return ParameterDescriptor(description=text, floating_point_range=[
-        FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)])
+    return parameter_descriptor(text, lo, hi)
 
 
 def _int(text, lo, hi):
-    return ParameterDescriptor(description=text, integer_range=[
-        IntegerRange(from_value=int(lo), to_value=int(hi), step=1)])
+    return parameter_descriptor(text, lo, hi, integer=True)
 
 
 def _text(text, read_only=False):
-    return ParameterDescriptor(description=text, read_only=read_only)
+    return parameter_descriptor(text, read_only=read_only)
 
 
 def _colour(track_id: int) -> ColorRGBA:
@@ -132,8 +129,11 @@ class MapperNode(Node):
         kind = p('matcher', 'learned', _text(
             "Relocalization object matcher: 'learned' or 'classical'", True)).value
         weights = p('matcher_weights', '', _text('Learned matcher checkpoint; empty: shipped', True)).value
+        bundle = p('bundle_adjustment', False, _text(
+            'Refine object boxes by partial bundle adjustment against their projected corners (paper '
+            '3.6; helps monocular RGB detectors when poses are good)')).value
         config = MapperConfig(averaging=averaging, tracks=tracks, matching=matching,
-                              posed=bool(self.pose_source))
+                              posed=bool(self.pose_source), bundle_adjustment=bool(bundle))
         if self.pose_source not in ('', 'topic', 'tf'):
             raise ValueError("pose_source must be '', 'topic' or 'tf'")
         if mode not in ('mapping', 'localization'):

@@ -15,26 +15,23 @@ import sys
 import numpy as np
 import rclpy
 from geometry_msgs.msg import Vector3
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, ViewGraphEdge
 
-from rfm_core.io.messages import frame_detections_from_msg, ns_to_stamp
+from rfm_core.io.messages import frame_detections_from_msg, ns_to_stamp, parameter_descriptor
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.learned import make_matcher
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 
 
 def _float(text, lo, hi):
-    return ParameterDescriptor(description=text, floating_point_range=[
-        FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)])
+    return parameter_descriptor(text, lo, hi)
 
 
 def _int(text, lo, hi):
-    return ParameterDescriptor(description=text, integer_range=[
-        IntegerRange(from_value=int(lo), to_value=int(hi), step=1)])
+    return parameter_descriptor(text, lo, hi, integer=True)
 
 
 class MatcherNode(Node):
@@ -55,8 +52,8 @@ class MatcherNode(Node):
                 'A pose needs this share of all matches as inliers (paper: 0.5)', 0, 1)).value,
             corner_inlier_m=p('corner_inlier_m', d.corner_inlier_m, _float(
                 'Corner inlier distance for bundle adjustment (m, paper: 0.10)', 0, 1)).value,
-            refine=p('refine_pose', d.refine, ParameterDescriptor(
-                description='Refit the winning pose on all inlier corners')).value)
+            refine=p('refine_pose', d.refine, parameter_descriptor(
+                'Refit the winning pose on all inlier matches (kept if it explains them as well)')).value)
         keyframes = KeyframeConfig(
             min_overlap=p('keyframe_min_overlap', k.min_overlap, _float(
                 'New keyframe when fewer than this share of objects match the last one', 0, 1)).value,
@@ -69,14 +66,21 @@ class MatcherNode(Node):
             recent_keyframes=p('recent_keyframes', k.recent_keyframes, _int(
                 'Match a new keyframe against this many latest keyframes', 0, 100)).value,
             retrieved_keyframes=p('retrieved_keyframes', k.retrieved_keyframes, _int(
-                'Plus this many most similar older keyframes (retrieval)', 0, 100)).value)
-        kind = p('matcher', 'learned', ParameterDescriptor(
-            description="Object matcher: 'learned' (LightGlue-style, shipped weights per detector; "
-                        "falls back to 'classical' for detectors without weights) or 'classical' "
-                        '(embedding similarity + size gate, Hungarian)', read_only=True)).value
-        weights = p('matcher_weights', '', ParameterDescriptor(
-            description='Learned matcher checkpoint (rfm train-matcher); empty: the shipped weights '
-                        "for the frames' detector", read_only=True)).value
+                'Plus this many most similar older keyframes (retrieval)', 0, 100)).value,
+            motion_prior=p('motion_prior', k.motion_prior, parameter_descriptor(
+                'Reject edges implying faster motion than max_yaw_rate_deg_s / max_speed_m_s (plus '
+                'slack); turn off for unordered image collections')).value,
+            max_yaw_rate_deg_s=p('max_yaw_rate_deg_s', k.max_yaw_rate_deg_s, _float(
+                'Motion prior: fastest plausible turn (deg/s)', 1, 3600)).value,
+            max_speed_m_s=p('max_speed_m_s', k.max_speed_m_s, _float(
+                'Motion prior: fastest plausible motion (m/s)', 0.01, 100)).value)
+        kind = p('matcher', 'learned', parameter_descriptor(
+            "Object matcher: 'learned' (LightGlue-style, shipped weights per detector; falls back to "
+            "'classical' for detectors without weights) or 'classical' (embedding similarity + size "
+            'gate, Hungarian)', read_only=True)).value
+        weights = p('matcher_weights', '', parameter_descriptor(
+            "Learned matcher checkpoint (rfm train-matcher); empty: the shipped weights for the frames' "
+            'detector', read_only=True)).value
         try:
             matcher = make_matcher(kind, matching, weights or None,
                                    on_fallback=lambda msg: self.get_logger().warning(msg))

@@ -181,8 +181,8 @@ def write_report(path, summary: dict) -> Path:
     lines = [f'# rfm run: {s.get("input", "")}', '',
              f'- date: {s.get("date", "")}', f'- detector: `{s.get("backend", "")}`, matcher: `{s.get("matcher", "")}`, '
              f'mode: {"posed" if s.get("posed") else "un-posed"}',
-             f'- frames received by the detector: {s.get("frames", 0)}, published: {s.get("detections", 0)}, '
-             f'dropped (busy): {s.get("dropped", 0)}',
+             f'- frames detected: {s.get("frames", 0)}, detections published: {s.get("detections", 0)}, '
+             f'frames dropped while the detector was busy (newest wins): {s.get("dropped", 0)}',
              f'- keyframes: {s.get("keyframes", 0)}, registered: {s.get("registered", 0)}, '
              f'edges kept / rejected: {s.get("edges", 0)} / {s.get("edges_rejected", 0)}',
              f'- objects in the map: {s.get("objects", 0)}',

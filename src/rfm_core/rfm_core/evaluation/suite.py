@@ -132,3 +132,46 @@ def format_tables(summary: dict) -> str:
     for name, m in summary.items():
         lines.append(f'| {name} | {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} |')
     return '\n'.join(lines)
+
+
+def relocalization_scene(args) -> dict:
+    """Paper appendix: map one capture of a room, save the map, load it into a fresh
+    mapper, and relocalize every frame of a second capture (another trajectory) of the
+    same room. Returns per-scene relocalized share and median errors."""
+    config, detector, query_frames = args
+    import tempfile  # noqa: PLC0415
+    from dataclasses import replace  # noqa: PLC0415
+    from pathlib import Path  # noqa: PLC0415
+
+    import torch  # noqa: PLC0415
+
+    from rfm_core.evaluation.pipeline import detections_for, run_capture  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import align_4dof, trajectory_errors  # noqa: PLC0415
+    from rfm_core.mapping.map_io import load_map, save_map  # noqa: PLC0415
+    from rfm_core.mapping.mapper import Mapper, camera_to_map  # noqa: PLC0415
+    from rfm_core.matching.learned import make_matcher  # noqa: PLC0415
+    from rfm_core.sim.capture import Capture  # noqa: PLC0415
+
+    torch.set_num_threads(1)
+    mapped = run_capture(config, detector, matcher=make_matcher('learned'), noise_seed=3)
+    mapper = Mapper(matcher=make_matcher('learned'))
+    with tempfile.TemporaryDirectory() as tmp:
+        load_map(mapper, save_map(mapped.mapper, Path(tmp) / 'map.rfm'))
+    mapper.mode = 'localization'
+    est = mapper.camera_poses()
+    keys = [k for k in mapped.truth if k in est]
+    r, t = align_4dof(np.array([est[k] for k in keys]), np.array([mapped.truth[k] for k in keys]))
+    world = np.eye(4)
+    world[:3, :3], world[:3, 3] = r, t
+    second = Capture(replace(config, frames=query_frames, fps=2.0, capture='handheld', trajectory_seed=1))
+    detect = detections_for(detector, second, noise_seed=11)
+    relocalized, truth = {}, {}
+    for frame in second.frames():
+        obs = detect(frame)
+        truth[frame.index] = frame.pose_matrix
+        reloc = mapper.relocalize(obs)
+        if reloc is not None:
+            relocalized[frame.index] = world @ camera_to_map(reloc.pose, obs)
+    err = trajectory_errors(relocalized, truth, align=False)
+    return {'scene': f'{config.seed}_{config.room_style}_{config.capture}', **err,
+            'map_registered': mapped.localization['registered']}

@@ -22,7 +22,7 @@ from rfm_core.observations import CameraIntrinsics, FrameObservations
 
 __all__ = [
     'ROS', 'RosMessages', 'BagMessages', 'ros_message_class', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
-    'camera_info_msg', 'imu_msg', 'object_map_msg', 'camera_info_intrinsics', 'imu_reading',
+    'camera_info_msg', 'imu_msg', 'object_map_msg', 'parameter_descriptor', 'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg',
@@ -171,6 +171,19 @@ def object_map_msg(boxes, labels, ids, stamp_ns: int, frame_id: str = 'map', sco
             observation_indices=np.zeros(0, dtype=np.uint32)))
     return make('rfm_msgs/msg/ObjectMap', header=header(make, stamp_ns, frame_id),
                 revision=int(revision), objects=objects)
+
+
+def parameter_descriptor(text: str, lo=None, hi=None, integer: bool = False, read_only: bool = False,
+                         make=ROS):
+    """rcl_interfaces/ParameterDescriptor: a description and optionally a range."""
+    fields = {'description': text, 'read_only': read_only}
+    if lo is not None and integer:
+        fields['integer_range'] = [make('rcl_interfaces/msg/IntegerRange', from_value=int(lo), to_value=int(hi),
+                                        step=1)]
+    elif lo is not None:
+        fields['floating_point_range'] = [make('rcl_interfaces/msg/FloatingPointRange', from_value=float(lo),
+                                               to_value=float(hi), step=0.0)]
+    return make('rcl_interfaces/msg/ParameterDescriptor', **fields)
 
 
 def stamp_to_ns(stamp) -> int:

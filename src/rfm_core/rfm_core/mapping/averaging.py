@@ -317,14 +317,45 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None):
     return theta, centres, active, comp
 
 
-@dataclass
-class _Edge:
-    source: int
-    target: int
-    yaw: float
-    t: np.ndarray
-    weight: float
-    active: bool = True
+class _EdgeStore:
+    """Edges in growable NumPy buffers (amortised O(1) append, O(1) array views)."""
+
+    def __init__(self):
+        self.n = 0
+        self._src = np.zeros(64, np.int64)
+        self._dst = np.zeros(64, np.int64)
+        self._yaw = np.zeros(64)
+        self._trans = np.zeros((64, 3))
+        self._weight = np.zeros(64)
+        self._active = np.zeros(64, bool)
+
+    def append(self, s, t, yaw, trans, weight):
+        if self.n == len(self._src):
+            for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active'):
+                old = getattr(self, name)
+                setattr(self, name, np.concatenate([old, np.zeros_like(old)]))
+        i = self.n
+        self._src[i], self._dst[i], self._yaw[i] = s, t, yaw
+        self._trans[i], self._weight[i], self._active[i] = trans, weight, True
+        self.n += 1
+
+    def keep(self, mask):
+        """Drop the edges where ``mask`` is False."""
+        idx = np.flatnonzero(mask)
+        for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active'):
+            arr = getattr(self, name)
+            arr[:len(idx)] = arr[idx]
+        self.n = len(idx)
+
+    src = property(lambda self: self._src[:self.n])
+    dst = property(lambda self: self._dst[:self.n])
+    yaw = property(lambda self: self._yaw[:self.n])
+    trans = property(lambda self: self._trans[:self.n])
+    weight = property(lambda self: self._weight[:self.n])
+    active = property(lambda self: self._active[:self.n])
+
+    def __len__(self):
+        return self.n
 
 
 @dataclass
@@ -344,7 +375,7 @@ class IncrementalAverager:
     def __post_init__(self):
         self.ids: list = []                  # keyframe ids in arrival order
         self._index: dict = {}
-        self.edges: list = []
+        self.edges = _EdgeStore()
         self._theta = np.zeros(0)
         self._centres = np.zeros((0, 3))
         self._registered = np.zeros(0, bool)
@@ -374,14 +405,14 @@ class IncrementalAverager:
         s, t = self._index[source_id], self._index[target_id]
         if s == t:
             return
-        self.edges.append(_Edge(s, t, float(pose.yaw), np.asarray(pose.t, float), float(weight)))
+        self.edges.append(s, t, float(pose.yaw), np.asarray(pose.t, float), float(weight))
         self._new_edges = True
 
     def remove_keyframe_edges(self, keyframe_id: int) -> None:
         """Forget every edge of a keyframe (e.g. its detections were found bad)."""
         k = self._index.get(keyframe_id)
         if k is not None:
-            self.edges = [e for e in self.edges if k not in (e.source, e.target)]
+            self.edges.keep((self.edges.src != k) & (self.edges.dst != k))
             self._needs_full = True
 
     # ------------------------------------------------------------------ output
@@ -404,26 +435,14 @@ class IncrementalAverager:
 
     def active_edges(self) -> list:
         """[(source id, target id)] of the edges the current solution keeps."""
-        return [(self.ids[e.source], self.ids[e.target]) for e in self.edges if e.active]
+        e = self.edges
+        return [(self.ids[a], self.ids[b]) for a, b in zip(e.src[e.active], e.dst[e.active])]
 
     # ------------------------------------------------------------------ solving
 
     def _arrays(self):
         e = self.edges
-        src = np.array([x.source for x in e], np.int64)
-        dst = np.array([x.target for x in e], np.int64)
-        yaw = np.array([x.yaw for x in e], float)
-        trans = np.array([x.t for x in e], float).reshape(len(e), 3)
-        weight = np.array([x.weight for x in e], float)
-        return src, dst, yaw, trans, weight
-
-    def _edge_residual(self, edge: _Edge):
-        th = self._theta
-        yr = np.degrees(abs(wrap_angle(th[edge.source] - th[edge.target] - edge.yaw)))
-        c, s = np.cos(th[edge.source]), np.sin(th[edge.source])
-        meas = np.array([c * edge.t[0] + s * edge.t[1], -s * edge.t[0] + c * edge.t[1], edge.t[2]])
-        tr = float(np.linalg.norm(self._centres[edge.target] - self._centres[edge.source] - meas))
-        return yr, tr
+        return e.src, e.dst, e.yaw, e.trans, e.weight
 
     def update(self, force_full: bool = False) -> UpdateStats:
         """Fold in the keyframes and edges added since the last call."""
@@ -443,7 +462,7 @@ class IncrementalAverager:
             self._new = []
             self._new_edges = False
         self.stats = UpdateStats(kind, time.perf_counter() - start, int(self._registered.sum()),
-                                 sum(not e.active for e in self.edges))
+                                 int(np.count_nonzero(~self.edges.active)))
         return self.stats
 
     def restore(self, poses: dict, active_edges) -> None:
@@ -452,8 +471,8 @@ class IncrementalAverager:
         kept. Keyframes and edges must have been added."""
         self.update()                            # fold pending input first, then overwrite
         keep = set(map(tuple, active_edges))
-        for e in self.edges:
-            e.active = (self.ids[e.source], self.ids[e.target]) in keep
+        e = self.edges
+        e.active[:] = [(self.ids[a], self.ids[b]) in keep for a, b in zip(e.src, e.dst)]
         self._registered[:] = False
         self._theta[:] = np.nan
         self._centres[:] = np.nan
@@ -469,7 +488,7 @@ class IncrementalAverager:
     def _outgrown(self) -> bool:
         """Whether the keyframes outside the registered component (with edges among
         themselves) outnumber it: then another component may be the largest."""
-        if not self.edges:
+        if not len(self.edges):
             return False
         src, dst = self._arrays()[:2]
         linked = np.zeros(len(self.ids), bool)
@@ -487,8 +506,7 @@ class IncrementalAverager:
             anchor = next(k for k in order if comp[k])
             if self._registered[anchor]:
                 theta, centres = _regauge(theta, centres, anchor, self._theta[anchor], self._centres[anchor])
-        for e, a in zip(self.edges, active):
-            e.active = bool(a)
+        self.edges.active[:] = active
         self._theta, self._centres, self._registered = theta, centres, comp
         self._since_full = 0
         self._needs_full = False
@@ -502,7 +520,7 @@ class IncrementalAverager:
         n = len(self.ids)
         theta, centres = self._theta.copy(), self._centres.copy()
         registered = self._registered.copy()
-        active = np.array([e.active for e in self.edges], bool)
+        active = self.edges.active.copy()
         # place new keyframes from their edges to registered ones (robust vote)
         # (edges with an unregistered end: a chain of new keyframes is placed link by link)
         use = active & ~(registered[src] & registered[dst])
@@ -527,8 +545,7 @@ class IncrementalAverager:
         bad = (yr > cfg.max_yaw_residual_deg) | (tr > cfg.max_translation_residual_m)
         idx = np.flatnonzero(use)[bad]
         inside = free[src[idx]] & free[dst[idx]]
-        for i in idx[inside]:                      # local outliers: drop
-            self.edges[i].active = False
+        self.edges.active[idx[inside]] = False     # local outliers: drop
         # edges to keyframes outside the window that the window cannot explain: a loop
         # closing over drift (several agree) or outliers; a full solve decides
         self._loop_votes += int(np.count_nonzero(~inside))
