@@ -59,7 +59,9 @@ def test_play_delivers_everything_in_order_with_clock_and_record_replays_identic
                              QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                                         reliability=ReliabilityPolicy.RELIABLE))
     try:
-        play_bag(node, small_bag)
+        # the recorder (another process) discovers the player's topics at 2 Hz: give it time
+        # on a loaded machine before the first message
+        play_bag(node, small_bag, delay=8.0)
     finally:
         recorder.send_signal(signal.SIGINT)
         try:
