@@ -240,16 +240,15 @@ def run_graph(args) -> int:
     params = _params(args, output)
     remaps = _remaps(args)
     rclpy.init()
-    graph = None
-    recorder = None
-    start = time.monotonic()
+    graph = recorder = player = done_at = None
+    interrupted = False
+    start = play_start = time.monotonic()
     try:
         graph = (_ProcessGraph(params, remaps, output) if args.processes else _InProcessGraph(params, remaps))
         recorder = BagRecorder(str(output / 'outputs.mcap'), topics=OUTPUT_TOPICS, node_name='rfm_run_recorder')
         graph.add(recorder)
         graph.start()
-        player = None
-        play_start = time.monotonic() + 2.0
+        play_start = time.monotonic() + 2.0        # rfm play --delay 2
         if bag is not None:
             rfm = shutil.which('rfm') or sys.argv[0]
             cmd = [rfm, 'play', str(bag), '--delay', '2', '--quiet', '--rate', str(args.rate)]
@@ -258,7 +257,6 @@ def run_graph(args) -> int:
             player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         last_line = 0.0
         settle_since, last_state = None, None
-        interrupted = False
         while True:
             time.sleep(0.2)
             now = time.monotonic()
@@ -285,7 +283,7 @@ def run_graph(args) -> int:
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        wall = (done_at if 'done_at' in locals() else time.monotonic()) - (play_start if bag else start)
+        wall = (done_at or time.monotonic()) - (play_start if bag else start)
         if not args.quiet:
             sys.stderr.write('\n')
         ok = graph.save(output / 'map.rfm') if graph is not None else False
@@ -299,7 +297,7 @@ def run_graph(args) -> int:
         if recorder is not None:
             recorder.destroy_node()
         rclpy.try_shutdown()
-        if 'player' in locals() and player is not None and player.poll() is None:
+        if player is not None and player.poll() is None:
             player.kill()
     if not ok:
         print(f'rfm run: the map could not be saved to {output / "map.rfm"}', file=sys.stderr)

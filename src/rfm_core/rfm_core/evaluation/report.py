@@ -153,12 +153,10 @@ def render_top_down(path, mapper, truth: GroundTruth | None = None, alignment=No
     def px(p):          # map x right, y up
         return ((p[0] - lo[0]) * scale + 10, h - ((p[1] - lo[1]) * scale + 10))
 
-    step = max(scale, 1.0)
     for gx in np.arange(np.floor(lo[0]), hi[0] + 1):   # 1 m grid
         _line(img, px((gx, lo[1])), px((gx, hi[1])), np.array([235, 235, 235], np.uint8))
     for gy in np.arange(np.floor(lo[1]), hi[1] + 1):
         _line(img, px((lo[0], gy)), px((hi[0], gy)), np.array([235, 235, 235], np.uint8))
-    del step
     for a, b in zip(gt_path[:-1], gt_path[1:]):
         _line(img, px(a), px(b), np.array([190, 190, 190], np.uint8), 2)
     for corners in bev_corners(gt_boxes):
