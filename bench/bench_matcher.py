@@ -21,7 +21,7 @@ from rfm_core.detection import make_detector  # noqa: E402
 from rfm_core.matching.classical import ClassicalMatcher  # noqa: E402
 from rfm_core.matching.learned import LearnedMatcher  # noqa: E402
 from rfm_core.matching.relative_pose import estimate_relative_pose  # noqa: E402
-from rfm_core.matching.view_graph import Keyframe, ViewGraphBuilder, _descriptor  # noqa: E402
+from rfm_core.matching.view_graph import Keyframe, ViewGraphBuilder, bag_of_objects  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
 
 
@@ -36,7 +36,7 @@ def main():
         graph = ViewGraphBuilder()
         for i in range(size):                       # pre-fill with keyframes of the room
             obs = stream[i % len(stream)]
-            kf = Keyframe(graph._next_id, obs, _descriptor(obs))
+            kf = Keyframe(graph._next_id, obs, bag_of_objects(obs))
             graph._next_id += 1
             graph.keyframes.append(kf)
         graph._desc_buffer = __import__('numpy').stack([k.descriptor for k in graph.keyframes])

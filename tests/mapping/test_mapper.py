@@ -2,11 +2,11 @@
 import numpy as np
 import pytest
 
-from rfm_core.evaluation.pipeline import detections_for, run_capture
-from rfm_core.evaluation.trajectory import align_4dof, trajectory_errors
+from rfm_core.evaluation.pipeline import relocalize_capture, run_capture
+from rfm_core.evaluation.trajectory import map_to_truth
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.map_io import MapFileError, load_map, read_map, save_map
-from rfm_core.mapping.mapper import Mapper, camera_to_map
+from rfm_core.mapping.mapper import Mapper
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.observations import FrameObservations
 from rfm_core.sim.capture import Capture, CaptureConfig
@@ -115,21 +115,9 @@ def test_relocalization_of_a_second_trajectory(tmp_path):
     load_map(mapper, path)
     mapper.mode = 'localization'
     # map frame -> world, from the mapped keyframes (scoring only)
-    est = mapper.camera_poses()
-    keys = sorted(k for k in mapped.truth if k in est)
-    r, t = align_4dof(np.array([est[k] for k in keys]), np.array([mapped.truth[k] for k in keys]))
-    world = np.eye(4)
-    world[:3, :3], world[:3, 3] = r, t
+    world = map_to_truth(mapper.camera_poses(), mapped.truth)
     second = Capture(CaptureConfig(seed=scene.seed, frames=20, fps=2, trajectory_seed=1))
-    detect = detections_for('ground_truth:rgbd', second, noise_seed=11)
-    relocalized, truth = {}, {}
-    for frame in second.frames():
-        obs = detect(frame)
-        truth[frame.index] = frame.pose_matrix
-        reloc = mapper.relocalize(obs)
-        if reloc is not None:
-            relocalized[frame.index] = world @ camera_to_map(reloc.pose, obs)
-    err = trajectory_errors(relocalized, truth, align=False)
+    err = relocalize_capture(mapper, world, second, 'ground_truth:rgbd', noise_seed=11)
     assert err['registered'] >= 0.85, err
     assert err['ARE_median'] < 2.0 and err['ATE_median'] < 0.06, err   # one small room; see rfm eval
     assert err['ATE_rmse'] < 0.1, err                  # no gross failures

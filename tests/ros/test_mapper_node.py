@@ -26,7 +26,7 @@ def _graph_messages():
     from rfm_msgs.msg import Keyframe
 
     capture = Capture(CaptureConfig(seed=40, frames=50, fps=5))
-    detect = detections_for('ground_truth:rgbd', capture, noise_seed=3)
+    detect = detections_for('ground_truth:rgbd', noise_seed=3)
     graph = ViewGraphBuilder()
     messages, truth, frames = [], {}, []
     for frame in capture.frames():

@@ -37,7 +37,7 @@ from rfm_core.io.messages import (
 from rfm_core.mapping.averaging import AveragingConfig
 from rfm_core.mapping.map_io import MapFileError, load_map, save_map
 from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig, camera_to_map
-from rfm_core.mapping.tracks import TrackConfig
+from rfm_core.mapping.tracks import TrackConfig, track_colour
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.learned import make_matcher
 
@@ -62,11 +62,7 @@ def _text(text, read_only=False):
 
 
 def _colour(track_id: int) -> ColorRGBA:
-    """A stable, distinct colour per track (golden-ratio hue walk)."""
-    h = (track_id * 0.618033988749895) % 1.0
-    i, f = int(h * 6), h * 6 - int(h * 6)
-    q, t = 1 - f, f
-    r, g, b = [(1, t, 0), (q, 1, 0), (0, 1, t), (0, q, 1), (t, 0, 1), (1, 0, q)][i % 6]
+    r, g, b = track_colour(track_id)
     return ColorRGBA(r=0.3 + 0.7 * r, g=0.3 + 0.7 * g, b=0.3 + 0.7 * b, a=1.0)
 
 

@@ -14,15 +14,14 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from rfm_core.detection.base import DetectorInput
 from rfm_core.evaluation.mapping import evaluate_map
-from rfm_core.evaluation.trajectory import align_4dof, trajectory_errors
+from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 from rfm_core.sim.capture import Capture, CaptureConfig
 
-__all__ = ['PipelineResult', 'run_capture', 'detections_for']
+__all__ = ['PipelineResult', 'run_capture', 'detections_for', 'relocalize_capture']
 
 
 @dataclass
@@ -37,7 +36,7 @@ class PipelineResult:
     alignment: object = None                      #: Pose4 T_world_map used for scoring
 
 
-def detections_for(spec: str, capture: Capture, noise_seed: int = 0):
+def detections_for(spec: str, noise_seed: int = 0):
     """A function SimFrame -> FrameObservations for a detector spec ('depth_clusters',
     'ground_truth:rgbd', ...). Object ids are stripped (the pipeline must not see them)."""
     from rfm_core.detection import make_detector  # noqa: PLC0415
@@ -52,11 +51,7 @@ def detections_for(spec: str, capture: Capture, noise_seed: int = 0):
         return run
     det = make_detector(backend)
 
-    def run(frame):
-        truth = frame.ground_truth
-        return det.detect(DetectorInput(frame.stamp_ns, truth.frame_id, capture.intrinsics, truth.gravity_cam,
-                                        frame.render.rgb, frame.render.depth))
-    return run
+    return lambda frame: det.detect(frame.detector_input())
 
 
 def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matcher=None,
@@ -66,7 +61,7 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     """Run detector -> view graph -> mapper over a capture and score it. ``capture`` and
     ``frames`` (its rendered SimFrames) may be passed in to reuse one rendering."""
     capture = capture or Capture(config)
-    detect = detections_for(detector, capture, noise_seed)
+    detect = detections_for(detector, noise_seed)
     mcfg = mapper_config or MapperConfig()
     mcfg = replace(mcfg, posed=posed or mcfg.posed,
                    bundle_adjustment=bundle_adjustment or mcfg.bundle_adjustment)
@@ -110,13 +105,26 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     estimated = mapper.camera_poses()
     loc = trajectory_errors(estimated, truth, align=False if posed else '4dof')
     # express the map in the world frame: identity when posed, else the 4-DoF alignment
-    keys = [k for k in truth if k in estimated]
-    if posed or not keys:
-        align = Pose4(0.0, (0, 0, 0))
-    else:
-        r, t = align_4dof(np.array([estimated[k] for k in keys]), np.array([truth[k] for k in keys]))
-        align = Pose4(float(np.arctan2(r[1, 0], r[0, 0])), t)
+    align = Pose4(0.0, (0, 0, 0)) if posed else map_to_truth(estimated, truth)
     boxes = align.transform_boxes(np.array([t.box for t in tracks]).reshape(-1, 7))
     scores = np.array([t.score for t in tracks])
     mapping = evaluate_map(boxes, scores, capture.room.boxes, best_visibility < min_visibility)
     return PipelineResult(loc, mapping, len(truth), n_frames, times, mapper, truth, align)
+
+
+def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, detector: str,
+                       noise_seed: int = 0) -> dict:
+    """Relocalize every frame of ``capture`` against ``mapper``'s map (paper appendix) and
+    score the poses in the world frame (``map_to_world``: T_world_map, e.g. from
+    :func:`rfm_core.evaluation.trajectory.map_to_truth`); frames that fail count as not
+    registered."""
+    detect = detections_for(detector, noise_seed)
+    world = map_to_world.matrix()
+    relocalized, truth = {}, {}
+    for frame in capture.frames():
+        obs = detect(frame)
+        truth[frame.index] = frame.pose_matrix
+        reloc = mapper.relocalize(obs)
+        if reloc is not None:
+            relocalized[frame.index] = world @ reloc.camera_to_map(obs)
+    return trajectory_errors(relocalized, truth, align=False)

@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 
 from rfm_core.evaluation.mapping import evaluate_map
-from rfm_core.evaluation.trajectory import align_4dof, trajectory_errors
-from rfm_core.geometry import bev_corners, quaternion_from_matrix
+from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
+from rfm_core.geometry import Pose4, bev_corners, quaternion_from_matrix
 from rfm_core.io.png import write_png
+from rfm_core.mapping.tracks import track_colour
 
 __all__ = ['GroundTruth', 'read_ground_truth', 'evaluate_run', 'write_tum', 'write_object_json',
            'render_top_down', 'write_report']
@@ -69,16 +70,12 @@ def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed:
     truth_kf = {mapper.keyframes[k].stamp_ns: truth.camera_poses[mapper.keyframes[k].stamp_ns]
                 for k in mapper.keyframes if mapper.keyframes[k].stamp_ns in truth.camera_poses}
     loc = trajectory_errors(by_stamp, truth_kf, align=False if posed else '4dof')
-    keys = [s for s in truth_kf if s in by_stamp]
-    r, t = (np.eye(3), np.zeros(3)) if posed or not keys else align_4dof(
-        np.array([by_stamp[s] for s in keys]), np.array([truth_kf[s] for s in keys]))
+    align = Pose4(0.0, (0.0, 0.0, 0.0)) if posed else map_to_truth(by_stamp, truth_kf)
     tracks = mapper.tracks()
-    boxes = np.array([tr.box for tr in tracks]).reshape(-1, 7).copy()
-    boxes[:, :3] = boxes[:, :3] @ r.T + t
-    boxes[:, 6] = boxes[:, 6] + np.arctan2(r[1, 0], r[0, 0])
+    boxes = align.transform_boxes(np.array([tr.box for tr in tracks]).reshape(-1, 7))
     ignore = np.array([truth.best_visibility.get(int(i), 0.0) < min_visibility for i in truth.ids], bool)
     mapping = evaluate_map(boxes, [tr.score for tr in tracks], truth.boxes, ignore)
-    return {'localization': loc, 'mapping': mapping, 'alignment': (r, t)}
+    return {'localization': loc, 'mapping': mapping, 'alignment': align}
 
 
 def write_tum(path, mapper) -> Path:
@@ -119,25 +116,17 @@ def _line(img, p0, p1, colour, width=1):
             img[y, x] = colour
 
 
-def _colour(i: int):
-    h = (i * 0.618033988749895) % 1.0
-    k = int(h * 6)
-    f = h * 6 - k
-    r, g, b = [(1, f, 0), (1 - f, 1, 0), (0, 1, f), (0, 1 - f, 1), (f, 0, 1), (1, 0, 1 - f)][k % 6]
-    return np.array([40 + 180 * r, 40 + 180 * g, 40 + 180 * b], np.uint8)
-
-
-def render_top_down(path, mapper, truth: GroundTruth | None = None, alignment=None, size: int = 800) -> Path:
-    """Top-down PNG in the ground truth's frame when given (map boxes aligned onto it):
+def render_top_down(path, mapper, truth: GroundTruth | None = None, alignment: Pose4 | None = None,
+                    size: int = 800) -> Path:
+    """Top-down PNG in the ground truth's frame when given (map aligned onto it by
+    ``alignment``, T_truth_map):
     ground-truth boxes grey, map boxes coloured by track, trajectory dark blue, keyframes
     as dots, true trajectory light grey."""
-    r, t = alignment if alignment is not None else (np.eye(3), np.zeros(3))
+    align = alignment if alignment is not None else Pose4(0.0, (0.0, 0.0, 0.0))
     est = mapper.camera_poses()
-    centres = np.array([m[:3, 3] for _, m in sorted(est.items())]).reshape(-1, 3) @ r.T + t
+    centres = align.transform_points(np.array([m[:3, 3] for _, m in sorted(est.items())]).reshape(-1, 3))
     tracks = mapper.tracks()
-    boxes = np.array([tr.box for tr in tracks]).reshape(-1, 7).copy()
-    boxes[:, :3] = boxes[:, :3] @ r.T + t
-    boxes[:, 6] += np.arctan2(r[1, 0], r[0, 0])
+    boxes = align.transform_boxes(np.array([tr.box for tr in tracks]).reshape(-1, 7))
     gt_boxes = truth.boxes if truth is not None else np.zeros((0, 7))
     gt_path = (np.array([m[:3, 3] for _, m in sorted(truth.camera_poses.items())]).reshape(-1, 3)
                if truth else np.zeros((0, 3)))
@@ -164,7 +153,7 @@ def render_top_down(path, mapper, truth: GroundTruth | None = None, alignment=No
             _line(img, px(corners[i]), px(corners[(i + 1) % 4]), np.array([150, 150, 150], np.uint8), 1)
     for tr, corners in zip(tracks, bev_corners(boxes)):
         for i in range(4):
-            _line(img, px(corners[i]), px(corners[(i + 1) % 4]), _colour(tr.track_id), 2)
+            _line(img, px(corners[i]), px(corners[(i + 1) % 4]), (40 + 180 * np.array(track_colour(tr.track_id))).astype(np.uint8), 2)
     for a, b in zip(centres[:-1], centres[1:]):
         _line(img, px(a), px(b), np.array([20, 40, 140], np.uint8), 2)
     for c in centres:

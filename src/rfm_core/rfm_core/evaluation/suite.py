@@ -145,10 +145,10 @@ def relocalization_scene(args) -> dict:
 
     import torch  # noqa: PLC0415
 
-    from rfm_core.evaluation.pipeline import detections_for, run_capture  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import align_4dof, trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.pipeline import relocalize_capture, run_capture  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import map_to_truth  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map, save_map  # noqa: PLC0415
-    from rfm_core.mapping.mapper import Mapper, camera_to_map  # noqa: PLC0415
+    from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
     from rfm_core.matching.learned import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
@@ -158,20 +158,8 @@ def relocalization_scene(args) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         load_map(mapper, save_map(mapped.mapper, Path(tmp) / 'map.rfm'))
     mapper.mode = 'localization'
-    est = mapper.camera_poses()
-    keys = [k for k in mapped.truth if k in est]
-    r, t = align_4dof(np.array([est[k] for k in keys]), np.array([mapped.truth[k] for k in keys]))
-    world = np.eye(4)
-    world[:3, :3], world[:3, 3] = r, t
+    world = map_to_truth(mapper.camera_poses(), mapped.truth)
     second = Capture(replace(config, frames=query_frames, fps=2.0, capture='handheld', trajectory_seed=1))
-    detect = detections_for(detector, second, noise_seed=11)
-    relocalized, truth = {}, {}
-    for frame in second.frames():
-        obs = detect(frame)
-        truth[frame.index] = frame.pose_matrix
-        reloc = mapper.relocalize(obs)
-        if reloc is not None:
-            relocalized[frame.index] = world @ camera_to_map(reloc.pose, obs)
-    err = trajectory_errors(relocalized, truth, align=False)
+    err = relocalize_capture(mapper, world, second, detector, noise_seed=11)
     return {'scene': f'{config.seed}_{config.room_style}_{config.capture}', **err,
             'map_registered': mapped.localization['registered']}

@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ['align_se3', 'align_4dof', 'trajectory_errors']
+from rfm_core.geometry import Pose4
+
+__all__ = ['align_se3', 'align_4dof', 'map_to_truth', 'trajectory_errors']
 
 
 def align_se3(source: np.ndarray, target: np.ndarray):
@@ -46,18 +48,34 @@ def align_4dof(est: np.ndarray, gt: np.ndarray, lever_m: float = 1.0):
     return r, cg.mean(0) - r @ ce.mean(0)
 
 
+def _matched(estimated: dict, truth: dict):
+    """The frames in both, and their (N, 4, 4) estimated and true poses."""
+    keys = [k for k in truth if k in estimated]
+    est = np.array([estimated[k] for k in keys], float).reshape(-1, 4, 4)
+    gt = np.array([truth[k] for k in keys], float).reshape(-1, 4, 4)
+    return keys, est, gt
+
+
+def map_to_truth(estimated: dict, truth: dict) -> Pose4:
+    """T_truth_map: the 4-DoF alignment :func:`trajectory_errors` applies by default (for
+    expressing a map's boxes in the truth's frame); identity without common frames."""
+    _, est, gt = _matched(estimated, truth)
+    if not len(est):
+        return Pose4(0.0, (0.0, 0.0, 0.0))
+    r, t = align_4dof(est, gt)
+    return Pose4(float(np.arctan2(r[1, 0], r[0, 0])), t)
+
+
 def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') -> dict:
     """``estimated`` / ``truth``: {frame key: 4x4 camera-to-map}. Errors over the frames
     present in both; ``registered`` = share of ``truth`` frames that were estimated.
     ``align``: '4dof' (default), 'se3', or False (posed: already in the truth's frame)."""
-    keys = [k for k in truth if k in estimated]
+    keys, est, gt = _matched(estimated, truth)
     out = {'frames': len(truth), 'registered': len(keys) / max(len(truth), 1)}
     if not keys:
         out.update(ATE_median=float('nan'), ATE_rmse=float('nan'), ARE_median=float('nan'),
                    ARE_rmse=float('nan'))
         return out
-    est = np.array([estimated[k] for k in keys], float)
-    gt = np.array([truth[k] for k in keys], float)
     if align == 'se3':
         r, t = align_se3(est[:, :3, 3], gt[:, :3, 3])
     elif align:

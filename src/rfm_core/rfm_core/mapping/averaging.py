@@ -197,9 +197,7 @@ def _solve_centres(theta, centres, src, dst, trans, weight, free, cfg: Averaging
         return centres
     index = -np.ones(n, np.int64)
     index[free] = np.arange(m)
-    c, s = np.cos(theta[src]), np.sin(theta[src])
-    # Rz(theta_s)^T t_st
-    meas = np.stack([c * trans[:, 0] + s * trans[:, 1], -s * trans[:, 0] + c * trans[:, 1], trans[:, 2]], 1)
+    meas = _centre_offsets(theta[src], trans)
     a_src, a_dst = index[src], index[dst]
     rows = np.arange(len(src))
     data = np.r_[-np.ones(np.count_nonzero(a_src >= 0)), np.ones(np.count_nonzero(a_dst >= 0))]
@@ -226,11 +224,15 @@ def _solve_centres(theta, centres, src, dst, trans, weight, free, cfg: Averaging
     return centres
 
 
+def _centre_offsets(theta_src, trans):
+    """c_t - c_s measured by the edges: Rz(theta_s)^T t_st, (E, 3)."""
+    c, s = np.cos(theta_src), np.sin(theta_src)
+    return np.stack([c * trans[:, 0] + s * trans[:, 1], -s * trans[:, 0] + c * trans[:, 1], trans[:, 2]], 1)
+
+
 def _residuals(theta, centres, src, dst, yaw, trans):
     yaw_r = np.degrees(np.abs(wrap_angle(theta[src] - theta[dst] - yaw)))
-    c, s = np.cos(theta[src]), np.sin(theta[src])
-    meas = np.stack([c * trans[:, 0] + s * trans[:, 1], -s * trans[:, 0] + c * trans[:, 1], trans[:, 2]], 1)
-    t_r = np.linalg.norm(centres[dst] - centres[src] - meas, axis=1)
+    t_r = np.linalg.norm(centres[dst] - centres[src] - _centre_offsets(theta[src], trans), axis=1)
     return yaw_r, t_r
 
 

@@ -25,6 +25,7 @@ from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import estimate_relative_pose
+from rfm_core.matching.view_graph import bag_of_objects
 from rfm_core.observations import FrameObservations
 
 __all__ = ['MapperConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
@@ -85,13 +86,6 @@ def camera_to_map(t_k_map: Pose4, obs: FrameObservations) -> np.ndarray:
     return out
 
 
-def _descriptor(obs: FrameObservations) -> np.ndarray:
-    if len(obs) == 0 or obs.embeddings.shape[1] == 0:
-        return np.zeros(0)
-    v = obs.embeddings.astype(np.float64).mean(0)
-    return v / max(np.linalg.norm(v), 1e-9)
-
-
 class Mapper:
     """Feed :meth:`add_keyframe` / :meth:`add_edge`, call :meth:`update`, read the map."""
 
@@ -118,7 +112,7 @@ class Mapper:
         if self.mode != 'mapping' or keyframe_id in self.keyframes:
             return False
         self.keyframes[keyframe_id] = obs
-        self._descriptors[keyframe_id] = _descriptor(obs)
+        self._descriptors[keyframe_id] = bag_of_objects(obs)
         if not self.config.posed:
             self.averager.add_keyframe(keyframe_id)
         self._tracks = None
@@ -258,8 +252,8 @@ class Mapper:
         if len(query) < 2 or not poses:
             return None
         ids = [k for k in poses if self._descriptors.get(k) is not None and len(self.keyframes[k]) >= 2]
-        desc = _descriptor(query)
-        if desc.size and ids and all(self._descriptors[k].size == desc.size for k in ids):
+        desc = bag_of_objects(query)
+        if np.any(desc) and ids and all(self._descriptors[k].size == desc.size for k in ids):
             sims = np.array([self._descriptors[k] @ desc for k in ids])
             order = np.argsort(-sims)[:cfg.relocalization_candidates]
             candidates = [ids[i] for i in order]

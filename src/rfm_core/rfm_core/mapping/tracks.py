@@ -28,7 +28,7 @@ from scipy.sparse.csgraph import connected_components
 
 from rfm_core.geometry import box_corners, giou_3d_paired, iou_3d, iou_3d_paired
 
-__all__ = ['TrackConfig', 'Track', 'build_tracks']
+__all__ = ['TrackConfig', 'Track', 'build_tracks', 'track_colour']
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,15 @@ class Track:
     @property
     def num_observations(self) -> int:
         return len(self.observations)
+
+
+def track_colour(track_id: int) -> tuple:
+    """A stable, distinct display colour per track, (r, g, b) in [0, 1]: a golden-ratio walk
+    around the hue circle at full saturation."""
+    h = (track_id * 0.618033988749895) % 1.0
+    k = int(h * 6)
+    f = h * 6 - k
+    return [(1, f, 0), (1 - f, 1, 0), (0, 1, f), (0, 1 - f, 1), (f, 0, 1), (1, 0, 1 - f)][k % 6]
 
 
 def _representative(boxes, scores, single_view_iou):

@@ -100,7 +100,7 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
         return None
     error, pose, ious, inlier = best
     if cfg.refine:
-        pose, ious, error = _refine(pose, a, b, turns, inlier, ious, error, cfg)
+        pose, ious, error = _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg)
         inlier = ious >= cfg.inlier_iou
     idx = np.flatnonzero(inlier)
     return RelativePose(
@@ -111,7 +111,7 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
         corner_inliers=_corner_inliers(pose, a, b, matches, idx, cfg))
 
 
-def _refine(pose, a, b, turns, inlier, ious, error, cfg):
+def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
     """Local optimisation (not in the paper): refit the pose on all inlier matches, each
     weighted by the inverse variance of a detection at its distance (sigma = refine_sigma_m
     + refine_sigma_per_m x range): box centres when there are three or more inliers (their
@@ -123,8 +123,8 @@ def _refine(pose, a, b, turns, inlier, ious, error, cfg):
     for m in np.flatnonzero(inlier):
         pick = _best_turn(turns[m], pose.yaw)
         if pick is not None:
-            src.append(box_corners(a[m]))
-            dst.append(box_corners(b[m])[corner_permutation(pick[0])])
+            src.append(corners_a[m])
+            dst.append(corners_b[m][corner_permutation(pick[0])])
             rng = 0.5 * (np.linalg.norm(a[m, :3]) + np.linalg.norm(b[m, :3]))
             weights.append(1.0 / (cfg.refine_sigma_m + cfg.refine_sigma_per_m * rng) ** 2)
     if len(src) < 2:

@@ -17,7 +17,6 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from rfm_core.detection import make_detector
-from rfm_core.detection.base import DetectorInput
 from rfm_core.geometry import Pose4, iou_3d
 from rfm_core.matching.learned import MatcherNetConfig, ObjectMatcherNet, batch_inputs
 from rfm_core.observations import FrameObservations
@@ -66,9 +65,7 @@ def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,)) -> dict:
             if key[0].startswith('ground_truth'):
                 obs = det.perturb(truth)
             else:
-                inp = DetectorInput(frame.stamp_ns, truth.frame_id, capture.intrinsics,
-                                    truth.gravity_cam, frame.render.rgb, frame.render.depth)
-                obs = det.detect(inp)
+                obs = det.detect(frame.detector_input())
                 obs = replace(obs, object_ids=assign_object_ids(obs, truth))
             out[key].append(LabelledFrame(obs, pose, truth.object_ids))
     return out

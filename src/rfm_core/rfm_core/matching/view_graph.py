@@ -18,7 +18,7 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose
 from rfm_core.observations import FrameObservations
 
-__all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'ViewGraphBuilder']
+__all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'ViewGraphBuilder', 'bag_of_objects']
 
 
 @dataclass(frozen=True)
@@ -58,7 +58,9 @@ class Edge:
     relative: RelativePose
 
 
-def _descriptor(obs: FrameObservations) -> np.ndarray:
+def bag_of_objects(obs: FrameObservations) -> np.ndarray:
+    """Retrieval descriptor of a frame: the unit mean of its object embeddings (zeros when
+    it has none)."""
     if obs.embeddings.shape[1] == 0 or len(obs) == 0:
         return np.zeros(max(obs.embeddings.shape[1], 1))
     v = obs.embeddings.astype(np.float64).mean(0)
@@ -149,7 +151,7 @@ class ViewGraphBuilder:
                     if self.keyframes else None)
         if not self._is_keyframe(obs, last_rel):
             return None, []
-        descriptor = _descriptor(obs)
+        descriptor = bag_of_objects(obs)
         keyframe = Keyframe(self._next_id, obs, descriptor)
         self._next_id += 1
         edges = []

@@ -32,6 +32,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from rfm_core.detection.base import DetectorInput
 from rfm_core.geometry import Pose4, gravity_aligned_rotation
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.sim.render import NoiseModel, Renderer, RenderOutput
@@ -118,6 +119,12 @@ class SimFrame:
         m = np.eye(4)
         m[:3, :3], m[:3, 3] = self.rotation, self.position
         return m
+
+    def detector_input(self) -> DetectorInput:
+        """The frame as a detector sees it: colour, depth (m), intrinsics, true gravity."""
+        truth = self.ground_truth
+        return DetectorInput(self.stamp_ns, truth.frame_id, truth.intrinsics, truth.gravity_cam,
+                             self.render.rgb, self.render.depth)
 
     def aligned_from_map(self) -> Pose4:
         """T_aligned_map: the true 4-DoF pose mapping the map frame into this frame's
