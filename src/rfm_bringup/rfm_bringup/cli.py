@@ -356,12 +356,16 @@ def cmd_eval_reloc(args) -> int:
         for r in pool.map(relocalization_scene, work):
             rows.append(r)
             print(f'[rfm eval-reloc] {r["scene"]}: relocalized {100 * r["registered"]:.0f}%, '
-                  f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm', flush=True)
+                  f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong {100 * r["wrong"]:.0f}% '
+                  f'(map: {100 * r["map_registered"]:.0f}% of keyframes registered)', flush=True)
     reg = float(np.mean([r['registered'] for r in rows]))
     are = float(np.nanmedian([r['ARE_median'] for r in rows]))
     ate = float(np.nanmedian([r['ATE_median'] for r in rows]))
-    print(f'\n| input | rooms | relocalized | ARE median (deg) | ATE median (cm) |\n|---|---|---|---|---|\n'
-          f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {are:.2f} | {100 * ate:.1f} |')
+    relocalized = np.array([r['registered'] * r['frames'] for r in rows])
+    wrong = float(np.sum([r['wrong'] for r in rows] * relocalized) / max(relocalized.sum(), 1))
+    print(f'\n| input | rooms | relocalized | ARE median (deg) | ATE median (cm) | wrong (> 5 deg or > 25 cm) |\n'
+          f'|---|---|---|---|---|---|\n'
+          f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% |')
     return 0
 
 
@@ -487,8 +491,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--detector', default='ground_truth:rgbd', help='depth_clusters or ground_truth:PRESET')
     p.add_argument('--scenes', type=int, default=10)
     p.add_argument('--first-seed', type=int, default=5000)
-    p.add_argument('--frames', type=int, default=100, help='frames of the mapping capture')
-    p.add_argument('--fps', type=float, default=10.0)
+    p.add_argument('--frames', type=int, default=150, help='frames of the mapping capture (a walk around the room)')
+    p.add_argument('--fps', type=float, default=5.0, help='frame rate of the mapping capture (150 at 5 fps: 30 s)')
     p.add_argument('--query-frames', type=int, default=20, help='frames of the second capture (at 2 Hz)')
     p.add_argument('--jobs', type=int, default=1)
     p.set_defaults(func=cmd_eval_reloc)

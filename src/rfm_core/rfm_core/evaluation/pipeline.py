@@ -117,7 +117,7 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
     """Relocalize every frame of ``capture`` against ``mapper``'s map (paper appendix) and
     score the poses in the world frame (``map_to_world``: T_world_map, e.g. from
     :func:`rfm_core.evaluation.trajectory.map_to_truth`); frames that fail count as not
-    registered."""
+    registered. ``wrong``: share of the relocalized frames off by > 5 deg or > 25 cm."""
     detect = detections_for(detector, noise_seed)
     world = map_to_world.matrix()
     relocalized, truth = {}, {}
@@ -127,4 +127,8 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
         reloc = mapper.relocalize(obs)
         if reloc is not None:
             relocalized[frame.index] = world @ reloc.camera_to_map(obs)
-    return trajectory_errors(relocalized, truth, align=False)
+    wrong = [k for k, m in relocalized.items()
+             if np.linalg.norm(m[:3, 3] - truth[k][:3, 3]) > 0.25
+             or np.trace(truth[k][:3, :3].T @ m[:3, :3]) < 1 + 2 * np.cos(np.radians(5.0))]
+    return {**trajectory_errors(relocalized, truth, align=False),
+            'wrong': len(wrong) / max(len(relocalized), 1)}

@@ -39,9 +39,10 @@ class MapperConfig:
     tracks: TrackConfig = field(default_factory=TrackConfig)
     matching: MatchingConfig = field(default_factory=MatchingConfig)
     relocalization_candidates: int = 10      #: keyframes tried per relocalization query
-    relocalization_min_inliers: int = 4      #: query objects verified by the agreeing keyframes
-    relocalization_min_keyframe_inliers: int = 3  #: a keyframe's vote needs this many inliers
-                                             #: (two verify nothing beyond the minimal sample)
+    #: query objects verified by the agreeing keyframes (paper: one keyframe verified by the
+    #: relative-pose test, i.e. 2; raise it to trade recall for fewer wrong poses)
+    relocalization_min_inliers: int = 2
+    relocalization_min_keyframe_inliers: int = 2  #: a keyframe's vote needs this many inliers
     posed: bool = False                      #: poses come from outside (set_keyframe_pose)
     bundle_adjustment: bool = False          #: refine track boxes by partial BA (paper 3.6)
     bundle: BundleConfig = field(default_factory=BundleConfig)
