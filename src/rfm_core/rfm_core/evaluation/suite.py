@@ -11,6 +11,7 @@ RGB-D (depth_clusters)    depth_clusters                  un-posed
 RGB-D posed               depth_clusters                  posed
 GT rgbd                   ground_truth:rgbd               un-posed
 GT rgbd posed             ground_truth:rgbd               posed
+GT rgbd posed + BA        ground_truth:rgbd               posed    yes
 GT rgb                    ground_truth:rgb                un-posed
 GT rgb posed              ground_truth:rgb                posed
 GT rgb posed + BA         ground_truth:rgb                posed    yes
@@ -43,6 +44,7 @@ SETTINGS = (
     Setting('RGB-D posed (depth_clusters)', 'depth_clusters', posed=True),
     Setting('GT rgbd', 'ground_truth:rgbd'),
     Setting('GT rgbd posed', 'ground_truth:rgbd', posed=True),
+    Setting('GT rgbd posed + BA', 'ground_truth:rgbd', posed=True, bundle_adjustment=True),
     Setting('GT rgb', 'ground_truth:rgb'),
     Setting('GT rgb posed', 'ground_truth:rgb', posed=True),
     Setting('GT rgb posed + BA', 'ground_truth:rgb', posed=True, bundle_adjustment=True),
