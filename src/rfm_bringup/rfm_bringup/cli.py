@@ -7,6 +7,7 @@
     rfm preview BAG OUT.png [--frames 4]
     rfm eval-detections BAG|SUITE ... [--backend depth_clusters|ground_truth]
     rfm eval-matching [--inputs depth_clusters ground_truth:rgbd ...] [--matchers learned classical]
+    rfm train-depth-score [--scenes 32 --first-seed 3000]
     rfm train-matcher [--backend depth_clusters|ground_truth] [--scenes 60 --first-seed 3000]
     rfm run --bag BAG | --live [--backend depth_clusters --processes --output DIR ...]
     rfm eval [--scenes 20 --jobs 2]
@@ -282,6 +283,31 @@ def cmd_eval_matching(args) -> int:
     return 0
 
 
+def cmd_train_depth_score(args) -> int:
+    """Fit depth_clusters' calibrated score on simulated scenes from the training seeds."""
+    from rfm_core.detection.score_model import DEFAULT_SCORE_MODEL, fit_score_model, score_samples  # noqa: PLC0415
+    from rfm_core.matching.training import scene_configs  # noqa: PLC0415
+
+    configs = scene_configs(range(args.first_seed, args.first_seed + args.scenes), frames=args.frames)
+    start = time.perf_counter()
+    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+        samples = list(pool.map(score_samples, configs))
+    x = np.concatenate([f for f, _ in samples])
+    y = np.concatenate([lab for _, lab in samples])
+    if len(y) < 50 or y.all() or not y.any():
+        raise SystemExit(f'rfm train-depth-score: {len(y)} boxes, {int(y.sum())} right: too few to fit')
+    model = fit_score_model(x, y)
+    output = Path(args.output) if args.output else DEFAULT_SCORE_MODEL
+    output.parent.mkdir(parents=True, exist_ok=True)
+    model.save(output, {'command': 'rfm train-depth-score ' + ' '.join(sys.argv[2:])
+                        if sys.argv[1:2] == ['train-depth-score'] else 'rfm train-depth-score (API)',
+                        'scenes': args.scenes, 'first_seed': args.first_seed, 'frames': args.frames,
+                        'boxes': int(len(y)), 'right': int(y.sum())})
+    print(f'{len(y)} boxes ({100 * y.mean():.0f}% right) from {args.scenes} scenes in '
+          f'{time.perf_counter() - start:.0f} s -> {output}')
+    return 0
+
+
 def cmd_train_matcher(args) -> int:
     """Train the learned object matcher on sim pairs through a real detector backend."""
     from dataclasses import asdict  # noqa: PLC0415
@@ -454,6 +480,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--noise-seed', type=int, default=2)
     p.add_argument('--jobs', type=int, default=1, help='scenes rendered in parallel')
     p.set_defaults(func=cmd_eval_matching)
+
+    p = sub.add_parser('train-depth-score', help="fit depth_clusters' calibrated detection score")
+    p.add_argument('--scenes', type=int, default=32)
+    p.add_argument('--first-seed', type=int, default=3000, help='training seeds start here (3000+)')
+    p.add_argument('--frames', type=int, default=12, help='frames per scene (2 fps)')
+    p.add_argument('--jobs', type=int, default=1)
+    p.add_argument('--output', help='default: the shipped model in rfm_core/detection/weights')
+    p.set_defaults(func=cmd_train_depth_score)
 
     p = sub.add_parser('train-matcher',
                        help='train the learned object matcher on sim pairs through a detector backend')

@@ -65,6 +65,9 @@ class DetectorNode(Node):
             'At most this many detections per frame', 1, 1000, integer=True)).value
         self.stride = p('stride', 2, _describe(
             'depth_clusters input resolution: use every n-th pixel', 1, 8, integer=True)).value
+        self.depth_score_model = p('depth_score_model', 'default', _describe(
+            "depth_clusters: calibrated score model, 'default' (shipped), a JSON path from "
+            "rfm train-depth-score, or '' for the raw score")).value
         self.gt_preset = p('ground_truth_preset', 'rgbd', _describe(
             'ground_truth noise preset: perfect, rgbd, rgb')).value
         self.gt_seed = p('ground_truth_seed', 0, _describe('ground_truth noise seed')).value
@@ -96,7 +99,7 @@ class DetectorNode(Node):
 
         options = {'score_threshold': self.score_threshold, 'max_detections': self.max_detections}
         if self.backend == 'depth_clusters':
-            options['stride'] = self.stride
+            options.update(stride=self.stride, score_model=self.depth_score_model)
         elif self.backend == 'ground_truth':
             options.update(preset=self.gt_preset, seed=self.gt_seed)
         elif self.backend == 'cutr':

@@ -9,8 +9,10 @@
    surfaces (an upward-facing surface with points above it: small objects on tables).
 4. Fit a gravity-aligned box to each cluster: yaw from the minimum-area footprint, extents
    from robust percentiles, completed amodally — down to the floor or support it stands
-   on, and back to the wall behind it when its far side cannot be seen.
-5. Score by support (points) and shape; describe each box by an embedding of its colours
+   on (from any height when something nearer hides its bottom), and back to the wall behind it (or to its visible width) when its far side cannot be
+   seen.
+5. Score by support (points) and shape, calibrated by a small logistic model
+   (:mod:`rfm_core.detection.score_model`); describe each box by an embedding of its colours
    (hue/value histograms, mean colour), sorted size and height above the floor.
 
 Works on any registered RGB-D stream with gravity; it never reads instance ids.
@@ -23,6 +25,7 @@ import numpy as np
 from scipy import ndimage
 
 from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput, finalize
+from rfm_core.detection.score_model import DEFAULT_SCORE_MODEL, box_features, load_score_model
 from rfm_core.geometry import gravity_aligned_rotation
 from rfm_core.observations import FrameObservations
 
@@ -45,10 +48,16 @@ class DepthClustersConfig(DetectorConfig):
     voxel_m: float = 0.04                 #: clustering connectivity
     min_cluster_points: int = 25          #: after striding
     support_min_points: int = 20          #: upward-facing points that make a support surface
-    floor_snap_m: float = 0.3             #: extend boxes down to the floor within this
-    wall_snap_m: float = 1.0              #: extend unseen backs to a wall within this
-    default_depth_m: float = 0.4          #: amodal depth of a box whose back is unseen
+    floor_snap_m: float = 0.3             #: extend boxes down to the floor within this, or
+                                          #: from any height when an occluder hides the bottom
+    occluder_gap_m: float = 0.1           #: an occluder is this much nearer than the object
+    wall_snap_m: float = 0.5              #: extend unseen backs to a wall within this
+    amodal_min_depth_m: float = 0.3       #: a box whose back is unseen gets the depth of its
+    amodal_max_depth_m: float = 0.7       #: visible width (footprints are rarely slabs), clipped
     truncated_score_factor: float = 0.6   #: score multiplier of boxes cut by the image border
+    #: calibrated score (rfm_core.detection.score_model): path of a model, 'default' for the
+    #: shipped one, '' for the raw score (points x shape x truncation)
+    score_model: str = 'default'
     refine_gravity: bool = True           #: align gravity with the floor plane when visible
     max_gravity_correction_deg: float = 6.0   #: ... if it is within this of the input gravity
     seed: int = 0                         #: RANSAC sampling
@@ -115,6 +124,9 @@ class DepthClustersDetector(Detector):
 
     def __init__(self, config: DepthClustersConfig | None = None):
         self.config = config or DepthClustersConfig()
+        path = self.config.score_model
+        self.score_model = (load_score_model(DEFAULT_SCORE_MODEL if path == 'default' else path)
+                            if path else None)
 
     # ------------------------------------------------------------------ pipeline
 
@@ -158,7 +170,8 @@ class DepthClustersDetector(Detector):
         rgb = frame.rgb
         for points, normals, pixels, support_z in self._split_supports(
                 pts[obj], nrm[obj], pix[obj_idx], labels):
-            fit = self._fit_box(points, normals, support_z, floor_z, walls)
+            hidden = self._bottom_hidden(pixels, frame.depth, s)
+            fit = self._fit_box(points, normals, support_z, floor_z, walls, hidden)
             if fit is None or self._is_structure_remnant(fit[0], normals, ceiling_z):
                 continue
             box, score = fit
@@ -176,6 +189,12 @@ class DepthClustersDetector(Detector):
                              pixels[:, 1].max() + s / 2, pixels[:, 0].max() + s / 2])
         if not boxes:
             return empty
+        if self.score_model is not None:
+            # the raw score decides which boxes are kept (score_threshold), the calibrated
+            # one how they rank
+            raw = np.asarray(scores)
+            calibrated = self.score_model(box_features(raw, boxes, boxes_2d, intr.fx, intr.fy))
+            scores = np.where(raw >= cfg.score_threshold, np.maximum(calibrated, cfg.score_threshold), 0.0)
         return finalize(frame, boxes, scores, [''] * len(boxes), np.array(embeds), boxes_2d,
                         cfg, self.name)
 
@@ -376,7 +395,22 @@ class DepthClustersDetector(Detector):
 
     # ------------------------------------------------------------------ boxes
 
-    def _fit_box(self, pts, nrm, support_z, floor_z, walls):
+    def _bottom_hidden(self, pixels, depth, s) -> bool:
+        """Whether the object's bottom is out of sight: below most of its lowest visible
+        pixels (per image column) lies something nearer — an occluder — or the image border."""
+        rows, cols = pixels[:, 0], pixels[:, 1]
+        order = np.lexsort((-rows, cols))                       # per column, lowest pixel first
+        first = order[np.r_[True, np.diff(cols[order]) != 0]]
+        r, c = rows[first], cols[first]
+        below = r + 2 * s
+        inside = below < depth.shape[0]
+        d_obj = depth[r, c]
+        d_below = np.full(len(r), np.nan, np.float32)
+        d_below[inside] = depth[below[inside], c[inside]]
+        hidden = ~inside | (np.isfinite(d_below) & (d_below < d_obj - self.config.occluder_gap_m))
+        return bool(np.mean(hidden) >= 0.5)
+
+    def _fit_box(self, pts, nrm, support_z, floor_z, walls, bottom_hidden=False):
         cfg = self.config
         if len(pts) < cfg.min_cluster_points // 2:
             return None
@@ -408,7 +442,7 @@ class DepthClustersDetector(Detector):
         # amodal completion downwards: objects stand on their support or the floor
         if support_z is not None:
             z_lo = support_z
-        elif floor_z is not None and z_lo - floor_z < cfg.floor_snap_m:
+        elif floor_z is not None and (z_lo - floor_z < cfg.floor_snap_m or bottom_hidden):
             z_lo = floor_z
         c, s = np.cos(yaw), np.sin(yaw)
         axes = np.array([[c, s], [-s, c]])                      # box x, y axes in the BEV
@@ -426,8 +460,8 @@ class DepthClustersDetector(Detector):
         return box, float(support * (0.5 + 0.5 * thin))
 
     def _complete_back(self, centre, axes, lo, hi, walls):
-        """Extend the side facing away from the camera: to a wall within reach, else to a
-        default depth. The camera is at the origin of the gravity-aligned frame."""
+        """Extend the side facing away from the camera: to a wall within reach, else to the
+        box's visible width (clipped to the amodal depth limits). The camera is at the origin of the gravity-aligned frame."""
         cfg = self.config
         lo, hi = lo.copy(), hi.copy()
         view = centre / max(np.linalg.norm(centre), 1e-6)      # from camera towards the box
@@ -444,8 +478,9 @@ class DepthClustersDetector(Detector):
             if 0 <= dist <= cfg.wall_snap_m:
                 target = face + sign * (dist - 0.02)
         depth_now = hi[k] - lo[k]
-        if target is None and depth_now < cfg.default_depth_m:
-            target = face + sign * (cfg.default_depth_m - depth_now)
+        amodal = float(np.clip(hi[1 - k] - lo[1 - k], cfg.amodal_min_depth_m, cfg.amodal_max_depth_m))
+        if target is None and depth_now < amodal:
+            target = face + sign * (amodal - depth_now)
         if target is not None:
             if sign > 0:
                 hi[k] = max(hi[k], target)
