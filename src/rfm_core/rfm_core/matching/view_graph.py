@@ -27,6 +27,7 @@ class KeyframeConfig:
     max_translation_m: float = 0.5    #: ... or when it moved farther than this
     max_yaw_deg: float = 20.0         #: ... or turned more than this
     min_detections: int = 2           #: frames with fewer detections are skipped
+    min_interval_s: float = 0.0       #: no new keyframe sooner than this after the last one
     recent_keyframes: int = 3         #: always match against this many latest keyframes
     retrieved_keyframes: int = 5      #: plus this many most similar older ones
     min_retrieval_similarity: float = 0.3
@@ -116,10 +117,14 @@ class ViewGraphBuilder:
 
     def _is_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None) -> bool:
         """Whether a frame becomes a keyframe, given its verified pose to the last keyframe."""
-        if not self.keyframes or last_rel is None:
+        if not self.keyframes:
             return True
         cfg = self.config
         last = self.keyframes[-1].observations
+        if cfg.min_interval_s > 0 and 0 <= obs.stamp_ns - last.stamp_ns < cfg.min_interval_s * 1e9:
+            return False
+        if last_rel is None:
+            return True
         overlap = len(last_rel.inliers) / max(min(len(obs), len(last)), 1)
         return (overlap < cfg.min_overlap
                 or np.linalg.norm(last_rel.pose.t) > cfg.max_translation_m
