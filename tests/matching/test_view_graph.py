@@ -49,3 +49,16 @@ def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
         graph.add(det.perturb(frame.ground_truth))
         assert len(graph.stats.last_candidates) <= 5
     assert graph.stats.keyframes >= 5
+
+
+def test_keyframes_are_spaced_by_min_interval(stream):
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    counts, stamps = {}, {}
+    for interval in (0.0, 1.0):
+        graph = ViewGraphBuilder(keyframes=KeyframeConfig(min_interval_s=interval, max_translation_m=0.05))
+        for frame in stream:
+            graph.add(det.perturb(frame.ground_truth))
+        counts[interval] = graph.stats.keyframes
+        stamps[interval] = np.array([k.observations.stamp_ns for k in graph.keyframes]) / 1e9
+    assert np.all(np.diff(stamps[1.0]) >= 1.0 - 1e-6)
+    assert counts[1.0] < counts[0.0] and counts[1.0] >= 5    # 10 s of frames at 4 Hz

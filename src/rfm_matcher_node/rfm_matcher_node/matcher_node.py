@@ -61,6 +61,9 @@ class MatcherNode(Node):
                 'New keyframe after moving this far from the last one (m)', 0, 100)).value,
             max_yaw_deg=p('keyframe_max_yaw_deg', k.max_yaw_deg, _float(
                 'New keyframe after turning this much from the last one (deg)', 0, 180)).value,
+            min_interval_s=p('keyframe_min_interval_s', k.min_interval_s, _float(
+                'No new keyframe sooner than this after the last one (s); 0: off. Fewer keyframes '
+                'cost less matching but lower accuracy (see BENCHMARKS.md)', 0, 60)).value,
             min_detections=p('min_detections', k.min_detections, _int(
                 'Skip frames with fewer detections', 0, 1000)).value,
             recent_keyframes=p('recent_keyframes', k.recent_keyframes, _int(
