@@ -154,3 +154,24 @@ def test_shipped_weights_beat_the_classical_matcher(spec):
     assert learned.pairs >= 8
     assert learned.f1 > classical.f1, (learned, classical)
     assert learned.match_precision > 0.8
+
+
+def test_batched_matching_equals_pair_by_pair():
+    """A new keyframe is matched against all its candidates in one padded batch; padding
+    must not change any pair's matches."""
+    pairs = labelled_pairs(scene_configs(range(2000, 2002), frames=12), ['ground_truth:rgbd'], noise_seeds=(2,),
+                           gaps=(1, 2, 3), min_shared=2)['ground_truth:rgbd']
+    query = pairs[0][0].observations
+    others = [b.observations for _, b in pairs[:6]] + [_subset(query, [])]     # sizes differ; one empty
+    matcher = LearnedMatcher(threads=1)
+    batched = matcher.match_many(query, others)
+    assert len(batched) == len(others) and len(batched[-1]) == 0
+    assert sum(len(m) for m in batched) > 0
+    for b, m in zip(others, batched):
+        single = matcher.match(query, b)
+        np.testing.assert_array_equal(m.a, single.a)
+        np.testing.assert_array_equal(m.b, single.b)
+        np.testing.assert_allclose(m.scores, single.scores, atol=1e-4)
+    classical = ClassicalMatcher()
+    for b, m in zip(others, classical.match_many(query, others)):
+        np.testing.assert_array_equal(m.a, classical.match(query, b).a)

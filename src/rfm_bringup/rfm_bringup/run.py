@@ -256,7 +256,7 @@ def run_graph(args) -> int:
                 cmd += ['--remap', '/ground_truth/camera_pose:=/rfm/external_pose']
             player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         last_line = 0.0
-        settle_since, last_state = None, None
+        settle_since, last_state, first_frame = None, None, None
         while True:
             time.sleep(0.2)
             now = time.monotonic()
@@ -270,14 +270,18 @@ def run_graph(args) -> int:
                                  f'{state["keyframes"]:4d}  registered {state["registered"]:4d}  objects '
                                  f'{state["objects"]:4d}  {state["frames"] / max(elapsed, 1e-9):5.1f} frames/s ')
                 sys.stderr.flush()
-            if player is not None and player.poll() is None:
-                continue
             if bag is None:
                 continue
+            # processing time: from the first frame detected to the graph's last change (the
+            # player's own start-up and shut-down are not processing)
+            if first_frame is None and state['frames'] > 0:
+                first_frame = play_start = now
             key = (state['frames'], state['keyframes'], state['registered'])
             if key != last_state or state['busy']:
                 last_state, settle_since = key, now
-            elif now - settle_since >= args.settle:
+            if player is not None and player.poll() is None:
+                continue
+            if now - settle_since >= args.settle:
                 done_at = settle_since
                 break
     except KeyboardInterrupt:

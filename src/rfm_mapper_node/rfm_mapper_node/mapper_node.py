@@ -92,6 +92,9 @@ class MapperNode(Node):
             'Child frame of that transform; empty: the keyframes\' camera optical frame')).value
         self.map_period = p('map_publish_period_s', 1.0, _float(
             'Rebuild and publish the object map at most this often (s)', 0.05, 60.0)).value
+        self.map_cpu_share = p('map_max_cpu_share', 0.2, _float(
+            'Rebuilding the object map (tracks, merging) may take at most this share of the time: '
+            'a map that takes 0.3 s to build is published at most every 1.5 s at 0.2', 0.01, 1.0)).value
         self.map_path = p('map_path', str(Path(os.environ.get('ROS_HOME', '~/.ros')) / 'rfm' / 'map.rfm'),
                           _text('Map file of save_map / load_map requests with an empty path, and '
                                 'of autosave')).value
@@ -150,6 +153,7 @@ class MapperNode(Node):
         self._dirty = False
         self._map_dirty = False
         self._last_map_time = 0.0
+        self._map_seconds = 0.0                  # cost of the last object-map rebuild
         self._since_save = 0
         self._camera_frame = ''
         self._last_camera = None             # (stamp_ns, 4x4)
@@ -352,10 +356,13 @@ class MapperNode(Node):
             self._publish_poses()
             if self.autosave_every and self._since_save >= self.autosave_every:
                 self._save(self.map_path, quiet=True)
-        if self._map_dirty and time.monotonic() - self._last_map_time >= self.map_period:
+        wait = max(self.map_period, self._map_seconds / self.map_cpu_share)
+        if self._map_dirty and time.monotonic() - self._last_map_time >= wait:
             self._map_dirty = False
-            self._last_map_time = time.monotonic()
+            start = time.monotonic()
             self._publish_map()
+            self._last_map_time = time.monotonic()
+            self._map_seconds = self._last_map_time - start
 
     def _stamp(self, k: int) -> int:
         return self.mapper.keyframes[k].stamp_ns

@@ -174,8 +174,8 @@ def write_report(path, summary: dict) -> Path:
              f'edges kept / rejected: {s.get("edges", 0)} / {s.get("edges_rejected", 0)}',
              f'- objects in the map: {s.get("objects", 0)}',
              f'- processing time: {s.get("wall_s", 0):.1f} s for {s.get("bag_s", 0):.1f} s of data '
-             f'({s.get("realtime", 0):.2f}x real time; from the first message played until the graph '
-             f'settled)', '']
+             f'({s.get("realtime", 0):.2f}x real time; from the first frame detected until the last change '
+             f'of the graph; 0.2 s polling)', '']
     if s.get('latency_ms'):
         lines += ['## Per-stage latency (median, ms)', '', '| stage | ms |', '|---|---|']
         lines += [f'| {k} | {v:.1f} |' for k, v in s['latency_ms'].items()] + ['']

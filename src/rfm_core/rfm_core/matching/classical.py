@@ -41,6 +41,10 @@ class ClassicalMatcher:
     def __init__(self, config: MatchingConfig | None = None):
         self.config = config or MatchingConfig()
 
+    def match_many(self, a: FrameObservations, others) -> list:
+        """``[match(a, b) for b in others]`` (the learned matcher batches this)."""
+        return [self.match(a, b) for b in others]
+
     def match(self, a: FrameObservations, b: FrameObservations) -> ObjectMatches:
         cfg = self.config
         empty = ObjectMatches(np.zeros(0, int), np.zeros(0, int), np.zeros(0))

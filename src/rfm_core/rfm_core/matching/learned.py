@@ -243,21 +243,45 @@ class LearnedMatcher:
         return self._by_backend[family]
 
     def log_assignment(self, a: FrameObservations, b: FrameObservations) -> np.ndarray:
-        net = self.network(a.backend or b.backend)
+        return self.log_assignments(a, [b])[0]
+
+    def log_assignments(self, a: FrameObservations, others) -> list:
+        """Log-assignment matrices of ``a`` against each of ``others``, in one batched pass."""
+        net = self.network(a.backend or others[0].backend)
         dim = net.config.embedding_dim
-        if a.embeddings.shape[1] != dim or b.embeddings.shape[1] != dim:
-            raise ValueError(f'object matcher expects {dim}-d embeddings, got {a.embeddings.shape[1]} '
-                             f'and {b.embeddings.shape[1]} (detector {a.backend!r}); pass weights '
-                             f'trained for this detector as matcher_weights')
+        for b in others:
+            if a.embeddings.shape[1] != dim or b.embeddings.shape[1] != dim:
+                raise ValueError(f'object matcher expects {dim}-d embeddings, got {a.embeddings.shape[1]} '
+                                 f'and {b.embeddings.shape[1]} (detector {a.backend!r}); pass weights '
+                                 f'trained for this detector as matcher_weights')
         previous = torch.get_num_threads()
         if self.threads:
             torch.set_num_threads(self.threads)
         try:
             with torch.inference_mode():
-                out = net(*batch_inputs([a], [b]))[0].numpy()
+                out = net(*batch_inputs([a] * len(others), list(others))).numpy()
         finally:
             if self.threads:
                 torch.set_num_threads(previous)
+        # crop each pair's padding: rows 0..len(a)-1 plus the dustbin, same for columns
+        rows = np.r_[np.arange(len(a)), out.shape[1] - 1]
+        return [o[rows][:, np.r_[np.arange(len(b)), out.shape[2] - 1]] for o, b in zip(out, others)]
+
+    def match_many(self, a: FrameObservations, others) -> list:
+        """``[match(a, b) for b in others]`` with one batched network pass (a new keyframe
+        against all its candidates costs little more than against one)."""
+        empty = ObjectMatches(np.zeros(0, int), np.zeros(0, int), np.zeros(0))
+        out = [empty] * len(others)
+        todo = [i for i, b in enumerate(others) if len(a) and len(b)]
+        if not todo:
+            return out
+        try:
+            assignments = self.log_assignments(a, [others[i] for i in todo])
+        except ValueError:
+            return [self.match(a, b) for b in others]        # the fallback path, reported once
+        for i, la in zip(todo, assignments):
+            rows, cols, p = mutual_matches(la, self.config.match_threshold)
+            out[i] = ObjectMatches(rows, cols, p)
         return out
 
     def match(self, a: FrameObservations, b: FrameObservations) -> ObjectMatches:

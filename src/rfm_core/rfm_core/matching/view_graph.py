@@ -92,9 +92,12 @@ class ViewGraphBuilder:
         self.stats = _Stats()
         self._next_id = 0
 
-    def _relative(self, source: FrameObservations, target: FrameObservations) -> RelativePose | None:
-        """T_source_target from matching target against source."""
-        matches = self.matcher.match(target, source)
+    def _relative(self, source: FrameObservations, target: FrameObservations,
+                  matches=None) -> RelativePose | None:
+        """T_source_target from matching target against source (or from ``matches`` of
+        target against source, already computed)."""
+        if matches is None:
+            matches = self.matcher.match(target, source)
         rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching)
         if rel is None:
             return None
@@ -164,11 +167,13 @@ class ViewGraphBuilder:
         self.stats.last_candidates = [self.keyframes[i].keyframe_id for i in cand]
         last = len(self.keyframes) - 1
         recent = max(0, len(self.keyframes) - self.config.recent_keyframes)
+        others = [i for i in cand if i != last]            # matched in one batch
+        batched = dict(zip(others, self.matcher.match_many(obs, [self.keyframes[i].observations for i in others])))
         for i in cand:
             source = self.keyframes[i]
             self.stats.pairs_tested += 1
             rel = last_rel if i == last else self._plausible(
-                self._relative(source.observations, obs), source.observations.stamp_ns, obs.stamp_ns)
+                self._relative(source.observations, obs, batched[i]), source.observations.stamp_ns, obs.stamp_ns)
             if rel is not None and (i >= recent or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
         n = len(self.keyframes)
