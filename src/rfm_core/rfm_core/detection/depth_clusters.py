@@ -9,8 +9,8 @@
    surfaces (an upward-facing surface with points above it: small objects on tables).
 4. Fit a gravity-aligned box to each cluster: yaw from the minimum-area footprint, extents
    from robust percentiles, completed amodally — down to the floor or support it stands
-   on (from any height when something nearer hides its bottom), and back to the wall behind it (or to its visible width) when its far side cannot be
-   seen.
+   on (from any height when something nearer hides its bottom), and back to the wall
+   behind it (or to its visible width) when its far side cannot be seen.
 5. Score by support (points) and shape, calibrated by a small logistic model
    (:mod:`rfm_core.detection.score_model`); describe each box by an embedding of its colours
    (hue/value histograms, mean colour), sorted size and height above the floor.
@@ -461,7 +461,8 @@ class DepthClustersDetector(Detector):
 
     def _complete_back(self, centre, axes, lo, hi, walls):
         """Extend the side facing away from the camera: to a wall within reach, else to the
-        box's visible width (clipped to the amodal depth limits). The camera is at the origin of the gravity-aligned frame."""
+        box's visible width (clipped to the amodal depth limits). The camera is at the origin
+        of the gravity-aligned frame."""
         cfg = self.config
         lo, hi = lo.copy(), hi.copy()
         view = centre / max(np.linalg.norm(centre), 1e-6)      # from camera towards the box

@@ -4,8 +4,9 @@ The detector's own score (points supporting the box, thinness, cut by the image 
 ranks boxes poorly on its own: a far, small, partly seen cluster can have as many points as
 a near chair. A logistic model over a few resolution- and mounting-independent features —
 the raw score, range, footprint sizes, height and angular image size, all as logs — turns
-it into the probability that the box matches a visible object at 3D IoU >= 0.25, which
-is what AP ranks by and what the score threshold (paper: 0.25) should cut.
+it into the probability that the box matches a visible object at 3D IoU >= 0.25: what
+AP ranks by. The detector uses it to rank only; which boxes pass ``score_threshold`` is
+still decided by the raw score (the learned matcher was trained on those boxes).
 
 Trained by ``rfm train-depth-score`` on simulated scenes (seeds 3000+, the training
 range; never the tuning or evaluation seeds); the shipped coefficients are a small JSON
@@ -51,8 +52,8 @@ class ScoreModel:
     bias: float
 
     def __call__(self, features: np.ndarray) -> np.ndarray:
-        z = (np.asarray(features) - np.array(self.mean)) / np.array(self.std) @ np.array(self.weights) + self.bias
-        return 1.0 / (1.0 + np.exp(-z))
+        z = ((np.asarray(features) - np.array(self.mean)) / np.array(self.std)) @ np.array(self.weights) + self.bias
+        return np.exp(-np.logaddexp(0.0, -z))            # sigmoid, without overflow
 
     def save(self, path, metadata: dict | None = None) -> None:
         data = {'features': list(FEATURES), 'mean': list(self.mean), 'std': list(self.std),
