@@ -118,6 +118,7 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
                       len(h.poses[-1].poses) if h.poses else None, mapper.counts, mapper.message)
         assert mapper.counts['dropped'] >= 1
         assert h.wait(lambda: h.maps and len(h.maps[-1].objects) >= 5)
+        assert h.wait(lambda: mapper.num_objects == len(h.maps[-1].objects))   # what status reports
         # published poses agree with the ground truth
         ids = sorted(truth)
         est = {k: pose_to_matrix(p) for k, p in zip(ids, h.poses[-1].poses)}

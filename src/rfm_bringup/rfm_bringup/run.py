@@ -117,7 +117,7 @@ class _InProcessGraph:
         mp = self.mapper.mapper
         return {'frames': self.detector.counts['processed'], 'dropped': self.detector.counts['dropped_busy'],
                 'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
-                'registered': len(mp.poses), 'objects': len(mp._tracks) if mp._tracks is not None else 0,
+                'registered': len(mp.poses), 'objects': self.mapper.num_objects,
                 'busy': self.mapper._dirty or self.detector._pending is not None}
 
     def save(self, path) -> bool:

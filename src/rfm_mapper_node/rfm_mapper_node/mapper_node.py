@@ -154,6 +154,7 @@ class MapperNode(Node):
         self._map_dirty = False
         self._last_map_time = 0.0
         self._map_seconds = 0.0                  # cost of the last object-map rebuild
+        self.num_objects = 0                     # objects in the last published map
         self._since_save = 0
         self._camera_frame = ''
         self._last_camera = None             # (stamp_ns, 4x4)
@@ -398,6 +399,7 @@ class MapperNode(Node):
 
     def _publish_map(self) -> None:
         tracks = self.mapper.tracks()
+        self.num_objects = len(tracks)
         stamp_ns = max((f.stamp_ns for f in self.mapper.keyframes.values()), default=0)
         msg = object_map_msg(np.array([t.box for t in tracks]).reshape(-1, 7), [t.label for t in tracks],
                              [t.track_id for t in tracks], stamp_ns, self.map_frame,
@@ -448,7 +450,7 @@ class MapperNode(Node):
         active = len(mp.active_edges())
         msg.num_edges = active
         msg.num_edges_rejected = len(mp.edges) - active
-        msg.num_objects = len(mp._tracks) if mp._tracks is not None else 0
+        msg.num_objects = self.num_objects
         msg.num_components = mp.num_components()
         msg.last_update_seconds = float(mp.last_update_seconds)
         msg.message = self.message
@@ -514,7 +516,7 @@ class MapperNode(Node):
         self._since_save = 0
         response.success = True
         response.num_keyframes = len(self.mapper.keyframes)
-        response.num_objects = len(self.mapper.tracks())
+        response.num_objects = self.num_objects = len(self.mapper.tracks())
         response.message = f'loaded {path}: {header["keyframes"]} keyframes, {response.num_objects} objects'
         self.get_logger().info(response.message)
         self._publish_poses()
@@ -528,6 +530,7 @@ class MapperNode(Node):
         self.pending_edges.clear()
         self.pending_keyframes.clear()
         self._map_dirty = True
+        self.num_objects = 0
         response.success, response.message = True, 'map cleared'
         self.get_logger().info('map cleared')
         return response
