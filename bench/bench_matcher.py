@@ -4,8 +4,10 @@ A simulated detection stream (ground_truth:rgbd detections of one room) is repla
 ViewGraphBuilder that already holds 10, 100 or 1000 keyframes (copies of the room's
 keyframes, so retrieval has real candidates). Reported: median time to process one new
 keyframe (matching against the last keyframe, retrieval, matching and verifying the
-candidates; classical matcher), and the median time of one pair (match + relative pose)
-for the classical and the learned matcher.
+candidates; classical matcher), the median time of one pair (match + relative pose)
+for the classical and the learned matcher, and the learned matcher's time per pair when a
+frame is matched against 7 candidates in one batch (``match_many``, what a new keyframe
+does) against one pair at a time, in the same run.
 
     ros_ws/env.sh python bench/bench_matcher.py
 """
@@ -63,6 +65,20 @@ def main():
             match_times.append(mid - start)
             pair_times.append(time.perf_counter() - start)
         print(f'| {name} | {1e3 * statistics.median(match_times):.1f} | {1e3 * statistics.median(pair_times):.1f} |')
+    learned = LearnedMatcher(threads=1)
+    single, batched = [], []
+    for i in range(8, len(stream)):
+        query, candidates = stream[i], stream[i - 8:i - 1]
+        start = time.perf_counter()
+        for c in candidates:
+            learned.match(query, c)
+        mid = time.perf_counter()
+        learned.match_many(query, candidates)
+        single.append((mid - start) / len(candidates))
+        batched.append((time.perf_counter() - mid) / len(candidates))
+    print(f'\nlearned match per pair, a frame against 7 candidates: one at a time '
+          f'{1e3 * statistics.median(single):.1f} ms, batched {1e3 * statistics.median(batched):.1f} ms '
+          f'({statistics.median(single) / statistics.median(batched):.1f}x)')
 
 
 if __name__ == '__main__':
