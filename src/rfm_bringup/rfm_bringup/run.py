@@ -136,7 +136,9 @@ class _InProcessGraph:
 class _ProcessGraph:
     """The three nodes as separate processes (proves the graph over DDS)."""
 
-    def __init__(self, params: dict, remaps: dict, log_dir: Path):
+    def __init__(self, params: dict, remaps: dict, log_dir: Path, detections):
+        """``detections``: a callable giving the number of rfm/detections messages seen so far
+        (the detector runs elsewhere; the recorder counts them)."""
         from ament_index_python.packages import get_package_prefix  # noqa: PLC0415
         from rclpy.node import Node  # noqa: PLC0415
         from rfm_msgs.msg import MapperStatus  # noqa: PLC0415
@@ -156,7 +158,7 @@ class _ProcessGraph:
             self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT))
         self.node = Node('rfm_run')
         self.status = None
-        self.detections = 0
+        self.detections = detections
         self.node.create_subscription(MapperStatus, 'rfm/status', self._on_status, 10)
         from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
         self.executor = SingleThreadedExecutor()
@@ -184,7 +186,8 @@ class _ProcessGraph:
 
     def progress(self) -> dict:
         s = self.status
-        return {'frames': self.detections, 'dropped': 0, 'detections': self.detections,
+        n = self.detections()
+        return {'frames': n, 'dropped': 0, 'detections': n,
                 'keyframes': s.num_keyframes if s else 0, 'registered': s.num_registered if s else 0,
                 'objects': s.num_objects if s else 0, 'busy': False}
 
@@ -242,13 +245,14 @@ def run_graph(args) -> int:
     rclpy.init()
     graph = recorder = player = done_at = None
     interrupted = False
-    start = play_start = time.monotonic()
+    start = time.monotonic()
+    play_start = None                              # the first frame detected
     try:
-        graph = (_ProcessGraph(params, remaps, output) if args.processes else _InProcessGraph(params, remaps))
         recorder = BagRecorder(str(output / 'outputs.mcap'), topics=OUTPUT_TOPICS, node_name='rfm_run_recorder')
+        graph = (_ProcessGraph(params, remaps, output, lambda: recorder.counts.get('/rfm/detections', 0))
+                 if args.processes else _InProcessGraph(params, remaps))
         graph.add(recorder)
         graph.start()
-        play_start = time.monotonic() + 2.0        # rfm play --delay 2
         if bag is not None:
             rfm = shutil.which('rfm') or sys.argv[0]
             cmd = [rfm, 'play', str(bag), '--delay', '2', '--quiet', '--rate', str(args.rate)]
@@ -256,13 +260,11 @@ def run_graph(args) -> int:
                 cmd += ['--remap', '/ground_truth/camera_pose:=/rfm/external_pose']
             player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         last_line = 0.0
-        settle_since, last_state, first_frame = None, None, None
+        settle_since, last_state = None, None
         while True:
             time.sleep(0.2)
             now = time.monotonic()
             state = graph.progress()
-            if args.processes:
-                state['frames'] = state['detections'] = recorder.counts.get('/rfm/detections', 0)
             if now - last_line >= 1.0 and not args.quiet:
                 last_line = now
                 elapsed = now - start
@@ -274,8 +276,8 @@ def run_graph(args) -> int:
                 continue
             # processing time: from the first frame detected to the graph's last change (the
             # player's own start-up and shut-down are not processing)
-            if first_frame is None and state['frames'] > 0:
-                first_frame = play_start = now
+            if play_start is None and state['frames'] > 0:
+                play_start = now
             key = (state['frames'], state['keyframes'], state['registered'])
             if key != last_state or state['busy']:
                 last_state, settle_since = key, now
@@ -287,13 +289,11 @@ def run_graph(args) -> int:
     except KeyboardInterrupt:
         interrupted = True
     finally:
-        wall = (done_at or time.monotonic()) - (play_start if bag else start)
+        wall = (done_at or time.monotonic()) - (play_start or start)
         if not args.quiet:
             sys.stderr.write('\n')
         ok = graph.save(output / 'map.rfm') if graph is not None else False
         final = graph.progress() if graph is not None else {}
-        if args.processes and recorder is not None:
-            final['frames'] = final['detections'] = recorder.counts.get('/rfm/detections', 0)
         if recorder is not None:
             recorder.close()
         if graph is not None:

@@ -127,8 +127,4 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
         reloc = mapper.relocalize(obs)
         if reloc is not None:
             relocalized[frame.index] = world @ reloc.camera_to_map(obs)
-    wrong = [k for k, m in relocalized.items()
-             if np.linalg.norm(m[:3, 3] - truth[k][:3, 3]) > 0.25
-             or np.trace(truth[k][:3, :3].T @ m[:3, :3]) < 1 + 2 * np.cos(np.radians(5.0))]
-    return {**trajectory_errors(relocalized, truth, align=False),
-            'wrong': len(wrong) / max(len(relocalized), 1)}
+    return trajectory_errors(relocalized, truth, align=False, gross=(5.0, 0.25))

@@ -79,7 +79,7 @@ def evaluate_scene(args) -> dict:
     for s in settings:
         r = run_capture(config, s.detector, matcher=make_matcher('learned'), posed=s.posed,
                         bundle_adjustment=s.bundle_adjustment, capture=capture, frames=frames)
-        out[s.name] = {**r.localization, **{k: v for k, v in r.mapping.items()},
+        out[s.name] = {**r.localization, **r.mapping,
                        'keyframes': r.keyframes, 'seconds': r.seconds}
     return {'scene': f'{config.seed}_{config.room_style}_{config.capture}', 'results': out}
 

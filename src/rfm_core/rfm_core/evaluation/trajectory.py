@@ -66,15 +66,19 @@ def map_to_truth(estimated: dict, truth: dict) -> Pose4:
     return Pose4(float(np.arctan2(r[1, 0], r[0, 0])), t)
 
 
-def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') -> dict:
+def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof', gross=None) -> dict:
     """``estimated`` / ``truth``: {frame key: 4x4 camera-to-map}. Errors over the frames
     present in both; ``registered`` = share of ``truth`` frames that were estimated.
-    ``align``: '4dof' (default), 'se3', or False (posed: already in the truth's frame)."""
+    ``align``: '4dof' (default), 'se3', or False (posed: already in the truth's frame).
+    ``gross`` = (deg, m) adds ``wrong``: the share of the estimated frames off by more than
+    either."""
     keys, est, gt = _matched(estimated, truth)
     out = {'frames': len(truth), 'registered': len(keys) / max(len(truth), 1)}
     if not keys:
         out.update(ATE_median=float('nan'), ATE_rmse=float('nan'), ARE_median=float('nan'),
                    ARE_rmse=float('nan'))
+        if gross is not None:
+            out['wrong'] = 0.0
         return out
     if align == 'se3':
         r, t = align_se3(est[:, :3, 3], gt[:, :3, 3])
@@ -90,4 +94,6 @@ def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') 
     are = np.degrees(np.arccos(cos))
     out.update(ATE_median=float(np.median(ate)), ATE_rmse=float(np.sqrt(np.mean(ate ** 2))),
                ARE_median=float(np.median(are)), ARE_rmse=float(np.sqrt(np.mean(are ** 2))))
+    if gross is not None:
+        out['wrong'] = float(np.mean((are > gross[0]) | (ate > gross[1])))
     return out

@@ -118,16 +118,19 @@ class ViewGraphBuilder:
             return None
         return rel
 
+    def _too_soon(self, obs: FrameObservations) -> bool:
+        """Whether ``min_interval_s`` has not yet passed since the last keyframe."""
+        if self.config.min_interval_s <= 0 or not self.keyframes:
+            return False
+        dt = obs.stamp_ns - self.keyframes[-1].observations.stamp_ns
+        return 0 <= dt < self.config.min_interval_s * 1e9
+
     def _is_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None) -> bool:
         """Whether a frame becomes a keyframe, given its verified pose to the last keyframe."""
-        if not self.keyframes:
+        if not self.keyframes or last_rel is None:
             return True
         cfg = self.config
         last = self.keyframes[-1].observations
-        if cfg.min_interval_s > 0 and 0 <= obs.stamp_ns - last.stamp_ns < cfg.min_interval_s * 1e9:
-            return False
-        if last_rel is None:
-            return True
         overlap = len(last_rel.inliers) / max(min(len(obs), len(last)), 1)
         return (overlap < cfg.min_overlap
                 or np.linalg.norm(last_rel.pose.t) > cfg.max_translation_m
@@ -152,6 +155,8 @@ class ViewGraphBuilder:
         self.stats.frames += 1
         if len(obs) < self.config.min_detections:
             self.stats.skipped += 1
+            return None, []
+        if self._too_soon(obs):                     # before any matching: that is the saving
             return None, []
         # the pose to the last keyframe decides, and is reused as that candidate's edge
         last_rel = (self._plausible(self._relative(self.keyframes[-1].observations, obs),
