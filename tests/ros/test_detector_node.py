@@ -63,6 +63,7 @@ def graph():
     yield start
     if nodes:
         nodes['executor'].shutdown()
+        nodes['thread'].join(timeout=5)     # the spin thread must be out before nodes go
         nodes['detector'].destroy_node()
         nodes['test'].destroy_node()
     rclpy.try_shutdown()
