@@ -12,8 +12,10 @@ from rfm_core.matching.learned import (
     load_matcher_net, make_matcher, mutual_matches, save_matcher_net,
 )
 from rfm_core.matching.training import (
-    TrainConfig, assign_object_ids, labelled_pairs, match_targets, scene_configs, train_matcher,
+    STRUCTURE_ID_BASE, LabelledFrame, TrainConfig, assign_object_ids, label_structure, labelled_pairs,
+    match_targets, scene_configs, train_matcher,
 )
+from rfm_core.geometry import Pose4
 from rfm_core.observations import FrameObservations
 
 
@@ -117,6 +119,23 @@ def test_training_labels():
     far = replace(_subset(truth, np.array([1])), boxes=truth.boxes[1:2] + [5, 0, 0, 0, 0, 0, 0])
     assert assign_object_ids(pred, truth).tolist() == [13, 11]
     assert assign_object_ids(far, truth).tolist() == [-1]
+
+
+def test_structure_labels_follow_the_true_poses():
+    """Detections that are no object get one id per place in the map: the same fragment
+    seen from two poses shares an id, another place gets another, objects keep theirs."""
+    fragment = np.array([1.0, 0.2, 2.0, 0.3, 0.4, 0.5, 0.3])            # in the map frame
+    elsewhere = fragment + [0, 0, 2.5, 0, 0, 0, 0]
+    frames = []
+    for pose, boxes, ids in ((Pose4(0.0, (0, 0, 0)), [fragment, elsewhere], [-1, 4]),
+                             (Pose4(0.7, (0.4, -0.1, 0.3)), [elsewhere, fragment], [-1, -1])):
+        obs = replace(_frame(2, seed=1), boxes=pose.transform_boxes(np.array(boxes)),
+                      object_ids=np.array(ids, np.int64))
+        frames.append(LabelledFrame(obs, pose, np.array([4])))
+    label_structure(frames)
+    (a_frag, a_obj), (b_else, b_frag) = (f.observations.object_ids for f in frames)
+    assert a_obj == 4 and a_frag == b_frag >= STRUCTURE_ID_BASE
+    assert b_else >= STRUCTURE_ID_BASE and b_else != a_frag
 
 
 def test_training_learns_to_match_held_out_pairs():

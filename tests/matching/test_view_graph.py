@@ -62,3 +62,21 @@ def test_keyframes_are_spaced_by_min_interval(stream):
         stamps[interval] = np.array([k.observations.stamp_ns for k in graph.keyframes]) / 1e9
     assert np.all(np.diff(stamps[1.0]) >= 1.0 - 1e-6)
     assert counts[1.0] < counts[0.0] and counts[1.0] >= 5    # 10 s of frames at 4 Hz
+
+
+
+def test_unordered_collections_need_three_objects_and_retrieve_more(stream):
+    """Without the motion prior a two-object edge is trusted nowhere (not even to the
+    latest keyframe), and retrieval offers more candidates instead."""
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    inliers, candidates = {}, {}
+    for ordered in (True, False):
+        graph = ViewGraphBuilder(keyframes=KeyframeConfig(motion_prior=ordered, recent_keyframes=1, retrieved_keyframes=2,
+                                                          unordered_retrieved_keyframes=6, max_translation_m=0.1))
+        inliers[ordered], candidates[ordered] = [], 0
+        for frame in stream:
+            _, edges = graph.add(det.perturb(frame.ground_truth))
+            inliers[ordered] += [len(e.relative.inliers) for e in edges]
+            candidates[ordered] = max(candidates[ordered], len(graph.stats.last_candidates))
+    assert candidates[True] == 3 and candidates[False] == 7
+    assert 2 in inliers[True] and inliers[False] and min(inliers[False]) >= 3

@@ -323,7 +323,7 @@ def cmd_train_matcher(args) -> int:
     seeds = range(args.first_seed, args.first_seed + args.scenes)
     start = time.perf_counter()
     pairs = labelled_pairs(scene_configs(seeds, frames=args.frames), specs,
-                           noise_seeds=tuple(range(args.noise_draws)), jobs=args.jobs,
+                           noise_seeds=tuple(range(args.noise_draws)), jobs=args.jobs, structure=args.structure,
                            progress=lambda i, n: print(f'\rscenes {i}/{n}', end='', flush=True))
     print()
     data = [p for spec in specs for p in pairs[spec]]
@@ -507,6 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=0, help='initialisation and shuffling')
     p.add_argument('--threads', type=int, default=2, help='torch CPU threads')
     p.add_argument('--jobs', type=int, default=2, help='scenes rendered in parallel')
+    p.add_argument('--structure', action=argparse.BooleanOptionalAction, default=True,
+                   help='depth_clusters: also teach matching detections that are no object but are '
+                        'detected again at the same place (fragments, merged objects); see label_structure')
     p.add_argument('--output', help='checkpoint to write (default: the shipped weights of the backend)')
     p.set_defaults(func=cmd_train_matcher)
 

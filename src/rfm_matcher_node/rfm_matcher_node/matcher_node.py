@@ -70,9 +70,13 @@ class MatcherNode(Node):
                 'Match a new keyframe against this many latest keyframes', 0, 100)).value,
             retrieved_keyframes=p('retrieved_keyframes', k.retrieved_keyframes, _int(
                 'Plus this many most similar older keyframes (retrieval)', 0, 100)).value,
+            unordered_retrieved_keyframes=p('unordered_retrieved_keyframes', k.unordered_retrieved_keyframes, _int(
+                'Retrieved keyframes when motion_prior is off (unordered collections: retrieval is '
+                'what finds the overlaps)', 0, 100)).value,
             motion_prior=p('motion_prior', k.motion_prior, parameter_descriptor(
                 'Reject edges implying faster motion than max_yaw_rate_deg_s / max_speed_m_s (plus '
-                'slack); turn off for unordered image collections')).value,
+                'slack); turn off for unordered image collections (then every edge needs 3 verified '
+                'objects and unordered_retrieved_keyframes candidates are retrieved)')).value,
             max_yaw_rate_deg_s=p('max_yaw_rate_deg_s', k.max_yaw_rate_deg_s, _float(
                 'Motion prior: fastest plausible turn (deg/s)', 1, 3600)).value,
             max_speed_m_s=p('max_speed_m_s', k.max_speed_m_s, _float(

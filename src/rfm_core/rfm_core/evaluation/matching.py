@@ -4,8 +4,9 @@ Pairs of frames of rendered captures that share >= ``min_shared`` visible object
 detections from a backend whose ground-truth object ids give the true matches (see
 :mod:`rfm_core.matching.training`), are matched and their relative pose estimated and
 verified. Reported: object-match precision and recall (a match is correct when both
-detections belong to the same object; recall is over the objects detected in both frames)
-and F1, the fraction of pairs verified, and the median yaw (deg) and translation (m) error
+detections belong to the same object; a match of two detections that are both no object,
+such as two views of the same fragment, is not scored: it is no object match, yet it is
+no error either; recall is over the objects detected in both frames) and F1, the fraction of pairs verified, and the median yaw (deg) and translation (m) error
 of verified poses.
 """
 from __future__ import annotations
@@ -46,9 +47,11 @@ def evaluate_pairs(pairs, matcher, config=None) -> PairResult:
     for fa, fb in pairs:
         o1, o2 = fa.observations, fb.observations
         m = matcher.match(o1, o2)
-        ok = (o1.object_ids[m.a] == o2.object_ids[m.b]) & (o1.object_ids[m.a] > 0)
+        ia, ib = o1.object_ids[m.a], o2.object_ids[m.b]
+        ok = (ia == ib) & (ia > 0)
+        scored = (ia > 0) | (ib > 0)
         tp += int(ok.sum())
-        fp += int((~ok).sum())
+        fp += int((scored & ~ok).sum())
         positives += len(set(o1.object_ids[o1.object_ids > 0]) & set(o2.object_ids[o2.object_ids > 0]))
         rel = estimate_relative_pose(o1.boxes, o2.boxes, m, config)
         if rel is None:

@@ -5,6 +5,12 @@ the ground-truth object id of each detection: the ``ground_truth`` backend keeps
 of the objects it perturbs; detections of an image-based backend (``depth_clusters``) get
 the id of the visible ground-truth box they overlap best (one-to-one, IoU3D >= 0.25), or
 none. Two detections match when they carry the same id.
+
+With ``label_structure``, detections that are no ground-truth object (a fragment of an
+object, two merged objects, a cluster on a wall) but that a detector reports again and
+again at the same place also get an id (:func:`label_structure`), so the matcher learns
+to match them too: for the relative pose, any structure detected consistently in both
+frames is a landmark (an image-based detector's junk is most of what some views show).
 """
 from __future__ import annotations
 
@@ -22,7 +28,7 @@ from rfm_core.matching.learned import MatcherNetConfig, ObjectMatcherNet, batch_
 from rfm_core.observations import FrameObservations
 from rfm_core.sim.capture import Capture, CaptureConfig
 
-__all__ = ['LabelledFrame', 'assign_object_ids', 'labelled_capture', 'frame_pairs', 'scene_configs',
+__all__ = ['LabelledFrame', 'assign_object_ids', 'label_structure', 'STRUCTURE_ID_BASE', 'labelled_capture', 'frame_pairs', 'scene_configs',
            'labelled_pairs', 'TrainConfig', 'train_matcher', 'match_targets']
 
 
@@ -45,6 +51,33 @@ def assign_object_ids(pred: FrameObservations, truth: FrameObservations, min_iou
     return ids
 
 
+#: ids given to consistently detected structure that is not a ground-truth object
+STRUCTURE_ID_BASE = 1_000_000
+
+
+def label_structure(frames, min_iou: float = 0.25) -> None:
+    """Give the detections without a ground-truth id (``object_ids == -1``) of one capture
+    ids of their own, in place: each is placed in the map frame with the frame's true pose
+    and joins the earlier such detection it overlaps best (IoU3D >= ``min_iou``, one per
+    frame), else starts a new id from :data:`STRUCTURE_ID_BASE`."""
+    world: list = []                                 # first map-frame box of each structure
+    for frame in frames:
+        obs = frame.observations
+        todo = np.flatnonzero(obs.object_ids < 0)
+        if len(todo) == 0:
+            continue
+        boxes = frame.aligned_from_map.inverse().transform_boxes(obs.boxes[todo])
+        if world:
+            iou = iou_3d(boxes, np.array(world))
+            rows, cols = linear_sum_assignment(-iou)
+            ok = iou[rows, cols] >= min_iou
+            obs.object_ids[todo[rows[ok]]] = STRUCTURE_ID_BASE + cols[ok]
+        for i, box in zip(todo, boxes):
+            if obs.object_ids[i] < 0:
+                obs.object_ids[i] = STRUCTURE_ID_BASE + len(world)
+                world.append(box)
+
+
 def _detector(spec: str, noise_seed: int):
     backend, _, preset = spec.partition(':')
     if backend == 'ground_truth':
@@ -52,8 +85,10 @@ def _detector(spec: str, noise_seed: int):
     return make_detector(backend)
 
 
-def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,)) -> dict:
-    """{(spec, noise_seed): [LabelledFrame, ...]} for one capture (rendered once)."""
+def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,), structure: bool = False) -> dict:
+    """{(spec, noise_seed): [LabelledFrame, ...]} for one capture (rendered once); with
+    ``structure``, image-based detections that are no object are labelled by
+    :func:`label_structure`."""
     detectors = {(spec, s): _detector(spec, s) for spec in specs
                  for s in (noise_seeds if spec.startswith('ground_truth') else (0,))}
     out = {key: [] for key in detectors}
@@ -68,6 +103,10 @@ def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,)) -> dict:
                 obs = det.detect(frame.detector_input())
                 obs = replace(obs, object_ids=assign_object_ids(obs, truth))
             out[key].append(LabelledFrame(obs, pose, truth.object_ids))
+    if structure:
+        for (spec, _), frames in out.items():
+            if not spec.startswith('ground_truth'):
+                label_structure(frames)
     return out
 
 
@@ -87,8 +126,8 @@ def frame_pairs(frames, gaps=(1, 2, 3, 4), min_shared: int = 2, visible: bool = 
 
 
 def _capture_job(args):
-    config, specs, noise_seeds = args
-    return labelled_capture(config, specs, noise_seeds)
+    config, specs, noise_seeds, structure = args
+    return labelled_capture(config, specs, noise_seeds, structure)
 
 
 def scene_configs(seeds, frames: int = 24, fps: float = 2.0):
@@ -99,10 +138,11 @@ def scene_configs(seeds, frames: int = 24, fps: float = 2.0):
 
 
 def labelled_pairs(configs, specs, noise_seeds=(0,), gaps=(1, 2, 3, 4), min_shared: int = 2,
-                   visible: bool = False, jobs: int = 1, progress=None) -> dict:
-    """{spec: [(LabelledFrame a, LabelledFrame b), ...]} over captures, in parallel."""
+                   visible: bool = False, jobs: int = 1, progress=None, structure: bool = False) -> dict:
+    """{spec: [(LabelledFrame a, LabelledFrame b), ...]} over captures, in parallel
+    (``structure``: see :func:`labelled_capture`)."""
     pairs = {spec: [] for spec in specs}
-    work = [(c, tuple(specs), tuple(noise_seeds)) for c in configs]
+    work = [(c, tuple(specs), tuple(noise_seeds), structure) for c in configs]
     if jobs > 1:
         with ProcessPoolExecutor(jobs) as pool:
             results = pool.map(_capture_job, work)

@@ -5,7 +5,10 @@ shares too few objects with it, or has moved or turned too far from it. A new ke
 then matched against candidates: the few most recent keyframes plus the keyframes whose
 bag-of-objects descriptor (mean of the object embeddings) is most similar, so the cost per
 keyframe stays bounded however large the map grows. Every verified relative pose becomes
-an edge.
+an edge; one resting on only two objects only to a recent keyframe of an ordered capture,
+where the motion prior has checked it (two objects verify nothing beyond the minimal
+sample, and repeated furniture aliases). An unordered collection (``motion_prior`` off)
+gets more retrieved candidates instead, since there "recent" means nothing.
 """
 from __future__ import annotations
 
@@ -30,12 +33,15 @@ class KeyframeConfig:
     min_interval_s: float = 0.0       #: no new keyframe sooner than this after the last one
     recent_keyframes: int = 3         #: always match against this many latest keyframes
     retrieved_keyframes: int = 5      #: plus this many most similar older ones
+    unordered_retrieved_keyframes: int = 15   #: ... without the motion prior (an unordered
+                                      #: collection: retrieval is what finds the overlaps)
     min_retrieval_similarity: float = 0.3
     max_yaw_rate_deg_s: float = 90.0  #: motion prior: an edge turning faster than this ...
     max_speed_m_s: float = 1.5        #: ... or moving faster (plus the slack below) is rejected
     motion_slack_deg: float = 10.0    #: allowance on top of rate x time (detector noise)
     motion_slack_m: float = 0.3
-    motion_prior: bool = True         #: off for unordered collections (stamps mean nothing)
+    motion_prior: bool = True         #: off for unordered collections (stamps mean nothing);
+                                      #: then every edge needs min_retrieved_inliers
     min_retrieved_inliers: int = 3    #: edges to retrieved (not recent) keyframes need this many
                                       #: verified objects: two objects verify nothing beyond
                                       #: the minimal sample, and repeated furniture aliases
@@ -142,9 +148,10 @@ class ViewGraphBuilder:
         n = len(self.keyframes)
         recent = list(range(max(0, n - cfg.recent_keyframes), n))
         older = n - len(recent)
-        if older > 0 and cfg.retrieved_keyframes > 0 and self._desc_buffer.shape[1] == len(descriptor):
+        wanted = cfg.retrieved_keyframes if cfg.motion_prior else cfg.unordered_retrieved_keyframes
+        if older > 0 and wanted > 0 and self._desc_buffer.shape[1] == len(descriptor):
             sims = self._desc_buffer[:older] @ descriptor
-            k = min(cfg.retrieved_keyframes, older)
+            k = min(wanted, older)
             top = np.argpartition(-sims, k - 1)[:k]
             top = top[np.argsort(-sims[top])]
             recent += [int(i) for i in top if sims[i] >= cfg.min_retrieval_similarity]
@@ -171,7 +178,10 @@ class ViewGraphBuilder:
         cand = self.candidates(descriptor)
         self.stats.last_candidates = [self.keyframes[i].keyframe_id for i in cand]
         last = len(self.keyframes) - 1
-        recent = max(0, len(self.keyframes) - self.config.recent_keyframes)
+        # two verified objects suffice for a recent neighbour only where the motion prior has
+        # checked the pose: in an unordered collection "recent" means nothing
+        recent = (max(0, len(self.keyframes) - self.config.recent_keyframes) if self.config.motion_prior
+                  else len(self.keyframes))
         others = [i for i in cand if i != last]            # matched in one batch
         batched = dict(zip(others, self.matcher.match_many(obs, [self.keyframes[i].observations for i in others])))
         for i in cand:
