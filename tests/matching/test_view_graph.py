@@ -64,7 +64,6 @@ def test_keyframes_are_spaced_by_min_interval(stream):
     assert counts[1.0] < counts[0.0] and counts[1.0] >= 5    # 10 s of frames at 4 Hz
 
 
-
 def test_unordered_collections_need_three_objects_and_retrieve_more(stream):
     """Without the motion prior a two-object edge is trusted nowhere (not even to the
     latest keyframe), and retrieval offers more candidates instead."""

@@ -339,7 +339,7 @@ def cmd_train_matcher(args) -> int:
     output.parent.mkdir(parents=True, exist_ok=True)
     metadata = {'command': 'rfm train-matcher ' + ' '.join(sys.argv[2:]) if sys.argv[1:2] == ['train-matcher']
                 else 'rfm train-matcher (API)', 'backend': args.backend, 'inputs': specs,
-                'scene_seeds': [seeds.start, seeds.stop - 1], 'pairs': len(data),
+                'scene_seeds': [seeds.start, seeds.stop - 1], 'pairs': len(data), 'structure': args.structure,
                 'train': asdict(config),
                 'torch': torch.__version__,
                 'seconds': round(time.perf_counter() - start)}

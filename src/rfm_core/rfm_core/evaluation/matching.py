@@ -6,8 +6,8 @@ detections from a backend whose ground-truth object ids give the true matches (s
 verified. Reported: object-match precision and recall (a match is correct when both
 detections belong to the same object; a match of two detections that are both no object,
 such as two views of the same fragment, is not scored: it is no object match, yet it is
-no error either; recall is over the objects detected in both frames) and F1, the fraction of pairs verified, and the median yaw (deg) and translation (m) error
-of verified poses.
+no error either; recall is over the objects detected in both frames) and F1, the fraction
+of pairs verified, and the median yaw (deg) and translation (m) error of verified poses.
 """
 from __future__ import annotations
 

@@ -6,9 +6,9 @@ of the objects it perturbs; detections of an image-based backend (``depth_cluste
 the id of the visible ground-truth box they overlap best (one-to-one, IoU3D >= 0.25), or
 none. Two detections match when they carry the same id.
 
-With ``label_structure``, detections that are no ground-truth object (a fragment of an
-object, two merged objects, a cluster on a wall) but that a detector reports again and
-again at the same place also get an id (:func:`label_structure`), so the matcher learns
+With ``structure``, detections that are no ground-truth object (a fragment of an object,
+two merged objects, a cluster on a wall) but that a detector reports again and again at
+the same place also get an id (:func:`label_structure`), so the matcher learns
 to match them too: for the relative pose, any structure detected consistently in both
 frames is a landmark (an image-based detector's junk is most of what some views show).
 """
@@ -28,8 +28,8 @@ from rfm_core.matching.learned import MatcherNetConfig, ObjectMatcherNet, batch_
 from rfm_core.observations import FrameObservations
 from rfm_core.sim.capture import Capture, CaptureConfig
 
-__all__ = ['LabelledFrame', 'assign_object_ids', 'label_structure', 'STRUCTURE_ID_BASE', 'labelled_capture', 'frame_pairs', 'scene_configs',
-           'labelled_pairs', 'TrainConfig', 'train_matcher', 'match_targets']
+__all__ = ['LabelledFrame', 'assign_object_ids', 'label_structure', 'STRUCTURE_ID_BASE', 'labelled_capture',
+           'frame_pairs', 'scene_configs', 'labelled_pairs', 'TrainConfig', 'train_matcher', 'match_targets']
 
 
 @dataclass
