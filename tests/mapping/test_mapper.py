@@ -66,6 +66,19 @@ def test_tracks_union_find_merging_and_suppression():
     assert sorted(tuple(map(tuple, t.observations)) for t in loose) == [((0, 0), (1, 0)), ((0, 1), (1, 1))]
 
 
+def test_a_track_seen_once_ranks_below_agreeing_views():
+    """Same detection scores: a box seen in two agreeing views (IoU ~0.8) outranks one seen
+    once, which has no evidence of consistency beyond a verified match's IoU (0.25)."""
+    table = [1.0, 2.0, 0.4, 1.2, 0.8, 0.8, 0.0]
+    lone = [-1.0, 2.0, 0.4, 0.5, 0.5, 0.5, 0.0]
+    keyframes = {0: _obs([table, lone], [[1.0, 0.0], [0.0, 1.0]]),
+                 1: _obs([np.add(table, [0.05, 0, 0, 0, 0, 0, 0])], [[1.0, 0.0]])}
+    poses = {k: Pose4(0.0, (0, 0, 0)) for k in keyframes}
+    tracks = sorted(build_tracks(keyframes, poses, [(0, 0, 1, 0)]), key=lambda t: -t.score)
+    assert [t.num_observations for t in tracks] == [2, 1]
+    assert tracks[1].score == pytest.approx(np.sqrt(0.25 * 0.9), rel=1e-6)
+
+
 def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     mapper = mapped.mapper
     path = save_map(mapper, tmp_path / 'room.rfm')

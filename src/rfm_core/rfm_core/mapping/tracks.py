@@ -37,7 +37,10 @@ class TrackConfig:
     merge_affinity: float = 0.25         #: paper: merge when the track affinity exceeds this
     suppress_iou: float = 0.15           #: paper: suppress an unmerged overlapping track
     min_observations: int = 1            #: tracks with fewer observations are not reported
-    single_view_iou: float = 0.5         #: mutual-IoU term of a track seen once (no evidence)
+    single_view_iou: float = 0.25        #: mutual-IoU term of a track seen once: no evidence of
+                                         #: consistency, so the least a verified second view
+                                         #: would show (the inlier IoU); ranks it below
+                                         #: tracks whose views agree
     max_pair_observations: int = 6       #: merging: observations per track compared (best scores)
 
 
