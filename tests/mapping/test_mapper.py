@@ -67,7 +67,7 @@ def test_tracks_union_find_merging_and_suppression():
 
 
 def test_a_track_seen_once_ranks_below_agreeing_views():
-    """Same detection scores: a box seen in two agreeing views (IoU ~0.8) outranks one seen
+    """Same detection scores: a box seen in two agreeing views (IoU ~0.9) outranks one seen
     once, which has no evidence of consistency beyond a verified match's IoU (0.25)."""
     table = [1.0, 2.0, 0.4, 1.2, 0.8, 0.8, 0.0]
     lone = [-1.0, 2.0, 0.4, 0.5, 0.5, 0.5, 0.0]
