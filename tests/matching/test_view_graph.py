@@ -70,8 +70,9 @@ def test_unordered_collections_need_three_objects_and_retrieve_more(stream):
     det = make_detector('ground_truth', preset='rgbd', seed=4)
     inliers, candidates = {}, {}
     for ordered in (True, False):
-        graph = ViewGraphBuilder(keyframes=KeyframeConfig(motion_prior=ordered, recent_keyframes=1, retrieved_keyframes=2,
-                                                          unordered_retrieved_keyframes=6, max_translation_m=0.1))
+        graph = ViewGraphBuilder(keyframes=KeyframeConfig(
+            motion_prior=ordered, recent_keyframes=1, retrieved_keyframes=2, unordered_retrieved_keyframes=6,
+            max_translation_m=0.1))
         inliers[ordered], candidates[ordered] = [], 0
         for frame in stream:
             _, edges = graph.add(det.perturb(frame.ground_truth))

@@ -5,10 +5,11 @@ shares too few objects with it, or has moved or turned too far from it. A new ke
 then matched against candidates: the few most recent keyframes plus the keyframes whose
 bag-of-objects descriptor (mean of the object embeddings) is most similar, so the cost per
 keyframe stays bounded however large the map grows. Every verified relative pose becomes
-an edge; one resting on only two objects only to a recent keyframe of an ordered capture,
-where the motion prior has checked it (two objects verify nothing beyond the minimal
-sample, and repeated furniture aliases). An unordered collection (``motion_prior`` off)
-gets more retrieved candidates instead, since there "recent" means nothing.
+an edge, except that a pose resting on only two objects is kept only towards a recent
+keyframe of an ordered capture, where the motion prior has checked it (two objects verify
+nothing beyond the minimal sample, and repeated furniture aliases). An unordered
+collection (``motion_prior`` off) gets more retrieved candidates instead, since there
+"recent" means nothing.
 """
 from __future__ import annotations
 
@@ -180,8 +181,8 @@ class ViewGraphBuilder:
         last = len(self.keyframes) - 1
         # two verified objects suffice for a recent neighbour only where the motion prior has
         # checked the pose: in an unordered collection "recent" means nothing
-        recent = (max(0, len(self.keyframes) - self.config.recent_keyframes) if self.config.motion_prior
-                  else len(self.keyframes))
+        two_objects_from = (max(0, len(self.keyframes) - self.config.recent_keyframes) if self.config.motion_prior
+                            else len(self.keyframes))
         others = [i for i in cand if i != last]            # matched in one batch
         batched = dict(zip(others, self.matcher.match_many(obs, [self.keyframes[i].observations for i in others])))
         for i in cand:
@@ -189,7 +190,7 @@ class ViewGraphBuilder:
             self.stats.pairs_tested += 1
             rel = last_rel if i == last else self._plausible(
                 self._relative(source.observations, obs, batched[i]), source.observations.stamp_ns, obs.stamp_ns)
-            if rel is not None and (i >= recent or len(rel.inliers) >= self.config.min_retrieved_inliers):
+            if rel is not None and (i >= two_objects_from or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
         n = len(self.keyframes)
         if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe
