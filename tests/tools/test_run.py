@@ -50,3 +50,22 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     with AnyReader([out / 'outputs.mcap']) as reader:
         topics = {c.topic for c in reader.connections}
     assert {'/rfm/detections', '/rfm/keyframes', '/rfm/object_map', '/rfm/keyframe_poses'} <= topics
+
+
+def test_rfm_run_gives_an_rgb_only_detector_along_ray_errors(tmp_path):
+    """`rfm run` passes the matcher and mapper the monocular range error exactly when the
+    detector judges distance from RGB alone; --param still overrides it."""
+    from rfm_bringup.cli import build_parser
+    from rfm_bringup.run import _params
+    from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
+
+    def params(*extra):
+        return _params(build_parser().parse_args(['run', '--bag', 'x', '--backend', 'ground_truth', *extra]),
+                       tmp_path)
+    rgb = params('--preset', 'rgb')
+    for node in ('matcher', 'mapper'):
+        assert (rgb[node]['range_error'], rgb[node]['range_error_per_m']) == MONOCULAR_RANGE_ERROR
+    assert 'range_error' not in params('--preset', 'rgbd')['matcher']
+    assert params('--preset', 'rgb', '--param', 'matcher.range_error:=0.05')['matcher']['range_error'] == 0.05
+    with pytest.raises(SystemExit):
+        params('--preset', 'sonar')

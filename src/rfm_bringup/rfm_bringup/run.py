@@ -44,6 +44,11 @@ def _params(args, output: Path) -> dict:
     mapper = {'map_path': str(output / 'map.rfm'), 'use_sim_time': sim_time, 'matcher': args.matcher}
     if args.posed:
         mapper['pose_source'] = 'topic'
+    if args.backend == 'ground_truth' and _ground_truth_monocular(args.preset):
+        from rfm_core.matching.config import MONOCULAR_RANGE_ERROR  # noqa: PLC0415
+
+        for node in (matcher, mapper):      # distances misjudged along the viewing rays
+            node['range_error'], node['range_error_per_m'] = MONOCULAR_RANGE_ERROR
     nodes = {'detector': detector, 'matcher': matcher, 'mapper': mapper}
     for item in args.param or []:
         try:
@@ -55,6 +60,15 @@ def _params(args, output: Path) -> dict:
             raise SystemExit(f'rfm run: --param {item!r}: node must be one of {sorted(nodes)}')
         nodes[node][param] = _parse_value(value)
     return nodes
+
+
+def _ground_truth_monocular(preset: str) -> bool:
+    from rfm_core.detection import make_detector  # noqa: PLC0415
+
+    try:
+        return make_detector('ground_truth', preset=preset).monocular
+    except ValueError as exc:
+        raise SystemExit(f'rfm run: --preset: {exc}') from None
 
 
 def _parse_value(text: str):

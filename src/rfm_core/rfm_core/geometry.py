@@ -40,8 +40,8 @@ __all__ = [
     'BOX_DIM', 'CORNER_SIGNS', 'Pose4', 'wrap_angle', 'yaw_matrix', 'box_corners',
     'bev_corners', 'box_volume', 'boxes_from_oriented', 'oriented_from_boxes',
     'gravity_from_accelerometer', 'gravity_aligned_rotation', 'quaternion_from_matrix',
-    'matrix_from_quaternion', 'kabsch_4dof', 'kabsch_4dof_batch', 'convex_hull_area', 'iou_3d', 'iou_3d_paired', 'giou_3d',
-    'giou_3d_paired',
+    'matrix_from_quaternion', 'kabsch_4dof', 'kabsch_4dof_batch', 'ray_covariances',
+    'align_4dof_anisotropic', 'convex_hull_area', 'iou_3d', 'iou_3d_paired', 'giou_3d', 'giou_3d_paired',
 ]
 
 BOX_DIM = 7
@@ -347,6 +347,48 @@ def kabsch_4dof_batch(source, target, weights=None):
     yaw = np.arctan2(sin_term, cos_term)
     t = q_mean - np.einsum('hij,hj->hi', yaw_matrix(yaw), s_mean)
     return yaw, t
+
+
+def ray_covariances(points, sigma, range_error) -> np.ndarray:
+    """Covariances (N, 3, 3) of points seen from the origin: isotropic ``sigma`` (N,) plus
+    ``range_error`` x distance along the viewing ray (a misjudged distance moves a point
+    along its ray, the error of monocular depth)."""
+    p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    dist = np.maximum(np.linalg.norm(p, axis=1), 1e-9)
+    ray = p / dist[:, None]
+    sigma = np.broadcast_to(np.asarray(sigma, dtype=np.float64), (len(p),))
+    range_error = np.broadcast_to(np.asarray(range_error, dtype=np.float64), (len(p),))
+    return (sigma[:, None, None] ** 2 * np.eye(3)
+            + (range_error * dist)[:, None, None] ** 2 * np.einsum('ni,nj->nij', ray, ray))
+
+
+def align_4dof_anisotropic(source, target, cov_source, cov_target, yaw_init: float,
+                           span: float = 0.35, weights=None) -> tuple[Pose4, np.ndarray]:
+    """Maximum-likelihood 4-DoF alignment of points with full covariances:
+    argmin sum_i w_i r_i^T (R C_s,i R^T + C_t,i)^-1 r_i with r_i = Rz(yaw) s_i + t - q_i.
+
+    For a given yaw the translation is a weighted mean in closed form; the yaw is searched
+    within ``span`` rad of ``yaw_init`` (a start from :func:`kabsch_4dof`). Returns the pose
+    and each point's squared Mahalanobis residual (for robust reweighting)."""
+    from scipy.optimize import minimize_scalar
+
+    s = np.asarray(source, dtype=np.float64).reshape(-1, 3)
+    q = np.asarray(target, dtype=np.float64).reshape(-1, 3)
+    w = np.ones(len(s)) if weights is None else np.asarray(weights, dtype=np.float64)
+
+    def solve(yaw):
+        rot = yaw_matrix(yaw)
+        info = np.linalg.inv(rot @ cov_source @ rot.T + cov_target) * w[:, None, None]
+        d = q - s @ rot.T
+        t = np.linalg.solve(info.sum(0), np.einsum('nij,nj->i', info, d))
+        r = d - t
+        return t, np.einsum('ni,nij,nj->n', r, info, r)
+
+    best = minimize_scalar(lambda y: solve(y)[1].sum(), bounds=(yaw_init - span, yaw_init + span),
+                           method='bounded', options={'xatol': 1e-5})
+    yaw = float(wrap_angle(best.x))
+    t, chi2 = solve(yaw)
+    return Pose4(yaw, t), chi2 / np.maximum(w, 1e-12)
 
 
 # --------------------------------------------------------------------------------------

@@ -40,6 +40,7 @@ from rfm_core.io.messages import (
     parameter_descriptor, stamp_to_ns,
 )
 from rfm_core.io.sync import ApproximateTimeSynchronizer
+from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
 
 _EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
           (0, 4), (1, 5), (2, 6), (3, 7)]
@@ -106,6 +107,11 @@ class DetectorNode(Node):
             options.update(checkpoint=self.cutr_checkpoint, device=self.device,
                            max_side_px=self.cutr_max_side)
         self.detector = make_detector(self.backend, **options)
+        if self.detector.monocular:
+            error, per_m = MONOCULAR_RANGE_ERROR
+            self.get_logger().info(
+                f'{self.backend} judges distance from RGB alone: give the matcher and mapper '
+                f'range_error:={error} range_error_per_m:={per_m} (rfm run does for ground_truth rgb)')
         self.fixed_gravity = np.asarray(gravity, dtype=np.float64)
         if self.gravity_source not in ('imu', 'parameter'):
             raise ValueError("gravity_source must be 'imu' or 'parameter'")

@@ -123,8 +123,14 @@ class MapperNode(Node):
                 0, 1)).value,
             min_observations=p('min_observations', t.min_observations, _int(
                 'Publish tracks seen in at least this many keyframes', 1, 1000)).value)
-        matching = MatchingConfig(match_threshold=p('match_threshold', m.match_threshold, _float(
-            'Relocalization: object match threshold (paper: 0.5)', 0, 1)).value)
+        matching = MatchingConfig(
+            match_threshold=p('match_threshold', m.match_threshold, _float(
+                'Relocalization: object match threshold (paper: 0.5)', 0, 1)).value,
+            refine_range_error=p('range_error', m.refine_range_error, _float(
+                'Relocalization: relative distance error of detections along the viewing ray '
+                '(0: depth sensor; 0.03 for an RGB-only detector, see the matcher)', 0, 1)).value,
+            refine_range_error_per_m=p('range_error_per_m', m.refine_range_error_per_m, _float(
+                'Relocalization: ... growing by this per metre (0.01 for an RGB-only detector)', 0, 1)).value)
         kind = p('matcher', 'learned', _text(
             "Relocalization object matcher: 'learned' or 'classical'", True)).value
         weights = p('matcher_weights', '', _text('Learned matcher checkpoint; empty: shipped', True)).value

@@ -53,7 +53,13 @@ class MatcherNode(Node):
             corner_inlier_m=p('corner_inlier_m', d.corner_inlier_m, _float(
                 'Corner inlier distance for bundle adjustment (m, paper: 0.10)', 0, 1)).value,
             refine=p('refine_pose', d.refine, parameter_descriptor(
-                'Refit the winning pose on all inlier matches (kept if it explains them as well)')).value)
+                'Refit the winning pose on all inlier matches (kept if it explains them as well)')).value,
+            refine_range_error=p('range_error', d.refine_range_error, _float(
+                "Relative error of the detector's distances along the viewing ray: 0 for a depth "
+                'sensor; an RGB-only detector (cutr RGB, ground_truth rgb) misjudges distance, ~0.03: '
+                'the pose refit then weights each match by its along-ray covariance', 0, 1)).value,
+            refine_range_error_per_m=p('range_error_per_m', d.refine_range_error_per_m, _float(
+                '... growing by this per metre of range (~0.01 for an RGB-only detector)', 0, 1)).value)
         keyframes = KeyframeConfig(
             min_overlap=p('keyframe_min_overlap', k.min_overlap, _float(
                 'New keyframe when fewer than this share of objects match the last one', 0, 1)).value,

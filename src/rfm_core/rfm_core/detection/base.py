@@ -55,6 +55,7 @@ class Detector:
 
     name = 'base'
     needs_depth = False
+    monocular = False    #: distances judged from RGB alone: errors run along the viewing rays
 
     def detect(self, frame: DetectorInput) -> FrameObservations:  # pragma: no cover
         raise NotImplementedError

@@ -61,6 +61,7 @@ class CutrDetector(Detector):
             raise ValueError('max_side_px must be within 32..1024')
         self.model = model if model is not None else load_cutr(self.config.checkpoint, self.config.device)
         self.needs_depth = bool(self.model.rgbd)
+        self.monocular = not self.needs_depth
 
     def detect(self, frame: DetectorInput) -> FrameObservations:
         import torch  # noqa: PLC0415

@@ -89,6 +89,7 @@ class GroundTruthDetector(Detector):
             raise ValueError(f'unknown ground_truth preset {self.config.preset!r}; '
                              f'choose one of {sorted(PRESETS)}')
         self.noise = self.config.noise or PRESETS[self.config.preset]
+        self.monocular = self.noise.scale_sigma > 0 or self.noise.scale_sigma_per_m > 0
         self._seed = self.config.seed
 
     def detect(self, frame: DetectorInput) -> FrameObservations:

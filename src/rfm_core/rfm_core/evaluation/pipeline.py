@@ -18,6 +18,7 @@ from rfm_core.evaluation.mapping import evaluate_map
 from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig
+from rfm_core.matching.config import monocular
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 from rfm_core.sim.capture import Capture, CaptureConfig
 
@@ -38,7 +39,8 @@ class PipelineResult:
 
 def detections_for(spec: str, noise_seed: int = 0):
     """A function SimFrame -> FrameObservations for a detector spec ('depth_clusters',
-    'ground_truth:rgbd', ...). Object ids are stripped (the pipeline must not see them)."""
+    'ground_truth:rgbd', ...). Object ids are stripped (the pipeline must not see them). The
+    function's ``monocular`` attribute is the detector's."""
     from rfm_core.detection import make_detector  # noqa: PLC0415
 
     backend, _, preset = spec.partition(':')
@@ -48,10 +50,13 @@ def detections_for(spec: str, noise_seed: int = 0):
         def run(frame):
             obs = det.perturb(frame.ground_truth)
             return replace(obs, object_ids=np.full(len(obs), -1, np.int64), visibility=np.full(len(obs), -1.0))
-        return run
-    det = make_detector(backend)
+    else:
+        det = make_detector(backend)
 
-    return lambda frame: det.detect(frame.detector_input())
+        def run(frame):
+            return det.detect(frame.detector_input())
+    run.monocular = det.monocular
+    return run
 
 
 def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matcher=None,
@@ -64,7 +69,8 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     detect = detections_for(detector, noise_seed)
     mcfg = mapper_config or MapperConfig()
     mcfg = replace(mcfg, posed=posed or mcfg.posed,
-                   bundle_adjustment=bundle_adjustment or mcfg.bundle_adjustment)
+                   bundle_adjustment=bundle_adjustment or mcfg.bundle_adjustment,
+                   matching=monocular(mcfg.matching) if detect.monocular else mcfg.matching)
     if keyframe_config is None:
         # a sparse capture stands for an unordered photo collection: no motion prior
         keyframe_config = KeyframeConfig(motion_prior=config.capture != 'sparse')

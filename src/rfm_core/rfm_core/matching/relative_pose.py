@@ -10,6 +10,12 @@ matching error (1 - IoU3D over all matches) wins. Corners of inlier matches that
 the winning pose is refitted on all its inlier matches, weighted by their distance from the
 camera (``refine``), and kept when it still verifies and explains the matches as well.
 
+For a detector that judges distance from RGB alone (``refine_range_error`` > 0), whose
+errors run along the viewing rays, two things change: before its IoU is measured, a
+transferred box may slide along the viewing ray by the distance error the detector is
+expected to make, and the refit is the maximum-likelihood pose under that anisotropic error
+over every match consistent with the sample's pose.
+
 The yaw symmetry of boxes (a quarter turn with swapped sizes is the same box) is resolved
 geometrically: the first object of a sample proposes every quarter turn consistent with its
 sizes, and the second object takes the quarter turn closest to the proposed yaw.
@@ -22,7 +28,8 @@ from itertools import combinations
 import numpy as np
 
 from rfm_core.geometry import (
-    Pose4, box_corners, iou_3d_paired, kabsch_4dof, kabsch_4dof_batch, wrap_angle, yaw_matrix,
+    Pose4, align_4dof_anisotropic, box_corners, iou_3d_paired, kabsch_4dof, kabsch_4dof_batch, ray_covariances,
+    wrap_angle, yaw_matrix,
 )
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
@@ -88,7 +95,7 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
         moved = np.repeat(a[None], len(h), axis=0)                            # (H, n, 7)
         moved[..., :3] = np.einsum('hij,hnj->hni', yaw_matrix(yaws), a[None, :, :3]) + trans[:, None]
         moved[..., 6] = wrap_angle(a[None, :, 6] + yaws[:, None])
-        ious = iou_3d_paired(moved.reshape(-1, 7), np.tile(b, (len(h), 1))).reshape(len(h), n)
+        ious = _overlap(moved.reshape(-1, 7), np.tile(b, (len(h), 1)), cfg).reshape(len(h), n)
         inlier = ious >= cfg.inlier_iou
         rows = np.arange(len(h))
         ok = inlier[rows, h[:, 0]] & inlier[rows, h[:, 1]] & (inlier.mean(1) >= cfg.min_inlier_ratio)
@@ -118,7 +125,9 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
     spread fixes the yaw better than noisy box orientations), else the corners (each with
     the quarter turn that agrees with the sample's yaw). Kept when it still verifies and
     its mean box error grows by at most ``refine_max_error_increase`` (partial boxes of a
-    depth-only detector have biased centres; the IoU criterion notices)."""
+    depth-only detector have biased centres; the IoU criterion notices). Under along-ray
+    errors that refit only starts :func:`_refit_along_rays`, which is kept whenever it
+    verifies."""
     src, dst, weights = [], [], []
     for m in np.flatnonzero(inlier):
         pick = _best_turn(turns[m], pose.yaw)
@@ -138,12 +147,60 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
             refit = kabsch_4dof(cs, cd, weights / (1.0 + (r / 0.05) ** 2))
     else:
         refit = kabsch_4dof(src.reshape(-1, 3), dst.reshape(-1, 3), np.repeat(weights, 8))
-    refit_ious = iou_3d_paired(refit.transform_boxes(a), b)
+    along_rays = _along_rays(cfg)
+    if along_rays:
+        refit = _refit_along_rays(refit, a[:, :3], b[:, :3], cfg)
+    refit_ious = _overlap(refit.transform_boxes(a), b, cfg)
     if np.mean(refit_ious >= cfg.inlier_iou) < cfg.min_inlier_ratio:
         return pose, ious, error
-    if cfg.refine_max_error_increase >= 0 and np.mean(1.0 - refit_ious) > error + cfg.refine_max_error_increase:
+    if (not along_rays and cfg.refine_max_error_increase >= 0
+            and np.mean(1.0 - refit_ious) > error + cfg.refine_max_error_increase):
         return pose, ious, error
     return refit, refit_ious, float(np.mean(1.0 - refit_ious))
+
+
+def _overlap(moved, b, cfg) -> np.ndarray:
+    """IoU3D of transferred boxes with their matches (paired). Under along-ray errors
+    (``refine_range_error``) each transferred box may first slide along frame b's viewing ray,
+    scaled about the camera by up to one standard deviation of the two frames' combined
+    distance error (as far as it brings the box centres together): a correct match whose
+    distance was misjudged by a few percent then still verifies, a box elsewhere does not."""
+    if not _along_rays(cfg):
+        return iou_3d_paired(moved, b)
+    cm, cb = moved[:, :3], b[:, :3]
+    tolerance = np.sqrt(2.0) * (cfg.refine_range_error + cfg.refine_range_error_per_m * np.linalg.norm(cb, axis=1))
+    scale = np.einsum('ni,ni->n', cm, cb) / np.maximum(np.einsum('ni,ni->n', cm, cm), 1e-9)
+    scaled = moved.copy()
+    scaled[:, :6] *= np.clip(scale, 1.0 - tolerance, 1.0 + tolerance)[:, None]
+    return iou_3d_paired(scaled, b)
+
+
+def _along_rays(cfg) -> bool:
+    return cfg.refine_range_error > 0 or cfg.refine_range_error_per_m > 0
+
+
+def _refit_along_rays(pose: Pose4, ca, cb, cfg) -> Pose4:
+    """Maximum-likelihood refit on the box centres of every match consistent with ``pose``
+    under the along-ray error model (``refine_range_error``): a monocular detector's
+    misjudged distance can cost a true match its IoU inlier status, yet its bearing still
+    says much; a wrong match loses its say through a Cauchy weight."""
+    def cov(points):
+        rng = np.linalg.norm(points, axis=1)
+        return ray_covariances(points, cfg.refine_sigma_m + cfg.refine_sigma_per_m * rng,
+                               cfg.refine_range_error + cfg.refine_range_error_per_m * rng)
+
+    cov_a, cov_b = cov(ca), cov(cb)
+    rot = pose.rotation
+    r = pose.transform_points(ca) - cb
+    keep = np.einsum('ni,nij,nj->n', r, np.linalg.inv(rot @ cov_a @ rot.T + cov_b), r) < 16.0  # 4 sigma
+    if keep.sum() < 2:
+        return pose
+    ca, cb, cov_a, cov_b = ca[keep], cb[keep], cov_a[keep], cov_b[keep]
+    robust = np.ones(len(ca))
+    for _ in range(3):
+        pose, chi2 = align_4dof_anisotropic(ca, cb, cov_a, cov_b, pose.yaw, weights=robust)
+        robust = 1.0 / (1.0 + chi2 / 9.0)          # Cauchy at 3 sigma
+    return pose
 
 
 def _corner_inliers(pose: Pose4, a, b, matches, idx, cfg) -> list:
