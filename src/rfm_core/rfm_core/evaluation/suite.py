@@ -17,6 +17,10 @@ GT rgb posed              ground_truth:rgb                posed
 GT rgb posed + BA         ground_truth:rgb                posed    yes
 ========================  ==============================  =======  =====
 
+The ``rgb`` preset is a monocular detector (``Detector.monocular``): its relative poses are
+verified and refit along the viewing rays (``matching.config.monocular``), as the matcher
+node does with ``range_error`` set.
+
 Un-posed results are aligned to the ground truth without scale (yaw + translation: gravity
 is shared). Scene seeds start at 5000, disjoint from training (3000+), tuning (0-99), the
 detection suite (1000+) and the matching evaluation (2000+).
