@@ -57,7 +57,8 @@ class MatcherNode(Node):
             refine_range_error=p('range_error', d.refine_range_error, _float(
                 "Relative error of the detector's distances along the viewing ray: 0 for a depth "
                 'sensor; an RGB-only detector (cutr RGB, ground_truth rgb) misjudges distance, ~0.03: '
-                'the pose refit then weights each match by its along-ray covariance', 0, 1)).value,
+                'verification then lets a box slide along its ray by that much and the pose refit '
+                'weights each match by its along-ray covariance', 0, 1)).value,
             refine_range_error_per_m=p('range_error_per_m', d.refine_range_error_per_m, _float(
                 '... growing by this per metre of range (~0.01 for an RGB-only detector)', 0, 1)).value)
         keyframes = KeyframeConfig(

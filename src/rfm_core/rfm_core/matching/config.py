@@ -34,7 +34,7 @@ class MatchingConfig:
 
 
 #: An RGB-only detector's distance error along the viewing ray, relative: 3% + 1% per metre
-#: (the ``ground_truth:rgb`` preset's; metric monocular depth is typically 5-10% off at room scale).
+#: (the ``ground_truth:rgb`` preset's, not measured on a real monocular detector).
 MONOCULAR_RANGE_ERROR = (0.03, 0.01)
 
 
