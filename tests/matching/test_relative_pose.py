@@ -83,6 +83,26 @@ def test_along_ray_refit_for_monocular_detections():
     assert np.median(errors['monocular']) < 0.8 * np.median(errors['default'])
 
 
+def test_monocular_verification_forgives_a_misjudged_distance_not_a_wrong_place():
+    """A small box reported 8% too far (scaled about the camera) in frame b no longer
+    overlaps its match at IoU 0.25; a monocular config lets it slide back along the ray and
+    counts it as an inlier. A box moved sideways by 40 cm stays an outlier either way."""
+    truth = Pose4(0.3, (0.4, -0.2, 0.05))
+    a = np.array([[-1.5, 0.2, 3.0, 0.8, 0.6, 0.7, 0.1], [1.4, 0.1, 3.5, 0.9, 0.5, 0.8, -0.4],
+                  [0.0, 0.3, 4.0, 0.4, 0.4, 0.4, 0.0], [0.5, 0.3, 2.5, 0.4, 0.4, 0.4, 0.2],
+                  [-0.6, 0.2, 2.0, 0.5, 0.5, 0.5, 0.0]])
+    b = truth.transform_boxes(a)
+    b[2, :6] *= 1.08                              # distance misjudged by 8%
+    b[3, 0] += 0.4                                # a different place
+    matches = ObjectMatches(np.arange(5), np.arange(5), np.ones(5))
+    default = estimate_relative_pose(a, b, matches)
+    mono = estimate_relative_pose(a, b, matches, monocular(MatchingConfig()))
+    assert default is not None and mono is not None
+    assert 2 not in default.inliers[:, 0] and 2 in mono.inliers[:, 0]
+    assert 3 not in default.inliers[:, 0] and 3 not in mono.inliers[:, 0]
+    assert np.degrees(mono.pose.angle_to(truth)) < 1.0 and np.linalg.norm(mono.pose.t - truth.t) < 0.05
+
+
 def test_wrong_matches_are_outliers_and_random_matches_are_rejected():
     a, b, truth = transformed_scene(11, n=10, noise=0.01)
     wrong = np.arange(10)
