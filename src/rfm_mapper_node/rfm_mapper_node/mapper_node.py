@@ -31,7 +31,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from rfm_core.geometry import Pose4, box_corners
 from rfm_core.io.messages import (
-    frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, parameter_descriptor, pose_stamped_msg,
+    declare_range_error, frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, parameter_descriptor, pose_stamped_msg,
     pose_to_matrix, stamp_to_ns, transform_stamped_msg, vector3_to_numpy,
 )
 from rfm_core.mapping.averaging import AveragingConfig
@@ -126,11 +126,7 @@ class MapperNode(Node):
         matching = MatchingConfig(
             match_threshold=p('match_threshold', m.match_threshold, _float(
                 'Relocalization: object match threshold (paper: 0.5)', 0, 1)).value,
-            refine_range_error=p('range_error', m.refine_range_error, _float(
-                'Relocalization: relative distance error of detections along the viewing ray '
-                '(0: depth sensor; 0.03 for an RGB-only detector, see the matcher)', 0, 1)).value,
-            refine_range_error_per_m=p('range_error_per_m', m.refine_range_error_per_m, _float(
-                'Relocalization: ... growing by this per metre (0.01 for an RGB-only detector)', 0, 1)).value)
+            **declare_range_error(self, 'Relocalization: '))
         kind = p('matcher', 'learned', _text(
             "Relocalization object matcher: 'learned' or 'classical'", True)).value
         weights = p('matcher_weights', '', _text('Learned matcher checkpoint; empty: shipped', True)).value

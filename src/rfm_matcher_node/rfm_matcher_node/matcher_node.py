@@ -20,7 +20,7 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, ViewGraphEdge
 
-from rfm_core.io.messages import frame_detections_from_msg, ns_to_stamp, parameter_descriptor
+from rfm_core.io.messages import declare_range_error, frame_detections_from_msg, ns_to_stamp, parameter_descriptor
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.learned import make_matcher
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
@@ -54,13 +54,7 @@ class MatcherNode(Node):
                 'Corner inlier distance for bundle adjustment (m, paper: 0.10)', 0, 1)).value,
             refine=p('refine_pose', d.refine, parameter_descriptor(
                 'Refit the winning pose on all inlier matches (kept if it explains them as well)')).value,
-            refine_range_error=p('range_error', d.refine_range_error, _float(
-                "Relative error of the detector's distances along the viewing ray: 0 for a depth "
-                'sensor; an RGB-only detector (cutr RGB, ground_truth rgb) misjudges distance, ~0.03: '
-                'verification then lets a box slide along its ray by that much and the pose refit '
-                'weights each match by its along-ray covariance', 0, 1)).value,
-            refine_range_error_per_m=p('range_error_per_m', d.refine_range_error_per_m, _float(
-                '... growing by this per metre of range (~0.01 for an RGB-only detector)', 0, 1)).value)
+            **declare_range_error(self))
         keyframes = KeyframeConfig(
             min_overlap=p('keyframe_min_overlap', k.min_overlap, _float(
                 'New keyframe when fewer than this share of objects match the last one', 0, 1)).value,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput
 
-__all__ = ['BACKENDS', 'Detector', 'DetectorConfig', 'DetectorInput', 'make_detector']
+__all__ = ['BACKENDS', 'Detector', 'DetectorConfig', 'DetectorInput', 'make_detector', 'detector_for_spec']
 
 BACKENDS = ('depth_clusters', 'ground_truth', 'cutr')
 
@@ -27,3 +27,12 @@ def make_detector(backend: str, **options) -> Detector:
         from rfm_core.detection.cutr import CutrConfig, CutrDetector
         return CutrDetector(CutrConfig(**options))
     raise ValueError(f'unknown detector backend {backend!r}; choose one of {BACKENDS}')
+
+
+def detector_for_spec(spec: str, noise_seed: int = 0) -> Detector:
+    """A detector from an evaluation spec: a backend name, or ``ground_truth:PRESET``
+    (``ground_truth`` alone: the rgbd preset) with ``noise_seed`` as its noise seed."""
+    backend, _, preset = spec.partition(':')
+    if backend == 'ground_truth':
+        return make_detector('ground_truth', preset=preset or 'rgbd', seed=noise_seed)
+    return make_detector(backend)

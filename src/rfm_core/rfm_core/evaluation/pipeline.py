@@ -41,18 +41,14 @@ def detections_for(spec: str, noise_seed: int = 0):
     """A function SimFrame -> FrameObservations for a detector spec ('depth_clusters',
     'ground_truth:rgbd', ...). Object ids are stripped (the pipeline must not see them). The
     function's ``monocular`` attribute is the detector's."""
-    from rfm_core.detection import make_detector  # noqa: PLC0415
+    from rfm_core.detection import detector_for_spec  # noqa: PLC0415
 
-    backend, _, preset = spec.partition(':')
-    if backend == 'ground_truth':
-        det = make_detector('ground_truth', preset=preset or 'rgbd', seed=noise_seed)
-
+    det = detector_for_spec(spec, noise_seed)
+    if det.name == 'ground_truth':
         def run(frame):
             obs = det.perturb(frame.ground_truth)
             return replace(obs, object_ids=np.full(len(obs), -1, np.int64), visibility=np.full(len(obs), -1.0))
     else:
-        det = make_detector(backend)
-
         def run(frame):
             return det.detect(frame.detector_input())
     run.monocular = det.monocular

@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from rfm_core.detection import make_detector
+from rfm_core.detection import detector_for_spec
 from rfm_core.geometry import Pose4, iou_3d
 from rfm_core.matching.learned import MatcherNetConfig, ObjectMatcherNet, batch_inputs
 from rfm_core.observations import FrameObservations
@@ -78,18 +78,11 @@ def label_structure(frames, min_iou: float = 0.25) -> None:
                 world.append(box)
 
 
-def _detector(spec: str, noise_seed: int):
-    backend, _, preset = spec.partition(':')
-    if backend == 'ground_truth':
-        return make_detector('ground_truth', preset=preset or 'rgbd', seed=noise_seed)
-    return make_detector(backend)
-
-
 def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,), structure: bool = False) -> dict:
     """{(spec, noise_seed): [LabelledFrame, ...]} for one capture (rendered once); with
     ``structure``, image-based detections that are no object are labelled by
     :func:`label_structure`."""
-    detectors = {(spec, s): _detector(spec, s) for spec in specs
+    detectors = {(spec, s): detector_for_spec(spec, s) for spec in specs
                  for s in (noise_seeds if spec.startswith('ground_truth') else (0,))}
     out = {key: [] for key in detectors}
     capture = Capture(config)
