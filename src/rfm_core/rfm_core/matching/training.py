@@ -82,15 +82,18 @@ def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,), structure: 
     """{(spec, noise_seed): [LabelledFrame, ...]} for one capture (rendered once); with
     ``structure``, image-based detections that are no object are labelled by
     :func:`label_structure`."""
+    # ground_truth presets perturb the true boxes (ids known, one run per noise seed); the
+    # others detect in the images (ids assigned by overlap, structure labelled on request)
+    from_truth = {spec: spec.startswith('ground_truth') for spec in specs}
     detectors = {(spec, s): detector_for_spec(spec, s) for spec in specs
-                 for s in (noise_seeds if spec.startswith('ground_truth') else (0,))}
+                 for s in (noise_seeds if from_truth[spec] else (0,))}
     out = {key: [] for key in detectors}
     capture = Capture(config)
     for frame in capture.frames():
         truth = frame.ground_truth
         pose = frame.aligned_from_map()
         for key, det in detectors.items():
-            if key[0].startswith('ground_truth'):
+            if from_truth[key[0]]:
                 obs = det.perturb(truth)
             else:
                 obs = det.detect(frame.detector_input())
@@ -98,7 +101,7 @@ def labelled_capture(config: CaptureConfig, specs, noise_seeds=(0,), structure: 
             out[key].append(LabelledFrame(obs, pose, truth.object_ids))
     if structure:
         for (spec, _), frames in out.items():
-            if not spec.startswith('ground_truth'):
+            if not from_truth[spec]:
                 label_structure(frames)
     return out
 
