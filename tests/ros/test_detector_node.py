@@ -38,6 +38,9 @@ def graph():
     nodes = {}
 
     def start(**params):
+        # the IMU and the images travel on separate topics; on a loaded machine the first IMU
+        # sample can land after the images, beyond the default 50 ms wait
+        params.setdefault('imu_wait_s', 1.0)
         overrides = [Parameter(k, value=v) for k, v in params.items()]
         detector = DetectorNode(parameter_overrides=overrides)
         test = Node('detector_test')
