@@ -79,6 +79,24 @@ def test_a_track_seen_once_ranks_below_agreeing_views():
     assert tracks[1].score == pytest.approx(np.sqrt(0.25 * 0.9), rel=1e-6)
 
 
+def test_a_track_is_represented_by_the_view_agreeing_most_with_the_others():
+    """Score = sqrt(mean IoU with the other views x detection score), the best view's box."""
+    from rfm_core.geometry import iou_3d
+
+    chair = np.array([2.0, 0.0, 0.4, 0.5, 0.5, 0.8, 0.0])
+    views = [chair + [0.02, 0, 0, 0, 0, 0, 0], chair + [0, 0.03, 0, 0, 0, 0, 0.05], chair,
+             chair + [0.3, 0.1, 0, 0.2, 0, 0, 0.4]]                 # a poor view, scored highest
+    scores = [0.8, 0.7, 0.75, 0.95]
+    keyframes = {k: _obs([v], [[1.0, 0.0]], np.array([s], np.float32)) for k, (v, s) in enumerate(zip(views, scores))}
+    poses = {k: Pose4(0.0, (0, 0, 0)) for k in keyframes}
+    (track,) = build_tracks(keyframes, poses, [(0, 0, k, 0) for k in (1, 2, 3)])
+    iou = iou_3d(np.array(views), np.array(views))
+    quality = np.sqrt((iou.sum(1) - 1.0) / 3 * np.array(scores, np.float32))
+    assert int(np.argmax(quality)) != 3
+    np.testing.assert_allclose(track.box, views[int(np.argmax(quality))])
+    assert track.score == pytest.approx(quality.max(), rel=1e-6)
+
+
 def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     mapper = mapped.mapper
     path = save_map(mapper, tmp_path / 'room.rfm')

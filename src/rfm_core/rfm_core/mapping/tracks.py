@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.geometry import box_corners, giou_3d_paired, iou_3d, iou_3d_paired
+from rfm_core.geometry import box_corners, giou_3d_paired, iou_3d_paired
 
 __all__ = ['TrackConfig', 'Track', 'build_tracks', 'track_colour']
 
@@ -74,11 +74,12 @@ def _representative(boxes, scores, single_view_iou):
     m = len(boxes)
     if m == 1:
         mutual = np.array([single_view_iou])
-    else:
-        iou = iou_3d(boxes, boxes)
-        mutual = (iou.sum(1) - np.diag(iou)) / (m - 1)
+    else:                                 # mean IoU with the others; each pair once
+        ii, jj = np.triu_indices(m, 1)
+        iou = iou_3d_paired(boxes[ii], boxes[jj])
+        mutual = (np.bincount(ii, iou, m) + np.bincount(jj, iou, m)) / (m - 1)
     quality = np.sqrt(np.clip(mutual, 0, 1) * np.clip(scores, 0, 1))
-    best = int(np.argmax(quality))
+    best = int(np.argmax(quality))       # ties: the first view (the oldest keyframe)
     return best, float(quality[best])
 
 
@@ -184,7 +185,8 @@ def _affinities(tracks: list, ii, jj, cfg: TrackConfig) -> np.ndarray:
     a_boxes = np.concatenate([tracks[i].boxes[a] for i, a in zip(ii, a_idx)])
     b_boxes = np.concatenate([tracks[j].boxes[b] for j, b in zip(jj, b_idx)])
     overlaps = iou_3d_paired(a_boxes, b_boxes) >= 0.25
-    g = (giou_3d_paired(a_boxes, b_boxes) + 1.0) / 2.0
+    g = np.zeros(len(overlaps))           # only overlapping pairs count: GIoU of those alone
+    g[overlaps] = (giou_3d_paired(a_boxes[overlaps], b_boxes[overlaps]) + 1.0) / 2.0
     sim = np.ones(len(ii))
     for p, (i, j) in enumerate(zip(ii, jj)):
         ea, eb = tracks[i].embedding, tracks[j].embedding
