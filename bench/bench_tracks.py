@@ -4,8 +4,8 @@ The mapper rebuilds every track whenever poses change (the node rate-limits it b
 `map_max_cpu_share`), so this is what bounds how fresh the published map is. Maps come
 from the evaluation pipeline with depth_clusters (the detector whose fragments make the
 most tracks): one handheld walk and two sparse captures of 100 frames. ``--baseline REV``
-also times `tracks.py` as of a git revision in the same run, alternating, and checks that
-both build the same tracks.
+also times `tracks.py` as of a git revision in the same run, alternating, and says whether
+both build the same tracks (or how they differ).
 
     ros_ws/env.sh python bench/bench_tracks.py [--repeats 5] [--baseline REV]
 """
