@@ -263,7 +263,7 @@ def cmd_eval_detections(args) -> int:
 def cmd_eval_matching(args) -> int:
     """Object matching and relative-pose accuracy on simulated frame pairs."""
     from rfm_core.evaluation.matching import evaluate_pairs  # noqa: PLC0415
-    from rfm_core.evaluation.pipeline import detections_for  # noqa: PLC0415
+    from rfm_core.detection import detector_for_spec  # noqa: PLC0415
     from rfm_core.matching.config import MatchingConfig, monocular  # noqa: PLC0415
     from rfm_core.matching.classical import ClassicalMatcher  # noqa: PLC0415
     from rfm_core.matching.learned import LearnedMatcher  # noqa: PLC0415
@@ -280,7 +280,7 @@ def cmd_eval_matching(args) -> int:
     print('|---|---|---|---|---|---|---|---|---|')
     for spec in args.inputs:
         # an RGB-only detector's poses are verified and refit along the viewing rays, as in rfm eval
-        config = monocular(MatchingConfig()) if detections_for(spec).monocular else None
+        config = monocular(MatchingConfig()) if detector_for_spec(spec).monocular else None
         for name in args.matchers:
             result = evaluate_pairs(pairs[spec], matchers[name](), config)
             print(f'| {spec} | {name} | {result.row()} |', flush=True)

@@ -32,6 +32,11 @@ class MatchingConfig:
                                           #: along-ray refit is kept whenever it verifies (box IoU
                                           #: penalises the likelier pose when distances are off)
 
+    @property
+    def along_rays(self) -> bool:
+        """Whether detections err along their viewing rays (a range error is set)."""
+        return self.refine_range_error > 0 or self.refine_range_error_per_m > 0
+
 
 #: An RGB-only detector's distance error along the viewing ray, relative: 3% + 1% per metre
 #: (the ``ground_truth:rgb`` preset's, not measured on a real monocular detector).
@@ -40,7 +45,7 @@ MONOCULAR_RANGE_ERROR = (0.03, 0.01)
 
 def monocular(config: MatchingConfig) -> MatchingConfig:
     """``config`` for a detector that judges distance from RGB alone (unless already set)."""
-    if config.refine_range_error > 0 or config.refine_range_error_per_m > 0:
+    if config.along_rays:
         return config
     return replace(config, refine_range_error=MONOCULAR_RANGE_ERROR[0],
                    refine_range_error_per_m=MONOCULAR_RANGE_ERROR[1])

@@ -147,13 +147,12 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
             refit = kabsch_4dof(cs, cd, weights / (1.0 + (r / 0.05) ** 2))
     else:
         refit = kabsch_4dof(src.reshape(-1, 3), dst.reshape(-1, 3), np.repeat(weights, 8))
-    along_rays = _along_rays(cfg)
-    if along_rays:
+    if cfg.along_rays:
         refit = _refit_along_rays(refit, a[:, :3], b[:, :3], cfg)
     refit_ious = _overlap(refit.transform_boxes(a), b, cfg)
     if np.mean(refit_ious >= cfg.inlier_iou) < cfg.min_inlier_ratio:
         return pose, ious, error
-    if (not along_rays and cfg.refine_max_error_increase >= 0
+    if (not cfg.along_rays and cfg.refine_max_error_increase >= 0
             and np.mean(1.0 - refit_ious) > error + cfg.refine_max_error_increase):
         return pose, ious, error
     return refit, refit_ious, float(np.mean(1.0 - refit_ious))
@@ -165,7 +164,7 @@ def _overlap(moved, b, cfg) -> np.ndarray:
     scaled about the camera by up to one standard deviation of the two frames' combined
     distance error (as far as it brings the box centres together): a correct match whose
     distance was misjudged by a few percent then still verifies, a box elsewhere does not."""
-    if not _along_rays(cfg):
+    if not cfg.along_rays:
         return iou_3d_paired(moved, b)
     cm, cb = moved[:, :3], b[:, :3]
     tolerance = np.sqrt(2.0) * (cfg.refine_range_error + cfg.refine_range_error_per_m * np.linalg.norm(cb, axis=1))
@@ -173,10 +172,6 @@ def _overlap(moved, b, cfg) -> np.ndarray:
     scaled = moved.copy()
     scaled[:, :6] *= np.clip(scale, 1.0 - tolerance, 1.0 + tolerance)[:, None]
     return iou_3d_paired(scaled, b)
-
-
-def _along_rays(cfg) -> bool:
-    return cfg.refine_range_error > 0 or cfg.refine_range_error_per_m > 0
 
 
 def _refit_along_rays(pose: Pose4, ca, cb, cfg) -> Pose4:
