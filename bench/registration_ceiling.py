@@ -4,8 +4,8 @@ target), given what the detector finds.
 A frame can only join the map through objects it shares with other frames. This script
 takes the detector's boxes on every frame of the `rfm eval` scenes (same seeds, same noise
 seed), gives each box the identity of the true object it overlaps (3D IoU >= ``--min-iou``
-in the frame; others are anonymous), links two frames when they share at least k
-identified objects, and reports the largest connected component's share of the frames
+in the frame, one-to-one as training labels them; others are anonymous), links two frames
+when they share at least k identified objects, and reports the largest connected component's share of the frames
 with >= 2 detections (the frames the pipeline considers). That is the registered share a
 perfect matcher and a perfect verifier would reach under a k-object rule: k = 2 is the
 paper's minimal sample, k = 3 what the view graph asks of an edge in an unordered
@@ -44,7 +44,7 @@ def scene(args) -> dict:
     import torch  # noqa: PLC0415
 
     from rfm_core.evaluation.pipeline import detections_for  # noqa: PLC0415
-    from rfm_core.geometry import iou_3d  # noqa: PLC0415
+    from rfm_core.matching.training import assign_object_ids  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     torch.set_num_threads(1)
@@ -54,15 +54,11 @@ def scene(args) -> dict:
         detect = detections_for(spec)
         objects = []
         for frame in frames:
-            obs, truth = detect(frame), frame.ground_truth
+            obs = detect(frame)
             if len(obs) < 2:
                 continue                      # the view graph skips these frames
-            if not len(truth):
-                objects.append(set())
-                continue
-            iou = iou_3d(obs.boxes, truth.boxes)
-            best = iou.argmax(1)
-            objects.append({int(truth.object_ids[j]) for i, j in enumerate(best) if iou[i, j] >= min_iou})
+            ids = assign_object_ids(obs, frame.ground_truth, min_iou)
+            objects.append({int(i) for i in ids if i >= 0})
         out[spec] = {k: largest_component_share(objects, k) for k in (2, 3)}
     return out
 
