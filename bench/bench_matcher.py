@@ -46,7 +46,7 @@ def main():
         for obs in stream:
             before = graph.stats.pairs_tested
             start = time.perf_counter()
-            kf, _ = graph.add(obs)
+            kf, _, _ = graph.add(obs)
             if kf is not None:
                 times.append(time.perf_counter() - start)
                 pairs.append(graph.stats.pairs_tested - before)

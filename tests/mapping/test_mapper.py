@@ -28,9 +28,13 @@ def test_unposed_localization_and_mapping(mapped):
 
 
 def test_posed_mapping_uses_the_given_poses():
+    """Keyframes take the given poses exactly; the frames between them are tracked
+    against their keyframe, so they carry the tracking's error (a few cm)."""
     r = run_capture(SCENE, 'ground_truth:rgbd', noise_seed=3, posed=True)
-    assert r.localization['registered'] == 1.0
-    assert r.localization['ATE_median'] < 1e-9 and r.localization['ARE_median'] < 1e-6
+    loc = r.localization
+    assert loc['keyframe_registered'] == 1.0 and loc['registered'] == 1.0
+    assert loc['keyframe_ATE_median'] < 1e-9 and loc['keyframe_ARE_median'] < 1e-6
+    assert loc['ATE_median'] < 0.03 and loc['ARE_median'] < 1.0, loc
     assert r.mapping['AP25'] > 0.7, r.mapping
 
 

@@ -21,7 +21,7 @@ def test_edges_agree_with_ground_truth(stream, preset, max_yaw, max_t):
     frames_by_kf = {}
     edges = []
     for frame in stream:
-        kf, new_edges = graph.add(det.perturb(frame.ground_truth))
+        kf, new_edges, _ = graph.add(det.perturb(frame.ground_truth))
         if kf is not None:
             frames_by_kf[kf.keyframe_id] = frame
         edges += new_edges
@@ -43,12 +43,23 @@ def test_edges_agree_with_ground_truth(stream, preset, max_yaw, max_t):
 
 
 def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
+    """Candidates stay bounded (recent + retrieved; more retrieved for a keyframe that starts
+    a new stream segment), and a view of the start, replayed after the walk, retrieves the
+    keyframes of the start."""
     det = make_detector('ground_truth', preset='perfect')
-    graph = ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=2, retrieved_keyframes=3))
-    for frame in stream + stream[:8]:                    # come back to the start
+    graph = ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=2, retrieved_keyframes=3,
+                                                      unordered_retrieved_keyframes=4))
+    for frame in stream:
         graph.add(det.perturb(frame.ground_truth))
         assert len(graph.stats.last_candidates) <= 5
     assert graph.stats.keyframes >= 5
+    early = {k.keyframe_id for k in graph.keyframes[:2]}
+    # the start again (its stamps go back in time: a separate view, a new segment)
+    keyframe, edges, track = graph.add(det.perturb(stream[0].ground_truth))
+    assert keyframe is not None and track.is_keyframe and not track.continuous
+    assert len(graph.stats.last_candidates) <= 6
+    assert early & set(graph.stats.last_candidates)
+    assert early & {e.source_id for e in edges}
 
 
 def test_keyframes_are_spaced_by_min_interval(stream):
@@ -75,7 +86,7 @@ def test_unordered_collections_need_three_objects_and_retrieve_more(stream):
             max_translation_m=0.1))
         inliers[ordered], candidates[ordered] = [], 0
         for frame in stream:
-            _, edges = graph.add(det.perturb(frame.ground_truth))
+            _, edges, _ = graph.add(det.perturb(frame.ground_truth))
             inliers[ordered] += [len(e.relative.inliers) for e in edges]
             candidates[ordered] = max(candidates[ordered], len(graph.stats.last_candidates))
     assert candidates[True] == 3 and candidates[False] == 7

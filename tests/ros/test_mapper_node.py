@@ -32,7 +32,7 @@ def _graph_messages():
     for frame in capture.frames():
         obs = detect(frame)
         frames.append((frame, obs))
-        keyframe, edges = graph.add(obs)
+        keyframe, edges, _ = graph.add(obs)
         if keyframe is None:
             continue
         det = frame_detections_to_msg(obs)

@@ -43,8 +43,11 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     assert len(mapper.keyframes) >= 5
     assert loc['registered'] >= 0.9 and loc['ATE_median'] < 0.06 and loc['ARE_median'] < 3.0, loc
     assert m['AP25'] > 0.5, m
+    # a pose for every localized frame, the keyframes beside them
     tum = np.loadtxt(out / 'trajectory.tum')
-    assert tum.shape == (len(mapper.poses), 8)
+    assert tum.shape == (len(mapper.frame_poses()), 8) and len(tum) >= 0.9 * 40
+    assert np.all(np.diff(tum[:, 0]) > 0)
+    assert np.loadtxt(out / 'keyframes.tum').shape == (len(mapper.poses), 8)
     # the recording has the mapper's outputs
     from rosbags.highlevel import AnyReader
     with AnyReader([out / 'outputs.mcap']) as reader:

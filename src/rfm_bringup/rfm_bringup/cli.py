@@ -141,7 +141,8 @@ def cmd_play(args) -> int:
         remaps[old] = new
     options = PlayOptions(rate=args.rate, start_offset=args.start_offset, loop=args.loop,
                           topics=args.topics or [], remaps=remaps, clock=not args.no_clock,
-                          delay=args.delay, progress=None if not args.quiet else False)
+                          delay=args.delay, wait_for=args.wait_for or [],
+                          progress=None if not args.quiet else False)
     if not Path(args.bag).exists():
         raise SystemExit(f'rfm: no bag at {args.bag}')
     rclpy.init()
@@ -195,6 +196,9 @@ def cmd_preview(args) -> int:
     frames = {color_topic: [], depth_topic: []}
     with AnyReader([Path(args.bag)]) as reader:
         conns = [c for c in reader.connections if c.topic in frames]
+        if not any(c.topic == color_topic for c in conns):
+            raise SystemExit(f'rfm: no {color_topic} in {args.bag} (its topics: '
+                             f'{sorted({c.topic for c in reader.connections})}); pass --color-topic')
         for conn, _, raw in reader.messages(connections=conns):
             frames[conn.topic].append((conn.msgtype, raw))
     colors = frames[color_topic]
@@ -441,6 +445,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--topics', nargs='+', help='play only these topics')
     p.add_argument('--remap', nargs='+', metavar='FROM:=TO', help='publish FROM as TO')
     p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
+    p.add_argument('--wait-for', nargs='+', metavar='TOPIC',
+                   help='before playing, wait (up to 30 s) until each of these bag topics has a subscriber')
     p.add_argument('--delay', type=float, default=0.0,
                    help='seconds to wait before playing (lets subscribers connect)')
     p.add_argument('--quiet', action='store_true', help='no progress line')

@@ -47,6 +47,8 @@ class PlayOptions:
     clock: bool = True                #: publish /clock with the bag time
     clock_hz: float = 100.0           #: /clock rate while waiting between messages
     delay: float = 0.0                #: seconds to wait (for subscribers) before playing
+    wait_for: list = field(default_factory=list)  #: bag topics that need a subscriber first
+    wait_timeout: float = 30.0        #: ... waited for at most this long (s)
     progress: bool | None = None      #: status line on stderr (default: if a terminal)
 
     def __post_init__(self):
@@ -103,12 +105,25 @@ class BagPlayer(Node):
             msg.clock.sec, msg.clock.nanosec = divmod(int(bag_ns), 1_000_000_000)
             self._clock_pub.publish(msg)
 
+    def _wait_for_subscribers(self) -> None:
+        """Until every ``wait_for`` topic in the bag has a subscriber (discovery takes a
+        moment; a message published before it completes is lost), at most ``wait_timeout``."""
+        topics = [t for t in self.options.wait_for if t in self._bag_publishers]
+        deadline = time.monotonic() + self.options.wait_timeout
+        while topics and time.monotonic() < deadline:
+            topics = [t for t in topics if self._bag_publishers[t].get_subscription_count() == 0]
+            if topics:
+                time.sleep(0.05)
+        if topics:
+            self.get_logger().warning(f'no subscriber on {topics} after {self.options.wait_timeout:.0f} s; playing anyway')
+
     def play(self) -> dict:
         """Publish the bag; returns the number of messages published per topic."""
         opts = self.options
         show = sys.stderr.isatty() if opts.progress is None else opts.progress
         first = self.start_ns + int(opts.start_offset * 1e9)
         duration = max(self.end_ns - first, 1)
+        self._wait_for_subscribers()
         if opts.delay:
             time.sleep(opts.delay)
         while True:
@@ -117,6 +132,9 @@ class BagPlayer(Node):
             last_progress = 0.0
             with self._reader_type([self.path]) as reader:
                 conns = [c for c in reader.connections if c.topic in self._topics]
+                if not conns:                  # nothing playable (an empty list reads every topic)
+                    self.get_logger().warning(f'{self.path}: no topic to play')
+                    break
                 for conn, stamp, raw in reader.messages(connections=conns, start=first):
                     target = wall0 + (stamp - first) / 1e9 / opts.rate
                     while True:

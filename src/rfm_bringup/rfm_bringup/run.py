@@ -27,7 +27,7 @@ __all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
 BAG_REMAPS = {'rgb/image': '/camera/color/image_raw', 'rgb/camera_info': '/camera/color/camera_info',
               'depth/image': '/camera/depth/image_raw', 'imu': '/imu/data',
               'ground_truth/detections': '/ground_truth/detections'}
-OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/keyframe_poses',
+OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames', '/rfm/keyframe_poses',
                  '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map', '/rfm/object_markers', '/rfm/status',
                  '/rfm/detection_markers', '/tf', '/tf_static', '/camera/color/image_raw']
 
@@ -90,6 +90,12 @@ def _remaps(args) -> dict:
         a, b = item.split(':=', 1)
         remaps[a] = b
     return remaps
+
+
+def _detector_inputs(backend: str, remaps: dict) -> list:
+    """The bag topics the detector subscribes to (the player waits for their subscribers)."""
+    names = {'ground_truth': ['ground_truth/detections'], 'cutr': ['rgb/image', 'rgb/camera_info']}
+    return [remaps[n] for n in names.get(backend, ['rgb/image', 'rgb/camera_info', 'depth/image', 'imu'])]
 
 
 class _InProcessGraph:
@@ -232,10 +238,13 @@ class _ProcessGraph:
             log.close()
 
 
-def _bag_seconds(bag) -> float:
+def _bag_extent(bag, remaps: dict) -> tuple:
+    """(duration in s, colour frames) of a bag."""
     from rosbags.highlevel import AnyReader  # noqa: PLC0415
     with AnyReader([Path(bag)]) as reader:
-        return (reader.end_time - reader.start_time) / 1e9
+        colour = remaps.get('rgb/image')
+        frames = sum(c.msgcount for c in reader.connections if c.topic == colour)
+        return (reader.end_time - reader.start_time) / 1e9, frames
 
 
 def run_graph(args) -> int:
@@ -269,7 +278,8 @@ def run_graph(args) -> int:
         graph.start()
         if bag is not None:
             rfm = shutil.which('rfm') or sys.argv[0]
-            cmd = [rfm, 'play', str(bag), '--delay', '2', '--quiet', '--rate', str(args.rate)]
+            cmd = [rfm, 'play', str(bag), '--delay', '0.5', '--quiet', '--rate', str(args.rate),
+                   '--wait-for', *_detector_inputs(args.backend, remaps)]
             if args.posed:
                 cmd += ['--remap', '/ground_truth/camera_pose:=/rfm/external_pose']
             player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
@@ -320,24 +330,29 @@ def run_graph(args) -> int:
     if not ok:
         print(f'rfm run: the map could not be saved to {output / "map.rfm"}', file=sys.stderr)
         return 1
-    summary = write_outputs(output, bag, params, final, max(wall, 1e-3), posed=args.posed)
+    summary = write_outputs(output, bag, params, final, max(wall, 1e-3), posed=args.posed, remaps=remaps)
     print(f'\nrfm run: results in {output}/')
     acc = summary.get('accuracy')
-    line = (f'  {summary["keyframes"]} keyframes ({summary["registered"]} registered), {summary["objects"]} objects, '
-            f'processed at {summary["realtime"]:.2f}x real time')
-    print(line)
+    frames_in = f' of {summary["input_frames"]}' if summary.get('input_frames') else ''
+    print(f'  {summary["frames"]}{frames_in} frames processed, {summary["localized"]} localized; '
+          f'{summary["keyframes"]} keyframes ({summary["registered"]} registered), {summary["objects"]} objects; '
+          f'{summary["realtime"]:.2f}x real time')
     if acc:
         loc, m = acc['localization'], acc['mapping']
         print(f'  vs ground truth: ARE {loc["ARE_median"]:.2f} deg, ATE {100 * loc["ATE_median"]:.1f} cm, '
-              f'registered {100 * loc["registered"]:.0f}%, AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}')
+              f'{100 * loc["registered"]:.0f}% of frames localized, AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}, '
+              f'{m["objects"]} objects for {m["ground_truth"]}')
     print(f'  report: {output / "report.md"}, picture: {output / "top_down.png"}')
     return 130 if interrupted and bag is not None else 0
 
 
-def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float, posed: bool = False) -> dict:
-    """Everything but the recording, from the saved map (which this also validates)."""
+def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float, posed: bool = False,
+                  remaps: dict | None = None) -> dict:
+    """Everything but the recording, from the saved map (which this also validates), with
+    the configuration the mapper ran with (stored in the map file)."""
     from rfm_core.evaluation.report import (  # noqa: PLC0415
-        GroundTruth, evaluate_run, read_ground_truth, render_top_down, write_object_json, write_report, write_tum)
+        GroundTruth, evaluate_run, read_ground_truth, render_top_down, write_keyframes_tum, write_object_json,
+        write_report, write_tum)
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
 
@@ -346,14 +361,20 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
     truth = read_ground_truth(bag) if bag is not None else GroundTruth()
     accuracy = evaluate_run(mapper, truth, posed=posed) if truth and len(truth.boxes) else None
     write_tum(output / 'trajectory.tum', mapper)
+    write_keyframes_tum(output / 'keyframes.tum', mapper)
     write_object_json(output / 'objects.json', mapper)
+    bag_s, input_frames = _bag_extent(bag, remaps or BAG_REMAPS) if bag is not None else (wall_s, None)
+    title = (f'{bag.name if bag is not None else "live"}: ARE {accuracy["localization"]["ARE_median"]:.1f} deg, '
+             f'ATE {100 * accuracy["localization"]["ATE_median"]:.1f} cm, '
+             f'{100 * accuracy["localization"]["registered"]:.0f}% of frames localized, '
+             f'AP25 {accuracy["mapping"]["AP25"]:.2f}' if accuracy else '')
     render_top_down(output / 'top_down.png', mapper, truth if truth else None,
-                    accuracy['alignment'] if accuracy else None)
-    bag_s = _bag_seconds(bag) if bag is not None else wall_s
+                    accuracy['alignment'] if accuracy else None, title=title)
     summary = {'input': str(bag) if bag else 'live camera', 'date': datetime.datetime.now().isoformat(timespec='seconds'),
                'backend': params['detector']['backend'], 'matcher': params['matcher']['matcher'], 'posed': posed,
-               'frames': progress.get('frames', 0), 'detections': progress.get('detections', 0),
-               'dropped': progress.get('dropped', 0), 'keyframes': len(mapper.keyframes),
+               'input_frames': input_frames, 'frames': progress.get('frames', 0),
+               'detections': progress.get('detections', 0), 'dropped': progress.get('dropped', 0),
+               'localized': len(mapper.frame_poses()), 'keyframes': len(mapper.keyframes),
                'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),
                'edges_rejected': len(mapper.edges) - len(mapper.active_edges()), 'objects': len(mapper.tracks()),
                'wall_s': wall_s, 'bag_s': bag_s, 'realtime': bag_s / max(wall_s, 1e-9), 'accuracy': accuracy}

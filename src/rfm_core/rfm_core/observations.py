@@ -5,9 +5,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from rfm_core.geometry import BOX_DIM, gravity_aligned_rotation
+from rfm_core.geometry import BOX_DIM, Pose4, gravity_aligned_rotation
 
-__all__ = ['CameraIntrinsics', 'FrameObservations']
+__all__ = ['CameraIntrinsics', 'FrameObservations', 'FrameTrack']
 
 
 @dataclass(frozen=True)
@@ -109,6 +109,38 @@ class FrameObservations:
 
     def __len__(self) -> int:
         return len(self.boxes)
+
+    @property
+    def rotation_aligned_from_camera(self) -> np.ndarray:
+        """R (3, 3) with p_aligned = R p_camera (see gravity_aligned_rotation)."""
+        return gravity_aligned_rotation(self.gravity_cam)
+
+
+@dataclass
+class FrameTrack:
+    """A processed frame localized against a keyframe (rfm_msgs/TrackedFrame): ``pose`` is
+    T_keyframe_frame between their gravity-aligned camera frames. A keyframe is its own
+    reference (its id, the identity pose). The frame's camera pose in the map is the
+    keyframe's pose composed with ``pose`` and the frame's gravity."""
+
+    stamp_ns: int
+    frame_id: str
+    gravity_cam: np.ndarray                 #: unit "down" in the camera optical frame
+    keyframe_id: int
+    keyframe_stamp_ns: int                  #: the keyframe's stamp (tells a reused id apart)
+    pose: Pose4                             #: T_keyframe_frame
+    num_inliers: int = 0                    #: verified object matches behind ``pose``
+    is_keyframe: bool = False
+    continuous: bool = True                 #: part of a stream the matcher followed (motion prior on)
+
+    def __post_init__(self):
+        g = np.asarray(self.gravity_cam, dtype=np.float64).reshape(-1)
+        norm = np.linalg.norm(g) if g.size == 3 else 0.0
+        if g.size != 3 or not np.isfinite(norm) or norm < 1e-6:
+            raise ValueError(f'gravity must be a finite non-zero 3-vector, got {self.gravity_cam!r}')
+        self.gravity_cam = g / norm
+        if not (np.isfinite(self.pose.yaw) and np.all(np.isfinite(self.pose.t))):
+            raise ValueError('frame pose is not finite')
 
     @property
     def rotation_aligned_from_camera(self) -> np.ndarray:

@@ -1,10 +1,10 @@
 """rfm mapper node: pose averaging, object tracks, relocalization, map persistence (paper 3.5-3.6).
 
-Subscribes rfm/keyframes and rfm/view_graph/edges (from the matcher), rfm/detections (in
-localization mode: every frame is relocalized), and in posed mode a pose source. Publishes
-rfm/keyframe_poses, rfm/trajectory, rfm/camera_pose, TF (map -> camera), rfm/object_map,
-rfm/object_markers and rfm/status. Services: rfm/relocalize, rfm/save_map, rfm/load_map,
-rfm/reset, rfm/set_mode.
+Subscribes rfm/keyframes, rfm/view_graph/edges and rfm/tracked_frames (from the matcher),
+rfm/detections (in localization mode: every frame is relocalized), and in posed mode a pose
+source. Publishes rfm/keyframe_poses, rfm/trajectory, rfm/camera_pose and TF (map -> camera)
+for every localized frame, rfm/object_map, rfm/object_markers and rfm/status. Services:
+rfm/relocalize, rfm/save_map, rfm/load_map, rfm/reset, rfm/set_mode.
 
 Thin rclpy wrapper: the algorithms live in rfm_core.mapping.
 """
@@ -23,7 +23,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rfm_msgs.msg import FrameDetections, Keyframe, MapperStatus, ObjectMap, ViewGraphEdge
+from rfm_msgs.msg import FrameDetections, Keyframe, MapperStatus, ObjectMap, TrackedFrame, ViewGraphEdge
 from rfm_msgs.srv import LoadMap, Relocalize, SaveMap, SetMode
 from std_msgs.msg import ColorRGBA
 from std_srvs.srv import Trigger
@@ -32,11 +32,12 @@ from visualization_msgs.msg import Marker, MarkerArray
 from rfm_core.geometry import Pose4, box_corners
 from rfm_core.io.messages import (
     declare_range_error, frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, parameter_descriptor, pose_stamped_msg,
-    pose_to_matrix, stamp_to_ns, transform_stamped_msg, vector3_to_numpy,
+    pose_to_matrix, stamp_to_ns, tracked_frame_from_msg, transform_stamped_msg, vector3_to_numpy,
 )
 from rfm_core.mapping.averaging import AveragingConfig
 from rfm_core.mapping.map_io import MapFileError, load_map, save_map
 from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig, camera_to_map
+from rfm_core.observations import FrameTrack
 from rfm_core.mapping.tracks import TrackConfig, track_colour
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.learned import make_matcher
@@ -150,7 +151,7 @@ class MapperNode(Node):
         self.pending_edges: list = []        # edges whose keyframes have not arrived yet
         self.pending_keyframes: list = []    # posed mode: keyframes waiting for a pose
         self.external_poses: list = []       # posed mode (topic): (stamp_ns, frame, 4x4)
-        self.counts = dict(keyframes=0, edges=0, dropped=0, relocalized=0, relocalize_failed=0)
+        self.counts = dict(keyframes=0, edges=0, frames=0, dropped=0, relocalized=0, relocalize_failed=0)
         self.message = ''
         self._dirty = False
         self._map_dirty = False
@@ -159,13 +160,15 @@ class MapperNode(Node):
         self.num_objects = 0                     # objects in the last published map
         self._since_save = 0
         self._camera_frame = ''
-        self._last_camera = None             # (stamp_ns, 4x4)
+        self._last_camera = None             # (stamp_ns, 4x4) of the last pose published
+        self._latest_track = None            # the newest tracked frame (published once localized)
 
         reliable = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.create_subscription(Keyframe, 'rfm/keyframes', self._on_keyframe, reliable)
         self.create_subscription(ViewGraphEdge, 'rfm/view_graph/edges', self._on_edge, reliable)
+        self.create_subscription(TrackedFrame, 'rfm/tracked_frames', self._on_tracked_frame, reliable)
         self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
         if self.pose_source == 'topic':
@@ -204,9 +207,8 @@ class MapperNode(Node):
         self.create_timer(1.0, self._publish_status, clock=steady)
         if load_on_start:
             try:
-                header = load_map(self.mapper, self.map_path)
+                header = self._load(self.map_path)
                 self.get_logger().info(f'loaded {self.map_path}: {header["keyframes"]} keyframes')
-                self._dirty = self._map_dirty = True
             except MapFileError as exc:
                 raise ValueError(f'load_map_on_start: {exc}') from exc
         self.get_logger().info(
@@ -272,6 +274,36 @@ class MapperNode(Node):
                 self._add_edge(edge)
             elif now - stamp < 30.0:
                 self.pending_edges.append((stamp, edge))
+
+    def _on_tracked_frame(self, msg: TrackedFrame) -> None:
+        """Mapping mode: log the frame and publish its camera pose (once its keyframe has one)."""
+        if self.mapper.mode != 'mapping':
+            return
+        try:
+            track = tracked_frame_from_msg(msg)
+        except ValueError as exc:
+            self.counts['dropped'] += 1
+            self.get_logger().warning(f'tracked frame dropped: {exc}', throttle_duration_sec=5.0)
+            return
+        if not self.mapper.add_frame(track):
+            self.counts['dropped'] += 1
+            self.get_logger().warning(f'tracked frame dropped: keyframe {track.keyframe_id} has another stamp '
+                                      '(did the matcher restart?)', throttle_duration_sec=5.0)
+            return
+        self.counts['frames'] += 1
+        self._latest_track = track
+        self._publish_latest_frame()
+
+    def _publish_latest_frame(self) -> None:
+        """The newest tracked frame's camera pose, if it has one and is newer than the last
+        pose published."""
+        track = self._latest_track
+        if track is None or (self._last_camera is not None and track.stamp_ns <= self._last_camera[0]):
+            return
+        cam = self.mapper.frame_pose(track)
+        if cam is not None:
+            self._camera_frame = track.frame_id or self._camera_frame
+            self._publish_camera(track.stamp_ns, track.frame_id, cam)
 
     def _on_external_pose(self, msg: PoseStamped) -> None:
         try:
@@ -341,6 +373,10 @@ class MapperNode(Node):
             self.counts['relocalize_failed'] += 1
             return
         self.counts['relocalized'] += 1
+        k = reloc.keyframe_id
+        self.mapper.frames.add(FrameTrack(obs.stamp_ns, obs.frame_id, obs.gravity_cam, k,
+                                          self.mapper.keyframes[k].stamp_ns,
+                                          self.mapper.poses[k] @ reloc.pose.inverse(), reloc.num_inliers))
         cam = camera_to_map(reloc.pose, obs)
         self._publish_camera(obs.stamp_ns, obs.frame_id, cam)
 
@@ -384,8 +420,12 @@ class MapperNode(Node):
         path.header.stamp, path.header.frame_id = stamp, self.map_frame
         path.poses = [pose_stamped_msg(poses[k], self._stamp(k), self.map_frame) for k in ids]
         self.path_pub.publish(path)
-        last = ids[-1]
-        self._publish_camera(self._stamp(last), self.mapper.keyframes[last].frame_id, poses[last])
+        if self._latest_track is not None:
+            self._publish_latest_frame()
+        else:                            # no tracked frames (a matcher that does not send them)
+            last = ids[-1]
+            if self._last_camera is None or self._stamp(last) > self._last_camera[0]:
+                self._publish_camera(self._stamp(last), self.mapper.keyframes[last].frame_id, poses[last])
 
     def _publish_camera(self, stamp_ns: int, frame_id: str, cam) -> None:
         self._last_camera = (stamp_ns, cam)
@@ -454,6 +494,7 @@ class MapperNode(Node):
         msg.num_edges_rejected = len(mp.edges) - active
         msg.num_objects = self.num_objects
         msg.num_components = mp.num_components()
+        msg.num_frames = len(mp.frames)
         msg.last_update_seconds = float(mp.last_update_seconds)
         msg.message = self.message
         self.status_pub.publish(msg)
@@ -506,16 +547,30 @@ class MapperNode(Node):
         response.path = str(written or '')
         return response
 
+    def _load(self, path: str) -> dict:
+        """Load a map file (MapFileError: the current map is unchanged). The mapper takes the
+        configuration the map was built with; settings that differ from this node's
+        parameters are logged."""
+        before = self.mapper.config
+        header = load_map(self.mapper, path)
+        if self.mapper.config != before:
+            mine, theirs = _flat(before.to_dict()), _flat(self.mapper.config.to_dict())
+            changed = ', '.join(f'{k}={theirs[k]} (parameter: {mine.get(k)})'
+                                for k in sorted(theirs) if theirs[k] != mine.get(k))
+            self.get_logger().info(f'{path} was built with other mapper settings; using the map\'s: {changed}')
+        self.pending_edges.clear()
+        self._latest_track = self._last_camera = None
+        self._dirty = self._map_dirty = True
+        self._since_save = 0
+        return header
+
     def _srv_load(self, request, response):
         path = request.path or self.map_path
         try:
-            header = load_map(self.mapper, path)
+            header = self._load(path)
         except MapFileError as exc:
             response.success, response.message = False, f'{exc} (the current map is unchanged)'
             return response
-        self.pending_edges.clear()
-        self._dirty = self._map_dirty = True
-        self._since_save = 0
         response.success = True
         response.num_keyframes = len(self.mapper.keyframes)
         response.num_objects = self.num_objects = len(self.mapper.tracks())
@@ -531,6 +586,7 @@ class MapperNode(Node):
         self.mapper.mode = mode
         self.pending_edges.clear()
         self.pending_keyframes.clear()
+        self._latest_track = self._last_camera = None
         self._map_dirty = True
         self.num_objects = 0
         response.success, response.message = True, 'map cleared'
@@ -546,6 +602,16 @@ class MapperNode(Node):
         response.success, response.message = True, f'mode: {self.mapper.mode}'
         self.get_logger().info(response.message)
         return response
+
+
+def _flat(d: dict, prefix: str = '') -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f'{prefix}{k}.'))
+        else:
+            out[f'{prefix}{k}'] = v
+    return out
 
 
 def main(args=None):

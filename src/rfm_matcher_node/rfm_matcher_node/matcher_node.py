@@ -1,10 +1,12 @@
-"""rfm matcher node: keyframes and a view graph of verified 4-DoF relative poses (paper 3.2-3.4).
+"""rfm matcher node: keyframes, a view graph of verified 4-DoF relative poses (paper
+3.2-3.4), and every frame's pose relative to a keyframe (tracking).
 
 Subscribes rfm/detections (rfm_msgs/FrameDetections). Publishes rfm/keyframes
 (rfm_msgs/Keyframe) and rfm/view_graph/edges (rfm_msgs/ViewGraphEdge), reliable with deep
-queues so the mapper does not miss any. An edge's (yaw, translation) is T_source_target,
-between the gravity-aligned camera frames of its keyframes; its inliers pair detection
-indices of the source and target keyframes.
+queues so the mapper does not miss any, and rfm/tracked_frames (rfm_msgs/TrackedFrame), one
+per localized frame. An edge's (yaw, translation) is T_source_target, between the
+gravity-aligned camera frames of its keyframes; its inliers pair detection indices of the
+source and target keyframes.
 
 Thin rclpy wrapper: the algorithms live in rfm_core.matching.
 """
@@ -18,9 +20,11 @@ from geometry_msgs.msg import Vector3
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, ViewGraphEdge
+from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, TrackedFrame, ViewGraphEdge
 
-from rfm_core.io.messages import declare_range_error, frame_detections_from_msg, ns_to_stamp, parameter_descriptor
+from rfm_core.io.messages import (
+    declare_range_error, frame_detections_from_msg, ns_to_stamp, parameter_descriptor, tracked_frame_to_msg,
+)
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.learned import make_matcher
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
@@ -65,6 +69,13 @@ class MatcherNode(Node):
             min_interval_s=p('keyframe_min_interval_s', k.min_interval_s, _float(
                 'No new keyframe sooner than this after the last one (s); 0: off. Fewer keyframes '
                 'cost less matching but lower accuracy (see BENCHMARKS.md)', 0, 60)).value,
+            max_frame_gap_s=p('max_frame_gap_s', k.max_frame_gap_s, _float(
+                'Frames further apart than this are separate views (photos): no motion prior '
+                'between them, and their edges need min_retrieved_inliers objects; closer frames '
+                'are one stream', 0.01, 3600)).value,
+            min_retrieved_inliers=p('min_retrieved_inliers', k.min_retrieved_inliers, _int(
+                'Verified objects an edge needs where the motion prior cannot check it (separate '
+                'views, retrieved keyframes)', 2, 100)).value,
             min_detections=p('min_detections', k.min_detections, _int(
                 'Skip frames with fewer detections', 0, 1000)).value,
             recent_keyframes=p('recent_keyframes', k.recent_keyframes, _int(
@@ -72,12 +83,12 @@ class MatcherNode(Node):
             retrieved_keyframes=p('retrieved_keyframes', k.retrieved_keyframes, _int(
                 'Plus this many most similar older keyframes (retrieval)', 0, 100)).value,
             unordered_retrieved_keyframes=p('unordered_retrieved_keyframes', k.unordered_retrieved_keyframes, _int(
-                'Retrieved keyframes when motion_prior is off (unordered collections: retrieval is '
-                'what finds the overlaps)', 0, 100)).value,
+                'Retrieved keyframes for a keyframe that does not continue a stream (a separate '
+                'view: retrieval is what finds the overlaps)', 0, 100)).value,
             motion_prior=p('motion_prior', k.motion_prior, parameter_descriptor(
-                'Reject edges implying faster motion than max_yaw_rate_deg_s / max_speed_m_s (plus '
-                'slack); turn off for unordered image collections (then every edge needs 3 verified '
-                'objects and unordered_retrieved_keyframes candidates are retrieved)')).value,
+                'Within a stream (frames at most max_frame_gap_s apart), reject tracking and edges '
+                'implying faster motion than max_yaw_rate_deg_s / max_speed_m_s (plus slack). '
+                'false: treat every frame as a separate view (stamps mean nothing)')).value,
             max_yaw_rate_deg_s=p('max_yaw_rate_deg_s', k.max_yaw_rate_deg_s, _float(
                 'Motion prior: fastest plausible turn (deg/s)', 1, 3600)).value,
             max_speed_m_s=p('max_speed_m_s', k.max_speed_m_s, _float(
@@ -99,10 +110,11 @@ class MatcherNode(Node):
                           reliability=ReliabilityPolicy.RELIABLE)
         self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', deep)
         self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', deep)
+        self.track_pub = self.create_publisher(TrackedFrame, 'rfm/tracked_frames', deep)
         self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
         self.get_logger().info(f'matcher ready ({kind} object matcher): rfm/detections -> rfm/keyframes, '
-                               'rfm/view_graph/edges')
+                               'rfm/view_graph/edges, rfm/tracked_frames')
 
     def _on_detections(self, msg: FrameDetections) -> None:
         try:
@@ -110,14 +122,14 @@ class MatcherNode(Node):
         except ValueError as exc:
             self.get_logger().warning(f'detections dropped: {exc}', throttle_duration_sec=5.0)
             return
-        keyframe, edges = self.graph.add(obs)
-        if keyframe is None:
-            return
-        out = Keyframe(header=msg.header, keyframe_id=keyframe.keyframe_id, detections=msg)
-        self.keyframe_pub.publish(out)
-        for edge in edges:
-            self.edge_pub.publish(self._edge_msg(edge, obs.stamp_ns))
-        self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')
+        keyframe, edges, track = self.graph.add(obs)
+        if keyframe is not None:
+            self.keyframe_pub.publish(Keyframe(header=msg.header, keyframe_id=keyframe.keyframe_id, detections=msg))
+            for edge in edges:
+                self.edge_pub.publish(self._edge_msg(edge, obs.stamp_ns))
+            self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')
+        if track is not None:            # after its keyframe, so the mapper knows the keyframe
+            self.track_pub.publish(tracked_frame_to_msg(track))
 
     @staticmethod
     def _edge_msg(edge, stamp_ns: int) -> ViewGraphEdge:

@@ -1,8 +1,7 @@
 """The output folder of a run: TUM trajectory, object map JSON, a Markdown report and a
 top-down PNG — from a saved map, plus ground truth when the bag has it.
 
-No ROS and no plotting library: the picture is rasterised with numpy and written by
-:mod:`rfm_core.io.png`.
+No ROS here; the picture is drawn with matplotlib (imported only when one is drawn).
 """
 from __future__ import annotations
 
@@ -15,11 +14,10 @@ import numpy as np
 from rfm_core.evaluation.mapping import evaluate_map
 from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4, bev_corners, quaternion_from_matrix
-from rfm_core.io.png import write_png
 from rfm_core.mapping.tracks import track_colour
 
-__all__ = ['GroundTruth', 'read_ground_truth', 'evaluate_run', 'write_tum', 'write_object_json',
-           'render_top_down', 'write_report']
+__all__ = ['GroundTruth', 'read_ground_truth', 'evaluate_run', 'write_tum', 'write_keyframes_tum',
+           'write_object_json', 'render_top_down', 'write_report']
 
 
 @dataclass
@@ -45,6 +43,8 @@ def read_ground_truth(bag) -> GroundTruth:
     wanted = {'/ground_truth/camera_pose', '/ground_truth/objects', '/ground_truth/detections'}
     with AnyReader([Path(bag)], default_typestore=rfm_typestore()) as reader:
         conns = [c for c in reader.connections if c.topic in wanted]
+        if not conns:                    # (an empty list would make rosbags read every topic)
+            return gt
         for conn, _, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
             if conn.topic == '/ground_truth/camera_pose':
@@ -64,13 +64,20 @@ def read_ground_truth(bag) -> GroundTruth:
 
 
 def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed: bool = False) -> dict:
-    """Localization (keyframes) and mapping accuracy of a mapper against ground truth."""
+    """Localization and mapping accuracy of a mapper against ground truth. Localization is
+    over every frame of the input (``registered``: the share of the ground truth's frames
+    localized, as in the paper), with the keyframes' figures beside it (``keyframe_*``)."""
+    align_kind = False if posed else '4dof'
+    frames = mapper.frame_poses()
+    loc = trajectory_errors(frames, truth.camera_poses, align=align_kind)
     est = mapper.camera_poses()
     by_stamp = {mapper.keyframes[k].stamp_ns: m for k, m in est.items()}
     truth_kf = {mapper.keyframes[k].stamp_ns: truth.camera_poses[mapper.keyframes[k].stamp_ns]
                 for k in mapper.keyframes if mapper.keyframes[k].stamp_ns in truth.camera_poses}
-    loc = trajectory_errors(by_stamp, truth_kf, align=False if posed else '4dof')
-    align = Pose4(0.0, (0.0, 0.0, 0.0)) if posed else map_to_truth(by_stamp, truth_kf)
+    kf = trajectory_errors(by_stamp, truth_kf, align=align_kind)
+    loc.update({f'keyframe_{k}': v for k, v in kf.items()})
+    loc['keyframes'] = len(mapper.keyframes)
+    align = Pose4(0.0, (0.0, 0.0, 0.0)) if posed else map_to_truth(frames or by_stamp, truth.camera_poses)
     tracks = mapper.tracks()
     boxes = align.transform_boxes(np.array([tr.box for tr in tracks]).reshape(-1, 7))
     ignore = np.array([truth.best_visibility.get(int(i), 0.0) < min_visibility for i in truth.ids], bool)
@@ -78,16 +85,26 @@ def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed:
     return {'localization': loc, 'mapping': mapping, 'alignment': align}
 
 
-def write_tum(path, mapper) -> Path:
-    """Keyframe trajectory in TUM format: stamp(s) tx ty tz qx qy qz qw (camera optical frame)."""
+def _write_tum(path, poses: dict) -> Path:
+    """{stamp_ns: 4x4} -> TUM lines: stamp(s) tx ty tz qx qy qz qw, in stamp order."""
     lines = []
-    for k, m in sorted(mapper.camera_poses().items(), key=lambda kv: mapper.keyframes[kv[0]].stamp_ns):
+    for stamp, m in sorted(poses.items()):
         q = quaternion_from_matrix(m[:3, :3])
-        stamp = mapper.keyframes[k].stamp_ns / 1e9
-        lines.append(f'{stamp:.9f} ' + ' '.join(f'{v:.6f}' for v in (*m[:3, 3], *q)))
+        lines.append(f'{stamp / 1e9:.9f} ' + ' '.join(f'{v:.6f}' for v in (*m[:3, 3], *q)))
     path = Path(path)
     path.write_text('\n'.join(lines) + ('\n' if lines else ''))
     return path
+
+
+def write_tum(path, mapper) -> Path:
+    """Every localized frame's camera pose (optical frame in the map) in TUM format: stamp(s)
+    tx ty tz qx qy qz qw."""
+    return _write_tum(path, mapper.frame_poses())
+
+
+def write_keyframes_tum(path, mapper) -> Path:
+    """The registered keyframes' camera poses in TUM format."""
+    return _write_tum(path, {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()})
 
 
 def write_object_json(path, mapper, frame_id: str = 'map') -> Path:
@@ -105,71 +122,78 @@ def write_object_json(path, mapper, frame_id: str = 'map') -> Path:
 
 # ---------------------------------------------------------------------- picture
 
-def _line(img, p0, p1, colour, width=1):
-    n = int(max(abs(p1[0] - p0[0]), abs(p1[1] - p0[1]), 1)) + 1
-    xs = np.linspace(p0[0], p1[0], n)
-    ys = np.linspace(p0[1], p1[1], n)
-    for dx in range(-(width // 2), width - width // 2):
-        for dy in range(-(width // 2), width - width // 2):
-            x = np.clip(np.round(xs + dx).astype(int), 0, img.shape[1] - 1)
-            y = np.clip(np.round(ys + dy).astype(int), 0, img.shape[0] - 1)
-            img[y, x] = colour
-
-
 def render_top_down(path, mapper, truth: GroundTruth | None = None, alignment: Pose4 | None = None,
-                    size: int = 800) -> Path:
-    """Top-down PNG in the ground truth's frame when given (map aligned onto it by
-    ``alignment``, T_truth_map):
-    ground-truth boxes grey, map boxes coloured by track, trajectory dark blue, keyframes
-    as dots, true trajectory light grey."""
+                    title: str = '') -> Path:
+    """The map from above (matplotlib, axes in metres), in the ground truth's frame when
+    given (``alignment``: T_truth_map): map boxes coloured by track, the trajectory of every
+    localized frame, keyframes, and with ground truth its boxes, its trajectory and the true
+    positions of the frames that were not localized."""
+    import matplotlib  # noqa: PLC0415
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+    from matplotlib.patches import Polygon  # noqa: PLC0415
+
     align = alignment if alignment is not None else Pose4(0.0, (0.0, 0.0, 0.0))
-    est = mapper.camera_poses()
-    centres = align.transform_points(np.array([m[:3, 3] for _, m in sorted(est.items())]).reshape(-1, 3))
+    frames = mapper.frame_poses()
+    path_xy = align.transform_points(np.array([m[:3, 3] for _, m in sorted(frames.items())]).reshape(-1, 3))
+    keyframes = align.transform_points(
+        np.array([m[:3, 3] for m in mapper.camera_poses().values()]).reshape(-1, 3))
     tracks = mapper.tracks()
     boxes = align.transform_boxes(np.array([tr.box for tr in tracks]).reshape(-1, 7))
-    gt_boxes = truth.boxes if truth is not None else np.zeros((0, 7))
-    gt_path = (np.array([m[:3, 3] for _, m in sorted(truth.camera_poses.items())]).reshape(-1, 3)
-               if truth else np.zeros((0, 3)))
-    pts = np.concatenate([centres[:, :2], bev_corners(boxes).reshape(-1, 2),
-                          bev_corners(gt_boxes).reshape(-1, 2), gt_path[:, :2]]) if (
-        len(centres) or len(boxes) or len(gt_boxes)) else np.zeros((1, 2))
-    lo, hi = pts.min(0) - 0.3, pts.max(0) + 0.3
-    scale = (size - 20) / max(hi - lo)
-    h = int((hi[1] - lo[1]) * scale) + 20
-    w = int((hi[0] - lo[0]) * scale) + 20
-    img = np.full((h, w, 3), 255, np.uint8)
-
-    def px(p):          # map x right, y up
-        return ((p[0] - lo[0]) * scale + 10, h - ((p[1] - lo[1]) * scale + 10))
-
-    for gx in np.arange(np.floor(lo[0]), hi[0] + 1):   # 1 m grid
-        _line(img, px((gx, lo[1])), px((gx, hi[1])), np.array([235, 235, 235], np.uint8))
-    for gy in np.arange(np.floor(lo[1]), hi[1] + 1):
-        _line(img, px((lo[0], gy)), px((hi[0], gy)), np.array([235, 235, 235], np.uint8))
-    for a, b in zip(gt_path[:-1], gt_path[1:]):
-        _line(img, px(a), px(b), np.array([190, 190, 190], np.uint8), 2)
-    for corners in bev_corners(gt_boxes):
-        for i in range(4):
-            _line(img, px(corners[i]), px(corners[(i + 1) % 4]), np.array([150, 150, 150], np.uint8), 1)
+    fig, ax = plt.subplots(figsize=(8, 8), dpi=100)
+    handles = []
+    if truth:
+        for corners in bev_corners(truth.boxes):
+            ax.add_patch(Polygon(corners, closed=True, fill=True, facecolor='0.92', edgecolor='0.55', lw=1.0))
+        gt_path = np.array([m[:3, 3] for _, m in sorted(truth.camera_poses.items())]).reshape(-1, 3)
+        handles += ax.plot(gt_path[:, 0], gt_path[:, 1], color='0.6', lw=3, alpha=0.7, label='true trajectory')
+        handles.append(Polygon(np.zeros((4, 2)), facecolor='0.92', edgecolor='0.55', label='true objects'))
+        lost = np.array([m[:3, 3] for s_, m in sorted(truth.camera_poses.items()) if s_ not in frames]).reshape(-1, 3)
+        if len(lost):
+            handles.append(ax.scatter(lost[:, 0], lost[:, 1], marker='x', s=25, color='tab:orange', zorder=4,
+                                      label=f'not localized ({len(lost)} of {len(truth.camera_poses)} frames)'))
     for tr, corners in zip(tracks, bev_corners(boxes)):
-        for i in range(4):
-            _line(img, px(corners[i]), px(corners[(i + 1) % 4]), (40 + 180 * np.array(track_colour(tr.track_id))).astype(np.uint8), 2)
-    for a, b in zip(centres[:-1], centres[1:]):
-        _line(img, px(a), px(b), np.array([20, 40, 140], np.uint8), 2)
-    for c in centres:
-        x, y = px(c)
-        img[max(int(y) - 2, 0):int(y) + 3, max(int(x) - 2, 0):int(x) + 3] = (200, 30, 30)
-    return write_png(path, img)
+        colour = 0.15 + 0.7 * np.array(track_colour(tr.track_id))
+        ax.add_patch(Polygon(corners, closed=True, fill=True, facecolor=(*colour, 0.15), edgecolor=colour, lw=1.6))
+    if len(boxes):
+        handles.append(Polygon(np.zeros((4, 2)), facecolor=(0.5, 0.5, 0.9, 0.15), edgecolor='tab:blue',
+                               label=f'mapped objects ({len(boxes)}, coloured by track)'))
+    if len(path_xy):
+        handles += ax.plot(path_xy[:, 0], path_xy[:, 1], color='navy', lw=1.5,
+                           label=f'trajectory ({len(path_xy)} frames)')
+    if len(keyframes):
+        handles.append(ax.scatter(keyframes[:, 0], keyframes[:, 1], s=14, color='tab:red', zorder=5,
+                                  label=f'keyframes ({len(keyframes)} of {len(mapper.keyframes)} registered)'))
+    ax.set_aspect('equal')
+    ax.autoscale_view()
+    ax.margins(0.05)
+    ax.grid(True, color='0.9', lw=0.8)
+    ax.set_axisbelow(True)
+    ax.set_xlabel('x (m)')
+    ax.set_ylabel('y (m)')
+    ax.set_title(title or ('rfm map, aligned to the ground truth' if truth else 'rfm map'), fontsize=10)
+    if handles:
+        ax.legend(handles=handles, loc='upper center', bbox_to_anchor=(0.5, -0.08), ncol=2, fontsize=8,
+                  frameon=False)
+    fig.tight_layout()
+    path = Path(path)
+    fig.savefig(path)
+    plt.close(fig)
+    return path
 
 
 def write_report(path, summary: dict) -> Path:
-    """Markdown report of a run: what went in, what came out, timings, accuracy."""
+    """Markdown report of a run: what went in, what came out, timings, accuracy, picture."""
     s = summary
+    frames_in = s.get('input_frames')
+    processed = s.get('frames', 0)
+    share = f' of {frames_in} in the input ({100 * processed / max(frames_in, 1):.0f}%)' if frames_in else ''
     lines = [f'# rfm run: {s.get("input", "")}', '',
              f'- date: {s.get("date", "")}', f'- detector: `{s.get("backend", "")}`, matcher: `{s.get("matcher", "")}`, '
              f'mode: {"posed" if s.get("posed") else "un-posed"}',
-             f'- frames detected: {s.get("frames", 0)}, detections published: {s.get("detections", 0)}, '
-             f'frames dropped while the detector was busy (newest wins): {s.get("dropped", 0)}',
+             f'- frames processed by the detector: {processed}{share}; frames dropped while it was busy '
+             f'(newest wins): {s.get("dropped", 0)}',
+             f'- frames localized: {s.get("localized", 0)} (written to `trajectory.tum`)',
              f'- keyframes: {s.get("keyframes", 0)}, registered: {s.get("registered", 0)}, '
              f'edges kept / rejected: {s.get("edges", 0)} / {s.get("edges_rejected", 0)}',
              f'- objects in the map: {s.get("objects", 0)}',
@@ -183,18 +207,24 @@ def write_report(path, summary: dict) -> Path:
     if acc:
         loc, m = acc['localization'], acc['mapping']
         lines += ['## Accuracy against the bag\'s ground truth', '',
-                  '| ARE median (deg) | ATE median (cm) | ARE RMSE (deg) | ATE RMSE (cm) | registered |',
-                  '|---|---|---|---|---|',
-                  f'| {loc["ARE_median"]:.2f} | {100 * loc["ATE_median"]:.1f} | {loc["ARE_rmse"]:.2f} | '
-                  f'{100 * loc["ATE_rmse"]:.1f} | {100 * loc["registered"]:.0f}% |', '',
+                  '| frames | ARE median (deg) | ATE median (cm) | ARE RMSE (deg) | ATE RMSE (cm) | localized |',
+                  '|---|---|---|---|---|---|',
+                  f'| all {loc["frames"]} of the input | {loc["ARE_median"]:.2f} | {100 * loc["ATE_median"]:.1f} | '
+                  f'{loc["ARE_rmse"]:.2f} | {100 * loc["ATE_rmse"]:.1f} | {100 * loc["registered"]:.0f}% |',
+                  f'| {loc.get("keyframes", 0)} keyframes | {loc["keyframe_ARE_median"]:.2f} | '
+                  f'{100 * loc["keyframe_ATE_median"]:.1f} | {loc["keyframe_ARE_rmse"]:.2f} | '
+                  f'{100 * loc["keyframe_ATE_rmse"]:.1f} | {100 * loc["keyframe_registered"]:.0f}% |', '',
                   '| AP15 | AR15 | AP25 | AR25 | map objects | ground-truth objects |', '|---|---|---|---|---|---|',
                   f'| {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | {m["objects"]} | '
                   f'{m["ground_truth"]} |', '',
-                  'Localization over keyframes, aligned by yaw + translation (gravity is shared); mapping: '
-                  'scene-level AP/AR at 3D IoU 0.15 / 0.25, objects never seen >= 20% ignored.', '']
-    lines += ['## Files', '', '- `map.rfm`: the map (load it with `rfm/load_map`)',
-              '- `trajectory.tum`: keyframe camera poses (TUM: stamp tx ty tz qx qy qz qw)',
-              '- `objects.json`: the object map', '- `outputs.mcap/`: the output topics (open in Foxglove)',
+                  'Localization aligned by yaw + translation (gravity is shared); a frame counts as localized when '
+                  'it has a pose in `trajectory.tum`. Mapping: scene-level AP/AR at 3D IoU 0.15 / 0.25, objects '
+                  'never seen >= 20% ignored.', '']
+    lines += ['## Map from above', '', '![top-down view](top_down.png)', '',
+              '## Files', '', '- `map.rfm`: the map (load it with `rfm/load_map`)',
+              '- `trajectory.tum`: camera pose of every localized frame (TUM: stamp tx ty tz qx qy qz qw)',
+              '- `keyframes.tum`: the registered keyframes\' camera poses', '- `objects.json`: the object map',
+              '- `outputs.mcap/`: the output topics (open in Foxglove)',
               '- `top_down.png`: map and trajectory from above' + (' (ground truth in grey)' if acc else ''), '']
     path = Path(path)
     path.write_text('\n'.join(lines))

@@ -116,16 +116,27 @@ def bag_custom_data(path) -> dict:
 
 def iter_camera_frames(path, color_topic: str, depth_topic: str | None, info_topic: str,
                        imu_topic: str | None = None, extra_topics=(), slop_ns: int = 50_000_000):
-    """Read a bag in time order and yield, per colour image, a dict with the deserialised
-    ``color``, ``info``, ``depth`` (when given; matched within ``slop_ns``), the IMU
-    messages received since the previous frame (``imu``), and the latest message of each
-    ``extra_topics`` with the same stamp (e.g. ground truth), keyed by topic."""
+    """Read a bag in time order and yield, per synchronised colour image, a dict with the
+    deserialised ``color``, ``info``, ``depth`` (when given), the IMU messages received
+    since the previous frame (``imu``), and the message of each ``extra_topics`` (e.g.
+    ground truth), keyed by topic. Colour, camera_info, depth and the extra topics are
+    matched by approximate time, as the detector node matches them: each within
+    ``slop_ns`` of the others (drivers stamp depth a few ms after colour). At most four
+    synchronised topics (colour, info, depth and one extra, or colour, info and two extras).
+    """
     from rosbags.highlevel import AnyReader  # noqa: PLC0415
 
     from rfm_core.io.messages import stamp_to_ns  # noqa: PLC0415
+    from rfm_core.io.sync import ApproximateTimeSynchronizer  # noqa: PLC0415
 
-    wanted = {t for t in (color_topic, depth_topic, info_topic, imu_topic, *extra_topics) if t}
-    pending = {}
+    synced = [t for t in (color_topic, info_topic, depth_topic, *extra_topics) if t]
+    if len(synced) > 4:
+        raise ValueError(f'at most four synchronised topics, got {synced}')
+    index = {t: i for i, t in enumerate(synced)}
+    wanted = set(synced) | ({imu_topic} if imu_topic else set())
+    ready = []
+    sync = ApproximateTimeSynchronizer(len(synced), slop_ns, queue_size=30,
+                                       callback=lambda *msgs: ready.append(msgs))
     imu_buffer = []
     with AnyReader([Path(path)]) as reader:
         conns = [c for c in reader.connections if c.topic in wanted]
@@ -137,17 +148,10 @@ def iter_camera_frames(path, color_topic: str, depth_topic: str | None, info_top
             if conn.topic == imu_topic:
                 imu_buffer.append(msg)
                 continue
-            stamp = stamp_to_ns(msg.header.stamp)
-            pending.setdefault(stamp, {})[conn.topic] = msg
-            ready = [s for s, group in pending.items()
-                     if color_topic in group and info_topic in group
-                     and (depth_topic is None or depth_topic in group)
-                     and all(t in group for t in extra_topics)]
-            for s in sorted(ready):
-                group = pending.pop(s)
-                yield {'stamp_ns': s, 'color': group[color_topic], 'info': group[info_topic],
-                       'depth': group.get(depth_topic), 'imu': imu_buffer,
+            sync.add(index[conn.topic], stamp_to_ns(msg.header.stamp), msg)
+            while ready:
+                group = dict(zip(synced, ready.pop(0)))
+                yield {'stamp_ns': stamp_to_ns(group[color_topic].header.stamp), 'color': group[color_topic],
+                       'info': group[info_topic], 'depth': group.get(depth_topic), 'imu': imu_buffer,
                        **{t: group[t] for t in extra_topics}}
                 imu_buffer = []
-            for s in [s for s in pending if s < stamp - 10 * slop_ns]:
-                del pending[s]                   # never completed

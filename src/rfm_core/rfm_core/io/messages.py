@@ -19,7 +19,7 @@ from rfm_core.geometry import (
     oriented_from_boxes, quaternion_from_matrix,
 )
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR, MatchingConfig
-from rfm_core.observations import CameraIntrinsics, FrameObservations
+from rfm_core.observations import CameraIntrinsics, FrameObservations, FrameTrack
 
 __all__ = [
     'ROS', 'RosMessages', 'BagMessages', 'ros_message_class', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
@@ -27,7 +27,7 @@ __all__ = [
     'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
-    'frame_detections_to_msg',
+    'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg',
 ]
 
 _NS = 1_000_000_000
@@ -346,3 +346,23 @@ def frame_detections_to_msg(obs: FrameObservations, make=ROS):
                 backend=obs.backend, fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.cx),
                 cy=float(intr.cy), width=int(intr.width), height=int(intr.height),
                 gravity=_vector3(make, obs.gravity_cam), detections=detections)
+
+
+def tracked_frame_to_msg(track: FrameTrack, make=ROS):
+    """FrameTrack -> rfm_msgs/TrackedFrame."""
+    return make('rfm_msgs/msg/TrackedFrame', header=header(make, track.stamp_ns, track.frame_id),
+                keyframe_id=int(track.keyframe_id), keyframe_stamp=ns_to_stamp(track.keyframe_stamp_ns, make),
+                yaw=float(track.pose.yaw), translation=_vector3(make, track.pose.t),
+                gravity=_vector3(make, track.gravity_cam), num_inliers=int(track.num_inliers),
+                is_keyframe=bool(track.is_keyframe), continuous=bool(track.continuous))
+
+
+def tracked_frame_from_msg(msg) -> FrameTrack:
+    """rfm_msgs/TrackedFrame -> FrameTrack; ValueError when malformed (non-finite pose,
+    zero gravity)."""
+    t = vector3_to_numpy(msg.translation)
+    if not (np.isfinite(msg.yaw) and np.all(np.isfinite(t))):
+        raise ValueError('tracked frame pose is not finite')
+    return FrameTrack(stamp_to_ns(msg.header.stamp), msg.header.frame_id, vector3_to_numpy(msg.gravity),
+                      int(msg.keyframe_id), stamp_to_ns(msg.keyframe_stamp), Pose4(float(msg.yaw), t),
+                      int(msg.num_inliers), bool(msg.is_keyframe), bool(msg.continuous))

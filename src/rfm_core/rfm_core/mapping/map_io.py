@@ -1,10 +1,13 @@
 """Map files: versioned, self-describing, written atomically, validated on load.
 
 A map file is a NumPy ``.npz`` archive (no pickles) holding a JSON header (format name,
-version, counts, the mapper's mode and settings that matter for reuse) and flat arrays:
-every keyframe with its detections (boxes, scores, labels, embeddings, 2D boxes, gravity,
-intrinsics, stamp, frame id), every edge with its verified object and corner matches, and
-the keyframe poses. Object tracks are derived data and are rebuilt on load.
+version, counts, and the mapper's whole configuration, so that whoever loads the map
+rebuilds its tracks as the mapper that made it did) and flat arrays: every keyframe with its
+detections (boxes, scores, labels, embeddings, 2D boxes, gravity, intrinsics, stamp, frame
+id), every edge with its verified object and corner matches, the keyframe poses, and every
+localized frame (its pose relative to a keyframe: the full-rate trajectory). Object tracks
+are derived data and are rebuilt on load. Files written before the configuration and the
+frames were stored load with the loading mapper's configuration and no frames.
 
 Writing goes to a temporary file in the same directory, is flushed to disk, then renamed
 over the target: a crash leaves either the old file or the new one, never half of one.
@@ -23,7 +26,8 @@ from pathlib import Path
 import numpy as np
 
 from rfm_core.geometry import Pose4
-from rfm_core.mapping.mapper import EdgeRecord, Mapper
+from rfm_core.mapping.frame_log import FrameLog
+from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 
 __all__ = ['FORMAT', 'VERSION', 'MapFileError', 'save_map', 'load_map', 'read_map']
@@ -91,9 +95,10 @@ def save_map(mapper: Mapper, path) -> Path:
     pose_ids = sorted(poses)
     arrays['pose_ids'] = np.array(pose_ids, np.int64)
     arrays['pose_values'] = np.array([[poses[k].yaw, *poses[k].t] for k in pose_ids], float).reshape(-1, 4)
+    arrays.update({f'frame_{k}': v for k, v in mapper.frames.arrays().items()})
     header = {'format': FORMAT, 'version': VERSION, 'keyframes': len(mapper.keyframes),
               'edges': len(mapper.edges), 'registered': len(pose_ids), 'posed': mapper.config.posed,
-              'revision': mapper.revision, **lists}
+              'frames': len(mapper.frames), 'revision': mapper.revision, 'config': mapper.config.to_dict(), **lists}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
     fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
@@ -157,9 +162,25 @@ def read_map(path) -> dict:
         (all(np.all(np.isfinite(data[k])) for k in ('det_boxes', 'edge_poses', 'pose_values', 'kf_gravity')),
          'non-finite values'),
     ]
+    frame_keys = [f'frame_{k}' for k in FrameLog().arrays()]
+    if any(k in data for k in frame_keys):
+        n_frames = len(data.get('frame_stamps', ()))
+        checks += [
+            (all(k in data and len(data[k]) == n_frames for k in frame_keys), 'frame arrays differ in length'),
+            (data['frame_poses'].shape == (n_frames, 4) and data['frame_gravity'].shape == (n_frames, 3),
+             'frame shapes'),
+            (np.all(np.isfinite(data['frame_poses'])) and np.all(np.isfinite(data['frame_gravity'])),
+             'non-finite frame poses'),
+            (np.all(np.linalg.norm(data['frame_gravity'], axis=1) > 0.5), 'frame gravity is not a unit vector'),
+        ]
     for ok, what in checks:
         if not ok:
             raise MapFileError(f'{path}: inconsistent map file ({what})')
+    try:
+        config = MapperConfig.from_dict(header['config']) if 'config' in header else None
+    except (TypeError, ValueError) as exc:
+        raise MapFileError(f'{path}: bad mapper configuration ({exc})') from None
+    frames = {k[len('frame_'):]: data[k] for k in frame_keys if k in data}
     keyframes = {}
     offsets = np.r_[0, np.cumsum(data['kf_counts'])]
     labels = header['det_labels']
@@ -188,15 +209,20 @@ def read_map(path) -> dict:
                                 data['edge_corners'][ic[i]:ic[i + 1]], float(data['edge_scores'][i])))
     poses = {int(k): Pose4(float(v[0]), v[1:]) for k, v in zip(data['pose_ids'], data['pose_values'])}
     active = [(int(s), int(t)) for (s, t), a in zip(data['edge_ids'], data['edge_active']) if a]
-    return {'header': header, 'keyframes': keyframes, 'edges': edges, 'poses': poses, 'active_edges': active}
+    return {'header': header, 'keyframes': keyframes, 'edges': edges, 'poses': poses, 'active_edges': active,
+            'config': config, 'frames': frames}
 
 
-def load_map(mapper: Mapper, path) -> dict:
+def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
     """Replace the mapper's map with the one in ``path`` (validated first: on error the
     mapper is untouched). The saved poses and edge decisions are restored as they were;
-    new keyframes continue from them. Returns the file header."""
+    new keyframes continue from them. With ``use_config`` the mapper takes the file's
+    configuration (the one that built the map), when the file has one. Returns the file
+    header."""
     content = read_map(path)
     mode = mapper.mode
+    if use_config and content['config'] is not None:
+        mapper.config = content['config']
     mapper.reset()
     for k in sorted(content['keyframes']):
         mapper.add_keyframe(k, content['keyframes'][k])
@@ -207,6 +233,8 @@ def load_map(mapper: Mapper, path) -> dict:
             mapper.set_keyframe_pose(k, p)
     else:
         mapper.averager.restore(content['poses'], content['active_edges'])
+    if content['frames']:
+        mapper.frames.restore(content['frames'])
     mapper.revision = int(content['header'].get('revision', 0)) + 1
     mapper.mode = mode
     return content['header']

@@ -12,7 +12,7 @@ frozen; frames are only relocalized). ``posed`` mode takes keyframe poses from o
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -21,12 +21,14 @@ from scipy.sparse.csgraph import connected_components
 from rfm_core.geometry import Pose4, iou_3d_paired, kabsch_4dof
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
+from rfm_core.mapping.frame_log import FrameLog
+from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import estimate_relative_pose
 from rfm_core.matching.view_graph import bag_of_objects
-from rfm_core.observations import FrameObservations
+from rfm_core.observations import FrameObservations, FrameTrack
 
 __all__ = ['MapperConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
 
@@ -46,6 +48,42 @@ class MapperConfig:
     posed: bool = False                      #: poses come from outside (set_keyframe_pose)
     bundle_adjustment: bool = False          #: refine track boxes by partial BA (paper 3.6)
     bundle: BundleConfig = field(default_factory=BundleConfig)
+
+    def to_dict(self) -> dict:
+        """Every setting, nested by stage (stored in map files)."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict) -> 'MapperConfig':
+        """From :meth:`to_dict`'s output; settings it lacks keep their defaults, unknown ones
+        are ignored (files of other rfm versions). ValueError for a value of the wrong type."""
+        return _from_dict(cls, values)
+
+
+def _from_dict(cls, values):
+    if not isinstance(values, dict):
+        raise ValueError(f'{cls.__name__}: expected a mapping, got {type(values).__name__}')
+    kwargs = {}
+    default = cls()
+    for f in fields(cls):
+        if f.name not in values:
+            continue
+        current, value = getattr(default, f.name), values[f.name]
+        if is_dataclass(current):
+            kwargs[f.name] = _from_dict(type(current), value)
+        elif isinstance(current, bool):
+            if not isinstance(value, bool):
+                raise ValueError(f'{cls.__name__}.{f.name}: expected true/false, got {value!r}')
+            kwargs[f.name] = value
+        elif isinstance(current, (int, float)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
+                raise ValueError(f'{cls.__name__}.{f.name}: expected a finite number, got {value!r}')
+            if isinstance(current, int) and value != int(value):
+                raise ValueError(f'{cls.__name__}.{f.name}: expected an integer, got {value!r}')
+            kwargs[f.name] = type(current)(value)
+        else:
+            kwargs[f.name] = value
+    return cls(**kwargs)
 
 
 @dataclass
@@ -80,11 +118,7 @@ class Relocalization:
 
 def camera_to_map(t_k_map: Pose4, obs: FrameObservations) -> np.ndarray:
     """4x4 pose of a frame's camera optical frame in the map frame."""
-    m = t_k_map.inverse().matrix()
-    out = np.eye(4)
-    out[:3, :3] = m[:3, :3] @ obs.rotation_aligned_from_camera
-    out[:3, 3] = m[:3, 3]
-    return out
+    return _camera_to_map(t_k_map, obs.gravity_cam)
 
 
 class Mapper:
@@ -104,6 +138,7 @@ class Mapper:
         self.revision = 0
         self._tracks = None
         self._descriptors: dict = {}
+        self.frames = FrameLog()             # every localized frame (tracked or relocalized)
         self.last_update_seconds = 0.0
 
     # ------------------------------------------------------------------ input
@@ -138,6 +173,28 @@ class Mapper:
             self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight)
         self._tracks = None
         return True
+
+    def add_frame(self, track: FrameTrack) -> bool:
+        """Log a localized frame (its pose relative to a keyframe); False (ignored) when that
+        keyframe id is known with another stamp (an id reused by a restarted matcher)."""
+        kf = self.keyframes.get(track.keyframe_id)
+        if kf is not None and kf.stamp_ns != track.keyframe_stamp_ns:
+            return False
+        self.frames.add(track)
+        return True
+
+    def frame_pose(self, track: FrameTrack) -> np.ndarray | None:
+        """4x4 camera-to-map pose of a tracked frame now (None while its keyframe has none)."""
+        p = self.poses.get(track.keyframe_id)
+        kf = self.keyframes.get(track.keyframe_id)
+        if p is None or kf is None or kf.stamp_ns != track.keyframe_stamp_ns:
+            return None
+        return _camera_to_map(track.pose.inverse() @ p, track.gravity_cam)
+
+    def frame_poses(self) -> dict:
+        """{stamp_ns: 4x4 camera-to-map} of every logged frame whose keyframe is registered,
+        from the keyframes' current poses."""
+        return self.frames.camera_poses(self.poses, {k: f.stamp_ns for k, f in self.keyframes.items()})
 
     def set_keyframe_pose(self, keyframe_id: int, t_k_map: Pose4) -> None:
         """Posed mode: the keyframe's pose from outside."""

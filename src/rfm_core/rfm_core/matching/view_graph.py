@@ -1,28 +1,38 @@
-"""Keyframes and view-graph edges from a stream of detections (paper 3.2-3.4, made live).
+"""Keyframes, view-graph edges and a pose for every frame from a stream of detections
+(paper 3.2-3.4, made live).
 
-Each incoming frame is matched against the last keyframe. It becomes a keyframe when it
-shares too few objects with it, or has moved or turned too far from it. A new keyframe is
-then matched against candidates: the few most recent keyframes plus the keyframes whose
-bag-of-objects descriptor (mean of the object embeddings) is most similar, so the cost per
-keyframe stays bounded however large the map grows. Every verified relative pose becomes
-an edge, except that a pose resting on only two objects is kept only towards a recent
-keyframe of an ordered capture, where the motion prior has checked it (two objects verify
-nothing beyond the minimal sample, and repeated furniture aliases). An unordered
-collection (``motion_prior`` off) gets more retrieved candidates instead, since there
-"recent" means nothing.
+Each incoming frame is matched against the last keyframe ("tracking"): its verified
+relative pose to that keyframe localizes it. It becomes a keyframe when tracking fails, or
+when it shares too few objects with the keyframe, or has moved or turned too far from it.
+A new keyframe is then matched against candidates: the few most recent keyframes plus the
+keyframes whose bag-of-objects descriptor (mean of the object embeddings) is most similar,
+so the cost per keyframe stays bounded however large the map grows.
+
+Whether the frames come from a continuous stream (a camera moving through the room) or are
+separate views (photos seconds apart, an unordered collection) is decided from the frame
+timing, per pair of frames, with no parameter: frames no more than ``max_frame_gap_s``
+apart belong to one stream segment. Within a segment the motion prior holds (a camera
+cannot turn or move arbitrarily fast: each tracked frame must be reachable from the
+previous one, each edge from its source keyframe), and a relative pose resting on two
+objects is kept towards a recent keyframe. Across segments nothing is known of the motion:
+every edge, and tracking itself, needs ``min_retrieved_inliers`` verified objects (two
+objects verify nothing beyond the minimal sample, and repeated furniture aliases), and a
+keyframe that starts a segment retrieves ``unordered_retrieved_keyframes`` candidates.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose
-from rfm_core.observations import FrameObservations
+from rfm_core.geometry import Pose4
+from rfm_core.observations import FrameObservations, FrameTrack
 
-__all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'ViewGraphBuilder', 'bag_of_objects']
+__all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'GraphStep', 'ViewGraphBuilder', 'bag_of_objects']
 
 
 @dataclass(frozen=True)
@@ -34,18 +44,21 @@ class KeyframeConfig:
     min_interval_s: float = 0.0       #: no new keyframe sooner than this after the last one
     recent_keyframes: int = 3         #: always match against this many latest keyframes
     retrieved_keyframes: int = 5      #: plus this many most similar older ones
-    unordered_retrieved_keyframes: int = 15   #: ... without the motion prior (an unordered
-                                      #: collection: retrieval is what finds the overlaps)
+    unordered_retrieved_keyframes: int = 15   #: ... for a keyframe that starts a stream
+                                      #: segment (separate views: retrieval finds the overlaps)
     min_retrieval_similarity: float = 0.3
+    max_frame_gap_s: float = 0.5      #: frames further apart than this are separate views
+                                      #: (a new stream segment): no motion prior between them
     max_yaw_rate_deg_s: float = 90.0  #: motion prior: an edge turning faster than this ...
     max_speed_m_s: float = 1.5        #: ... or moving faster (plus the slack below) is rejected
     motion_slack_deg: float = 10.0    #: allowance on top of rate x time (detector noise)
     motion_slack_m: float = 0.3
-    motion_prior: bool = True         #: off for unordered collections (stamps mean nothing);
-                                      #: then every edge needs min_retrieved_inliers
-    min_retrieved_inliers: int = 3    #: edges to retrieved (not recent) keyframes need this many
-                                      #: verified objects: two objects verify nothing beyond
-                                      #: the minimal sample, and repeated furniture aliases
+    motion_prior: bool = True         #: use the motion prior within stream segments; False
+                                      #: treats every frame as a separate view (stamps mean nothing)
+    min_retrieved_inliers: int = 3    #: edges without the motion prior's check (across segments,
+                                      #: or to retrieved keyframes) need this many verified
+                                      #: objects: two objects verify nothing beyond the minimal
+                                      #: sample, and repeated furniture aliases
 
 
 @dataclass
@@ -53,6 +66,7 @@ class Keyframe:
     keyframe_id: int
     observations: FrameObservations
     descriptor: np.ndarray            #: unit bag-of-objects descriptor (D,)
+    segment: int = 0                  #: stream segment (frames no more than max_frame_gap_s apart)
 
 
 @dataclass
@@ -75,10 +89,30 @@ def bag_of_objects(obs: FrameObservations) -> np.ndarray:
     return v / max(np.linalg.norm(v), 1e-9)
 
 
+class GraphStep(NamedTuple):
+    """What one frame did to the view graph: the keyframe it became (or None), the new
+    keyframe's verified edges, and the frame's pose relative to a keyframe (None when it
+    could not be localized: too few detections, or tracking failed within
+    ``min_interval_s`` of the last keyframe)."""
+
+    keyframe: Keyframe | None
+    edges: list
+    track: FrameTrack | None
+
+
+@dataclass
+class _Tracking:
+    keyframe_id: int                  #: the keyframe the last frame was localized against
+    pose: Pose4                       #: T_keyframe_frame of that frame
+    stamp_ns: int
+
+
 @dataclass
 class _Stats:
     frames: int = 0
     skipped: int = 0
+    tracked: int = 0                  #: frames localized against a keyframe (keyframes included)
+    segments: int = 0                 #: stream segments begun (separate views each begin one)
     keyframes: int = 0
     pairs_tested: int = 0
     edges: int = 0
@@ -98,6 +132,9 @@ class ViewGraphBuilder:
         self._desc_buffer = np.zeros((0, 0))      # grows by doubling: O(1) amortised append
         self.stats = _Stats()
         self._next_id = 0
+        self._last_stamp = None           # of the previous frame (any frame: the stream's timing)
+        self._segment = -1
+        self._tracking: _Tracking | None = None
 
     def _relative(self, source: FrameObservations, target: FrameObservations,
                   matches=None) -> RelativePose | None:
@@ -112,18 +149,40 @@ class ViewGraphBuilder:
         rel.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in rel.corner_inliers]
         return rel
 
-    def _plausible(self, rel: RelativePose | None, stamp_a: int, stamp_b: int) -> RelativePose | None:
+    def _reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
         quarter-turn flips and look-alike matches that two objects cannot rule out."""
         cfg = self.config
-        if rel is None or not cfg.motion_prior:
-            return rel
         dt = abs(stamp_b - stamp_a) / 1e9
-        if (np.degrees(abs(rel.pose.yaw)) > cfg.max_yaw_rate_deg_s * dt + cfg.motion_slack_deg
-                or np.linalg.norm(rel.pose.t) > cfg.max_speed_m_s * dt + cfg.motion_slack_m):
+        if (np.degrees(abs(motion.yaw)) > cfg.max_yaw_rate_deg_s * dt + cfg.motion_slack_deg
+                or np.linalg.norm(motion.t) > cfg.max_speed_m_s * dt + cfg.motion_slack_m):
             self.stats.implausible += 1
+            return False
+        return True
+
+    def _plausible(self, rel: RelativePose | None, stamp_a: int, stamp_b: int) -> RelativePose | None:
+        """``rel`` between two frames of one stream segment if the motion prior allows it."""
+        if rel is None or not self._reachable(rel.pose, stamp_a, stamp_b):
             return None
         return rel
+
+    def _track(self, obs: FrameObservations, stream: bool) -> RelativePose | None:
+        """The frame's verified pose relative to the last keyframe (tracking), or None. In a
+        stream the motion from the previous tracked frame must be plausible; across a gap
+        the pose needs ``min_retrieved_inliers`` objects."""
+        last = self.keyframes[-1]
+        rel = self._relative(last.observations, obs)
+        if rel is None:
+            return None
+        if not stream:
+            return rel if len(rel.inliers) >= self.config.min_retrieved_inliers else None
+        prev = self._tracking
+        if prev is not None and prev.keyframe_id == last.keyframe_id:
+            # T_prev_frame = T_kf_prev^-1 T_kf_frame, over the time since the previous frame
+            ok = self._reachable(prev.pose.inverse() @ rel.pose, prev.stamp_ns, obs.stamp_ns)
+        else:
+            ok = self._reachable(rel.pose, last.observations.stamp_ns, obs.stamp_ns)
+        return rel if ok else None
 
     def _too_soon(self, obs: FrameObservations) -> bool:
         """Whether ``min_interval_s`` has not yet passed since the last keyframe."""
@@ -143,13 +202,14 @@ class ViewGraphBuilder:
                 or np.linalg.norm(last_rel.pose.t) > cfg.max_translation_m
                 or np.degrees(abs(last_rel.pose.yaw)) > cfg.max_yaw_deg)
 
-    def candidates(self, descriptor: np.ndarray) -> list:
-        """Indices of keyframes to match a new keyframe against (bounded in number)."""
+    def candidates(self, descriptor: np.ndarray, separate: bool = False) -> list:
+        """Indices of keyframes to match a new keyframe against (bounded in number);
+        ``separate``: the keyframe starts a stream segment (more are retrieved)."""
         cfg = self.config
         n = len(self.keyframes)
         recent = list(range(max(0, n - cfg.recent_keyframes), n))
         older = n - len(recent)
-        wanted = cfg.retrieved_keyframes if cfg.motion_prior else cfg.unordered_retrieved_keyframes
+        wanted = cfg.unordered_retrieved_keyframes if separate else cfg.retrieved_keyframes
         if older > 0 and wanted > 0 and self._desc_buffer.shape[1] == len(descriptor):
             sims = self._desc_buffer[:older] @ descriptor
             k = min(wanted, older)
@@ -158,39 +218,62 @@ class ViewGraphBuilder:
             recent += [int(i) for i in top if sims[i] >= cfg.min_retrieval_similarity]
         return recent
 
-    def add(self, obs: FrameObservations):
-        """Process one frame; returns (Keyframe or None, [Edge, ...])."""
+    def _continues_stream(self, stamp_ns: int) -> bool:
+        """Whether a frame continues the stream of the previous one (no more than
+        ``max_frame_gap_s`` later); updates the stream segment."""
+        last, self._last_stamp = self._last_stamp, stamp_ns
+        stream = (self.config.motion_prior and last is not None
+                  and 0 < stamp_ns - last <= self.config.max_frame_gap_s * 1e9)
+        if not stream:
+            self._segment += 1
+            self.stats.segments += 1
+            self._tracking = None
+        return stream
+
+    def add(self, obs: FrameObservations) -> GraphStep:
+        """Process one frame: returns the keyframe it became (or None), that keyframe's
+        edges, and the frame's pose relative to a keyframe (or None)."""
         self.stats.frames += 1
+        stream = self._continues_stream(obs.stamp_ns)
         if len(obs) < self.config.min_detections:
             self.stats.skipped += 1
-            return None, []
-        if self._too_soon(obs):                     # before any matching: that is the saving
-            return None, []
-        # the pose to the last keyframe decides, and is reused as that candidate's edge
-        last_rel = (self._plausible(self._relative(self.keyframes[-1].observations, obs),
-                                    self.keyframes[-1].observations.stamp_ns, obs.stamp_ns)
-                    if self.keyframes else None)
-        if not self._is_keyframe(obs, last_rel):
-            return None, []
+            return GraphStep(None, [], None)
+        # the pose to the last keyframe localizes the frame, decides whether it becomes a
+        # keyframe, and is reused as that candidate's edge
+        last_rel = self._track(obs, stream) if self.keyframes else None
+        if last_rel is not None and (self._too_soon(obs) or not self._is_keyframe(obs, last_rel)):
+            last = self.keyframes[-1]
+            self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns)
+            self.stats.tracked += 1
+            return GraphStep(None, [], FrameTrack(
+                obs.stamp_ns, obs.frame_id, obs.gravity_cam, last.keyframe_id, last.observations.stamp_ns, last_rel.pose,
+                len(last_rel.inliers), is_keyframe=False, continuous=stream))
+        if self._too_soon(obs):                     # lost, but no keyframe yet
+            return GraphStep(None, [], None)
         descriptor = bag_of_objects(obs)
-        keyframe = Keyframe(self._next_id, obs, descriptor)
+        keyframe = Keyframe(self._next_id, obs, descriptor, self._segment)
         self._next_id += 1
         edges = []
-        cand = self.candidates(descriptor)
+        cand = self.candidates(descriptor, separate=not stream)
         self.stats.last_candidates = [self.keyframes[i].keyframe_id for i in cand]
         last = len(self.keyframes) - 1
-        # two verified objects suffice for a recent neighbour only where the motion prior has
-        # checked the pose: in an unordered collection "recent" means nothing
-        two_objects_from = (max(0, len(self.keyframes) - self.config.recent_keyframes) if self.config.motion_prior
-                            else len(self.keyframes))
+        # two verified objects suffice for a recent neighbour of the same stream segment,
+        # where the motion prior has checked the pose
+        recent_from = len(self.keyframes) - self.config.recent_keyframes
         others = [i for i in cand if i != last]            # matched in one batch
         batched = dict(zip(others, self.matcher.match_many(obs, [self.keyframes[i].observations for i in others])))
         for i in cand:
             source = self.keyframes[i]
+            same = source.segment == keyframe.segment
             self.stats.pairs_tested += 1
-            rel = last_rel if i == last else self._plausible(
-                self._relative(source.observations, obs, batched[i]), source.observations.stamp_ns, obs.stamp_ns)
-            if rel is not None and (i >= two_objects_from or len(rel.inliers) >= self.config.min_retrieved_inliers):
+            if i == last:
+                rel = last_rel
+            else:
+                rel = self._relative(source.observations, obs, batched[i])
+                if same:
+                    rel = self._plausible(rel, source.observations.stamp_ns, obs.stamp_ns)
+            if rel is not None and ((same and i >= recent_from)
+                                    or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
         n = len(self.keyframes)
         if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe
@@ -200,5 +283,9 @@ class ViewGraphBuilder:
         self._desc_buffer[n] = descriptor
         self.keyframes.append(keyframe)
         self.stats.keyframes += 1
+        self.stats.tracked += 1
         self.stats.edges += len(edges)
-        return keyframe, edges
+        self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns)
+        return GraphStep(keyframe, edges, FrameTrack(
+            obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, obs.stamp_ns,
+            Pose4(0.0, (0.0, 0.0, 0.0)), 0, is_keyframe=True, continuous=stream))
