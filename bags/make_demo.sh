@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# Regenerates the demo bag bit-for-bit (default: bags/demo; or the directory given):
+# Regenerates the demo bag (default: bags/demo; or the directory given): bit-for-bit on this
+# machine; on another CPU floats may differ in their last bits (tests/tools/test_demo_bag.py
+# compares decoded messages, images exactly, floats to 1e-7 relative):
 # a handheld RGB-D + IMU capture (100 frames at 10 Hz, 320x240) of a plain-painted room
 # with 32 objects, with ground truth on /ground_truth/*. Colour noise is off to keep the
 # bag small; depth has the default sensor noise.

@@ -141,6 +141,37 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     assert fresh.poses.keys() == good.keys()            # refused loads left the map alone
 
 
+def test_map_file_carries_the_configuration_and_every_frame(mapped, tmp_path):
+    """A map file restores the full-rate trajectory and the configuration the map was built
+    with: a mapper loading it rebuilds the same tracks even if it was made with other
+    settings; a file whose configuration is malformed is refused."""
+    import json
+    from dataclasses import replace
+
+    from rfm_core.mapping.mapper import MapperConfig
+    config = replace(mapped.mapper.config, tracks=TrackConfig(merge_affinity=0.6, suppress_iou=0.3))
+    built = Mapper(config)
+    path = save_map(mapped.mapper, tmp_path / 'a.rfm')
+    load_map(built, path, use_config=False)          # the map, built with other track settings
+    path = save_map(built, tmp_path / 'b.rfm')
+    assert len(built.frames) == len(mapped.mapper.frames) > len(built.keyframes)
+    fresh = Mapper()                                  # default settings
+    load_map(fresh, path)
+    assert fresh.config == config
+    assert [t.track_id for t in fresh.tracks()] == [t.track_id for t in built.tracks()]
+    before, after = built.frame_poses(), fresh.frame_poses()
+    assert before.keys() == after.keys() and len(after) == len(mapped.mapper.frame_poses())
+    assert all(np.allclose(before[k], after[k], atol=1e-12) for k in before)
+    assert MapperConfig.from_dict(config.to_dict()) == config
+    data = dict(np.load(path))
+    header = json.loads(bytes(data['header']).decode())
+    header['config']['tracks']['merge_affinity'] = 'high'
+    data['header'] = np.frombuffer(json.dumps(header).encode(), np.uint8)
+    np.savez(tmp_path / 'bad.npz', **data)
+    with pytest.raises(MapFileError, match='merge_affinity'):
+        read_map(tmp_path / 'bad.npz')
+
+
 def test_relocalization_of_a_second_trajectory(tmp_path):
     """Paper appendix: map one capture, save, load fresh, relocalize another capture."""
     scene = CaptureConfig(seed=41, frames=50, fps=5)

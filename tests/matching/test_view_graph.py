@@ -91,3 +91,32 @@ def test_unordered_collections_need_three_objects_and_retrieve_more(stream):
             candidates[ordered] = max(candidates[ordered], len(graph.stats.last_candidates))
     assert candidates[True] == 3 and candidates[False] == 7
     assert 2 in inliers[True] and inliers[False] and min(inliers[False]) >= 3
+
+
+def test_separate_views_are_told_from_a_stream_by_their_timing(stream):
+    """No capture type is given: frames 0.25 s apart are one stream (motion prior on, two-object
+    edges to recent keyframes, every frame tracked), the same frames 2 s apart are separate
+    views (every edge and every tracked frame rests on three objects, more candidates)."""
+    from dataclasses import replace
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    observations = [det.perturb(frame.ground_truth) for frame in stream]
+    out = {}
+    for gap_s in (0.25, 2.0):
+        graph = ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=1, retrieved_keyframes=2,
+                                                          unordered_retrieved_keyframes=6, max_translation_m=0.1))
+        inliers, tracks, candidates = [], [], 0
+        for i, obs in enumerate(observations):
+            keyframe, edges, track = graph.add(replace(obs, stamp_ns=obs.stamp_ns + int(i * (gap_s - 0.25) * 1e9)))
+            inliers += [len(e.relative.inliers) for e in edges]
+            tracks.append(track)
+            if keyframe is not None:
+                candidates = max(candidates, len(graph.stats.last_candidates))
+        out[gap_s] = (graph.stats.segments, inliers, tracks, candidates)
+    segments, inliers, tracks, candidates = out[0.25]
+    assert segments == 1 and 2 in inliers and candidates == 3
+    assert sum(t is not None for t in tracks) >= 0.9 * len(tracks)       # (a frame may see < 2 objects)
+    assert not tracks[0].continuous and all(t.continuous for t in tracks[1:] if t is not None)
+    segments, inliers, tracks, candidates = out[2.0]
+    assert segments == len(stream) and inliers and min(inliers) >= 3 and candidates == 7
+    assert all(t is None or not t.continuous for t in tracks)
+    assert all(t is None or t.is_keyframe or t.num_inliers >= 3 for t in tracks)

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
-from rclpy.executors import MultiThreadedExecutor  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.node import Node  # noqa: E402
 from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 
 from rfm_core.evaluation.pipeline import detections_for  # noqa: E402
 from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: E402
-from rfm_core.io.messages import frame_detections_to_msg, pose_to_matrix  # noqa: E402
+from rfm_core.io.messages import frame_detections_to_msg, pose_to_matrix, stamp_to_ns, tracked_frame_to_msg  # noqa: E402
 from rfm_core.matching.view_graph import ViewGraphBuilder  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
 
@@ -21,7 +21,8 @@ pytestmark = pytest.mark.ros
 
 
 def _graph_messages():
-    """Keyframe and edge messages of a sim capture, as the matcher node would publish them."""
+    """Keyframe, edge and tracked-frame messages of a sim capture, as the matcher node would
+    publish them."""
     from rfm_matcher_node.matcher_node import MatcherNode
     from rfm_msgs.msg import Keyframe
 
@@ -32,35 +33,41 @@ def _graph_messages():
     for frame in capture.frames():
         obs = detect(frame)
         frames.append((frame, obs))
-        keyframe, edges, _ = graph.add(obs)
-        if keyframe is None:
-            continue
-        det = frame_detections_to_msg(obs)
-        messages.append(Keyframe(header=det.header, keyframe_id=keyframe.keyframe_id, detections=det))
-        messages += [MatcherNode._edge_msg(e, obs.stamp_ns) for e in edges]
-        truth[keyframe.keyframe_id] = frame.pose_matrix
+        keyframe, edges, track = graph.add(obs)
+        if keyframe is not None:
+            det = frame_detections_to_msg(obs)
+            messages.append(Keyframe(header=det.header, keyframe_id=keyframe.keyframe_id, detections=det))
+            messages += [MatcherNode._edge_msg(e, obs.stamp_ns) for e in edges]
+            truth[keyframe.keyframe_id] = frame.pose_matrix
+        if track is not None:
+            messages.append(tracked_frame_to_msg(track))
     return messages, truth, frames
 
 
 class _Harness:
     def __init__(self, mapper):
-        from geometry_msgs.msg import PoseArray
-        from rfm_msgs.msg import Keyframe, ObjectMap, ViewGraphEdge
+        from geometry_msgs.msg import PoseArray, PoseStamped
+        from rfm_msgs.msg import Keyframe, ObjectMap, TrackedFrame, ViewGraphEdge
         self.mapper = mapper
         self.node = Node('mapper_test')
         reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.poses, self.maps = [], []
+        self.poses, self.maps, self.cameras = [], [], []
         self.node.create_subscription(PoseArray, 'rfm/keyframe_poses', self.poses.append, latched)
+        self.node.create_subscription(PoseStamped, 'rfm/camera_pose', self.cameras.append, reliable)
+        self.track_pub = self.node.create_publisher(TrackedFrame, 'rfm/tracked_frames', reliable)
         self.node.create_subscription(ObjectMap, 'rfm/object_map', self.maps.append, latched)
         self.kf_pub = self.node.create_publisher(Keyframe, 'rfm/keyframes', reliable)
         self.edge_pub = self.node.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', reliable)
-        self.executor = MultiThreadedExecutor()
-        self.executor.add_node(mapper)
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        # one single-threaded executor per node, each in its thread, as rfm run spins them
+        # (rclpy's multi-threaded executor starves the other threads of the GIL)
+        self.executors = [SingleThreadedExecutor(), SingleThreadedExecutor()]
+        self.executors[0].add_node(mapper)
+        self.executors[1].add_node(self.node)
+        self.threads = [threading.Thread(target=e.spin, daemon=True) for e in self.executors]
+        for thread in self.threads:
+            thread.start()
 
     def call(self, srv_type, name, request, timeout=20.0):
         client = self.node.create_client(srv_type, name)
@@ -79,18 +86,19 @@ class _Harness:
         return predicate()
 
     def close(self):
-        if self.executor is None:
+        if self.executors is None:
             return
-        self.executor.shutdown()
-        self.thread.join(timeout=10)            # the spin thread is gone before the nodes go
+        for executor, thread in zip(self.executors, self.threads):
+            executor.shutdown()
+            thread.join(timeout=10)             # the spin thread is gone before the nodes go
         self.mapper.destroy_node()
         self.node.destroy_node()
-        self.executor = None
+        self.executors = None
 
 
 def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
     from rfm_mapper_node.mapper_node import MapperNode
-    from rfm_msgs.msg import FrameDetections, Keyframe
+    from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
     from rfm_msgs.srv import LoadMap, Relocalize, SaveMap, SetMode
     from std_srvs.srv import Trigger
 
@@ -107,10 +115,15 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert h.wait(lambda: h.kf_pub.get_subscription_count() > 0 and h.edge_pub.get_subscription_count() > 0)
         bad = Keyframe(keyframe_id=999, detections=FrameDetections())      # fx = 0: dropped, logged
         h.kf_pub.publish(bad)
+        assert h.wait(lambda: h.track_pub.get_subscription_count() > 0)
         for msg in messages:
-            (h.kf_pub if isinstance(msg, Keyframe) else h.edge_pub).publish(msg)
+            pub = {Keyframe: h.kf_pub, TrackedFrame: h.track_pub}.get(type(msg), h.edge_pub)
+            pub.publish(msg)
+            if isinstance(msg, TrackedFrame):
+                time.sleep(0.05)           # a stream: frames arrive one after another (20 Hz)
         n_kf = len(truth)
-        n_edges = sum(not isinstance(m, Keyframe) for m in messages)
+        n_edges = sum(isinstance(m, ViewGraphEdge) for m in messages)
+        n_tracked = sum(isinstance(m, TrackedFrame) for m in messages)
         done = h.wait(lambda: len(mapper.mapper.keyframes) == n_kf and not mapper.pending_edges
                       and mapper.counts['edges'] == n_edges and not mapper._dirty
                       and h.poses and len(h.poses[-1].poses) == n_kf)
@@ -124,6 +137,15 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         est = {k: pose_to_matrix(p) for k, p in zip(ids, h.poses[-1].poses)}
         err = trajectory_errors(est, truth)
         assert err['ATE_median'] < 0.03 and err['ARE_median'] < 1.0, err
+        # every tracked frame is logged, and a camera pose was published at the frames' rate
+        assert mapper.counts['frames'] == n_tracked == len(frames)
+        frame_truth = {f.stamp_ns: f.pose_matrix for f, _ in frames}
+        assert trajectory_errors(mapper.mapper.frame_poses(), frame_truth)['registered'] == 1.0
+        cams = {stamp_to_ns(c.header.stamp): pose_to_matrix(c.pose) for c in h.cameras}
+        assert len(cams) >= 0.9 * len(frames)                       # in stamp order, never older
+        assert [stamp_to_ns(c.header.stamp) for c in h.cameras] == sorted(cams)
+        err = trajectory_errors(cams, frame_truth)
+        assert err['ATE_median'] < 0.05 and err['ARE_median'] < 1.5, err
         # autosave happened (every 5 keyframes) and is a loadable map
         assert (tmp_path / 'auto.rfm').is_file()
 
@@ -162,6 +184,7 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         harnesses.append(h2)
         restored = fresh.mapper.poses
         assert set(restored) == set(poses_before)
+        assert len(fresh.mapper.frames) == len(frames)                 # the full-rate trajectory too
         for k in restored:
             assert np.allclose(restored[k].t, poses_before[k].t, atol=1e-12)
         tracks_after = [(t.track_id, t.box) for t in fresh.mapper.tracks()]

@@ -100,3 +100,22 @@ def test_depth_encodings(tmp_path):
             msg = reader.deserialize(next(reader.messages(connections=conn))[2], conn[0].msgtype)
         assert msg.encoding == encoding
         assert 0.3 < np.nanmedian(depth_to_meters(msg)) < 8
+
+
+def test_bag_reader_pairs_depth_stamped_after_colour(tmp_path):
+    """Drivers stamp depth a few ms after colour: the bag reader pairs them by approximate
+    time, as the detector node does, and loses no frame."""
+    from foreign import foreign_bag
+
+    from rfm_core.io.bag import iter_camera_frames
+
+    src = tmp_path / 'sim'
+    Capture(CaptureConfig(seed=2, frames=12, fps=15, width=64, height=48)).write_bag(src)
+    bag = foreign_bag(src, tmp_path / 'user', depth_offset_ms=12.0)
+    frames = list(iter_camera_frames(bag, '/camera/color/image_raw', '/camera/depth/image_raw',
+                                     '/camera/color/camera_info', '/imu/data'))
+    assert len(frames) == 12
+    for f in frames:
+        depth = f['depth'].header.stamp.sec * 10**9 + f['depth'].header.stamp.nanosec
+        assert depth - f['stamp_ns'] == 12_000_000
+    assert sum(len(f['imu']) for f in frames) > 0

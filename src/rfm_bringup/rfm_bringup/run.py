@@ -92,10 +92,61 @@ def _remaps(args) -> dict:
     return remaps
 
 
+def _check_bag(bag: Path, params: dict, remaps: dict) -> None:
+    """Check that the bag has what the detector needs (its topics after the remaps) and adapt
+    to what it has: a colour topic published only compressed (``<topic>/compressed``)
+    switches the detector to ``image_transport:=compressed``. SystemExit saying what to do
+    when something is missing."""
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415
+
+    with AnyReader([bag]) as reader:
+        types = {c.topic: c.msgtype for c in reader.connections}
+
+    def listing(*kinds):
+        found = sorted(t for t, m in types.items() if m.split('/')[-1] in kinds)
+        return ', '.join(found) or 'none'
+
+    detector = params['detector']
+    backend = detector['backend']
+    if backend == 'ground_truth':
+        if remaps['ground_truth/detections'] not in types:
+            raise SystemExit(f'rfm run: backend ground_truth needs {remaps["ground_truth/detections"]} '
+                             '(a bag made by rfm sim); this bag has none: use --backend depth_clusters')
+        return
+    colour = remaps['rgb/image']
+    if types.get(colour) == 'sensor_msgs/msg/CompressedImage' or (
+            colour not in types and types.get(colour + '/compressed') == 'sensor_msgs/msg/CompressedImage'):
+        compressed = colour if colour in types else colour + '/compressed'
+        detector.setdefault('image_transport', 'compressed')
+        remaps['rgb/image/compressed'] = compressed
+    elif colour not in types:
+        raise SystemExit(f'rfm run: the bag has no colour image topic {colour} (its image topics: '
+                         f'{listing("Image", "CompressedImage")}); pass --remap rgb/image:=TOPIC')
+    if remaps['rgb/camera_info'] not in types:
+        raise SystemExit(f'rfm run: the bag has no {remaps["rgb/camera_info"]} (its camera_info topics: '
+                         f'{listing("CameraInfo")}); pass --remap rgb/camera_info:=TOPIC')
+    if backend == 'depth_clusters':
+        depth = remaps['depth/image']
+        if types.get(depth) == 'sensor_msgs/msg/CompressedImage' or (
+                depth not in types and depth + '/compressedDepth' in types):
+            raise SystemExit(f'rfm run: {depth} is compressed; depth_clusters needs raw depth (16UC1 mm or '
+                             '32FC1 m) registered to colour: record it uncompressed')
+        if depth not in types:
+            raise SystemExit(f'rfm run: depth_clusters needs depth registered to colour; the bag has no {depth} '
+                             f'(its image topics: {listing("Image", "CompressedImage")}); pass '
+                             '--remap depth/image:=TOPIC')
+    if detector.get('gravity_source', 'imu') == 'imu' and remaps['imu'] not in types:
+        raise SystemExit(f'rfm run: the bag has no IMU topic {remaps["imu"]} (its IMU topics: {listing("Imu")}); '
+                         'pass --remap imu:=TOPIC, or give gravity yourself: --param '
+                         'detector.gravity_source:=parameter detector.gravity:=[gx,gy,gz] ("down" in the camera '
+                         'optical frame)')
+
+
 def _detector_inputs(backend: str, remaps: dict) -> list:
     """The bag topics the detector subscribes to (the player waits for their subscribers)."""
-    names = {'ground_truth': ['ground_truth/detections'], 'cutr': ['rgb/image', 'rgb/camera_info']}
-    return [remaps[n] for n in names.get(backend, ['rgb/image', 'rgb/camera_info', 'depth/image', 'imu'])]
+    colour = 'rgb/image/compressed' if 'rgb/image/compressed' in remaps else 'rgb/image'
+    names = {'ground_truth': ['ground_truth/detections'], 'cutr': [colour, 'rgb/camera_info']}
+    return [remaps[n] for n in names.get(backend, [colour, 'rgb/camera_info', 'depth/image', 'imu'])]
 
 
 class _InProcessGraph:
@@ -258,13 +309,15 @@ def run_graph(args) -> int:
     if bag is not None and not (bag / 'metadata.yaml').is_file():
         raise SystemExit(f'rfm run: {bag} is not a rosbag2 directory (no metadata.yaml)')
     output = Path(args.output or (Path('rfm_output') / (bag.name if bag else 'live'))).expanduser()
-    if output.exists():
-        if not args.force:
-            raise SystemExit(f'rfm run: {output} exists; pass --force to replace it')
-        shutil.rmtree(output)
-    output.mkdir(parents=True)
+    if output.exists() and not args.force:
+        raise SystemExit(f'rfm run: {output} exists; pass --force to replace it')
     params = _params(args, output)
     remaps = _remaps(args)
+    if bag is not None:
+        _check_bag(bag, params, remaps)
+    if output.exists():
+        shutil.rmtree(output)
+    output.mkdir(parents=True)
     rclpy.init()
     graph = recorder = player = done_at = None
     interrupted = False

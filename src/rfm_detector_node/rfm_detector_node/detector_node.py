@@ -1,7 +1,8 @@
 """rfm detector node: per-frame metric 3D boxes and embeddings (paper section 3.1).
 
 Subscribes (all remappable; sensor-data QoS, so reliable and best-effort publishers connect):
-  rgb/image (sensor_msgs/Image: rgb8, bgr8, mono8), rgb/camera_info, depth/image (16UC1 mm
+  rgb/image (sensor_msgs/Image: rgb8, bgr8, mono8; or with image_transport:=compressed,
+  rgb/image/compressed: sensor_msgs/CompressedImage, JPEG or PNG), rgb/camera_info, depth/image (16UC1 mm
   or 32FC1 m, registered to rgb; when the backend needs depth), imu (sensor_msgs/Imu, for
   gravity), ground_truth/detections (rfm_msgs/FrameDetections; backend ground_truth only).
 Publishes:
@@ -26,7 +27,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rfm_msgs.msg import FrameDetections
-from sensor_msgs.msg import CameraInfo, Image, Imu
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -79,6 +80,9 @@ class DetectorNode(Node):
             'cutr: resize so the long image side is at most this', 64, 1024, integer=True)).value
         self.every_nth = p('every_nth_frame', 1, _describe(
             'Process one synchronised frame in n', 1, 100, integer=True)).value
+        self.image_transport = p('image_transport', 'raw', _describe(
+            "Colour image transport: 'raw' (rgb/image, sensor_msgs/Image) or 'compressed' "
+            '(rgb/image/compressed, sensor_msgs/CompressedImage: JPEG or PNG)')).value
         queue = p('queue_size', 10, _describe('Synchroniser queue per input', 1, 100, integer=True)).value
         slop = p('sync_slop_s', 0.05, _describe(
             'Max stamp difference between image, camera_info and depth (s)', 0.0, 1.0)).value
@@ -112,6 +116,8 @@ class DetectorNode(Node):
             self.get_logger().info(
                 f'{self.backend} judges distance from RGB alone: give the matcher and mapper '
                 f'range_error:={error} range_error_per_m:={per_m} (rfm run does for ground_truth rgb)')
+        if self.image_transport not in ('raw', 'compressed'):
+            raise ValueError("image_transport must be 'raw' or 'compressed'")
         self.fixed_gravity = np.asarray(gravity, dtype=np.float64)
         if self.gravity_source not in ('imu', 'parameter'):
             raise ValueError("gravity_source must be 'imu' or 'parameter'")
@@ -144,11 +150,16 @@ class DetectorNode(Node):
             self.uses_depth = self.detector.needs_depth
             n = 3 if self.uses_depth else 2
             self.sync = ApproximateTimeSynchronizer(n, int(slop * 1e9), queue, self._on_synced)
-            self.create_subscription(Image, 'rgb/image', lambda m: self._add(0, m), sensor)
+            if self.image_transport == 'compressed':
+                colour = 'rgb/image/compressed'
+                self.create_subscription(CompressedImage, colour, lambda m: self._add(0, m), sensor)
+            else:
+                colour = 'rgb/image'
+                self.create_subscription(Image, colour, lambda m: self._add(0, m), sensor)
             self.create_subscription(CameraInfo, 'rgb/camera_info', lambda m: self._add(1, m), sensor)
             if self.uses_depth:
                 self.create_subscription(Image, 'depth/image', lambda m: self._add(2, m), sensor)
-            inputs = 'rgb/image, rgb/camera_info' + (', depth/image' if self.uses_depth else '')
+            inputs = f'{colour}, rgb/camera_info' + (', depth/image' if self.uses_depth else '')
         if self.gravity_source == 'imu' and self.backend != 'ground_truth':
             self.create_subscription(Imu, 'imu', self._on_imu, sensor)
             inputs += ', imu'

@@ -1,8 +1,10 @@
-"""sensor_msgs/Image <-> numpy, without cv_bridge.
+"""sensor_msgs/Image <-> numpy, without cv_bridge; sensor_msgs/CompressedImage -> numpy.
 
 Reading works on any object with the fields of sensor_msgs/Image (``height``, ``width``,
 ``encoding``, ``is_bigendian``, ``step``, ``data``), so it needs no ROS. Writing builds the
-message with a factory of :mod:`rfm_core.io.messages` (rclpy by default).
+message with a factory of :mod:`rfm_core.io.messages` (rclpy by default). Compressed colour
+images (image_transport's ``compressed``: JPEG or PNG) are decoded with Pillow; compressed
+depth (``compressedDepth``) is not supported.
 """
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ import sys
 import numpy as np
 
 __all__ = ['ENCODINGS', 'ImageFormatError', 'image_to_numpy', 'numpy_to_image',
-           'image_to_rgb', 'depth_to_meters']
+           'image_to_rgb', 'compressed_to_rgb', 'depth_to_meters']
 
 
 class ImageFormatError(ValueError):
@@ -64,8 +66,29 @@ def image_to_numpy(msg) -> np.ndarray:
     return pixels.reshape(shape)
 
 
+def compressed_to_rgb(msg) -> np.ndarray:
+    """Decode a sensor_msgs/CompressedImage (JPEG or PNG colour or mono, as image_transport's
+    ``compressed`` plugin writes them) to RGB uint8 (H, W, 3)."""
+    import io  # noqa: PLC0415
+
+    from PIL import Image as PILImage, UnidentifiedImageError  # noqa: PLC0415
+
+    fmt = str(msg.format).lower()
+    if 'compresseddepth' in fmt:
+        raise ImageFormatError(f"compressed depth ('{msg.format}') is not supported: record or republish "
+                               'depth uncompressed (16UC1 or 32FC1)')
+    try:
+        with PILImage.open(io.BytesIO(bytes(msg.data))) as img:
+            rgb = np.asarray(img.convert('RGB'))
+    except (UnidentifiedImageError, OSError, ValueError) as exc:
+        raise ImageFormatError(f"cannot decode compressed image (format '{msg.format}'): {exc}") from None
+    return np.ascontiguousarray(rgb)
+
+
 def image_to_rgb(msg) -> np.ndarray:
-    """Decode a colour or mono Image to RGB uint8 (H, W, 3)."""
+    """Decode a colour or mono Image (or a CompressedImage) to RGB uint8 (H, W, 3)."""
+    if hasattr(msg, 'format') and not hasattr(msg, 'encoding'):
+        return compressed_to_rgb(msg)
     pixels = image_to_numpy(msg)
     encoding = msg.encoding
     if encoding in ('rgb8', 'rgba8'):

@@ -132,6 +132,7 @@ class Mapper:
     def reset(self) -> None:
         self.keyframes: dict = {}            # id -> FrameObservations
         self.edges: dict = {}                # (source, target) -> EdgeRecord
+        self._edges_to: dict = {}            # target -> [(source, target), ...]
         self.averager = IncrementalAverager(self.config.averaging)
         self.external_poses: dict = {}       # posed mode: id -> Pose4 T_k_map
         self.mode = 'mapping'
@@ -169,6 +170,7 @@ class Mapper:
                                       or edge.inliers[:, col].min() < 0):
                 raise ValueError(f'edge {key}: inlier index out of range for keyframe {k}')
         self.edges[key] = edge
+        self._edges_to.setdefault(edge.target, []).append(key)
         if not self.config.posed:
             self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight)
         self._tracks = None
@@ -184,12 +186,40 @@ class Mapper:
         return True
 
     def frame_pose(self, track: FrameTrack) -> np.ndarray | None:
-        """4x4 camera-to-map pose of a tracked frame now (None while its keyframe has none)."""
-        p = self.poses.get(track.keyframe_id)
-        kf = self.keyframes.get(track.keyframe_id)
-        if p is None or kf is None or kf.stamp_ns != track.keyframe_stamp_ns:
+        """4x4 camera-to-map pose of a tracked frame now (None while its keyframe has none).
+        A keyframe that arrived since the last :meth:`update` is placed provisionally by its
+        best-supported edge from a registered keyframe."""
+        k = track.keyframe_id
+        kf = self.keyframes.get(k)
+        if kf is None or kf.stamp_ns != track.keyframe_stamp_ns:
             return None
+        p = self.pose(k)
+        if p is None:
+            p = self._provisional_pose(k)
+            if p is None:
+                return None
         return _camera_to_map(track.pose.inverse() @ p, track.gravity_cam)
+
+    def _provisional_pose(self, keyframe_id: int, budget: int = 16) -> Pose4 | None:
+        """T_k_map of a not yet averaged keyframe, chained through its best-supported edges
+        back to a registered keyframe (searching at most ``budget`` keyframes; None without
+        such a chain)."""
+        seen = {keyframe_id}
+        # breadth-first back along incoming edges; each entry: (keyframe, T_keyframe_k)
+        frontier = [(keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)))]
+        while frontier and len(seen) <= budget:
+            k, t_k_target = frontier.pop(0)
+            incoming = sorted((self.edges[key] for key in self._edges_to.get(k, ())),
+                              key=lambda e: -len(e.inliers))
+            for e in incoming:
+                t_source_target = e.pose @ t_k_target               # T_source_k T_k_target
+                source_pose = self.pose(e.source)
+                if source_pose is not None:
+                    return t_source_target.inverse() @ source_pose
+                if e.source not in seen:
+                    seen.add(e.source)
+                    frontier.append((e.source, t_source_target))
+        return None
 
     def frame_poses(self) -> dict:
         """{stamp_ns: 4x4 camera-to-map} of every logged frame whose keyframe is registered,
@@ -216,6 +246,12 @@ class Mapper:
         return stats
 
     # ------------------------------------------------------------------ output
+
+    def pose(self, keyframe_id: int) -> Pose4 | None:
+        """Pose4 T_k_map of one registered keyframe (None if it has none)."""
+        if self.config.posed:
+            return self.external_poses.get(keyframe_id) if keyframe_id in self.keyframes else None
+        return self.averager.pose(keyframe_id)
 
     @property
     def poses(self) -> dict:
