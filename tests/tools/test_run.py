@@ -141,3 +141,26 @@ def test_rfm_run_says_what_a_bag_lacks(short_bag, user_bag, tmp_path):
     params, remaps = check(jpeg)
     assert params['detector']['image_transport'] == 'compressed'
     assert remaps['rgb/image/compressed'] == '/camera/color/image_raw/compressed'
+
+
+@pytest.mark.slow
+def test_rfm_eval_measures_the_graph_a_user_runs(tmp_path):
+    """rfm eval's default path writes each scene as a bag, replays it through rfm run and scores
+    the outputs: every frame of the input counted, with the frames the detector processed."""
+    out = tmp_path / 'eval.json'
+    proc = subprocess.run([shutil.which('rfm'), 'eval', '--scenes', '1', '--frames', '24', '--fps', '8',
+                           '--settings', 'GT rgbd', '--work', str(tmp_path / 'work'), '--json', str(out)],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    import json
+    result = json.loads(out.read_text())
+    assert result['path'] == 'graph'
+    scene = result['scenes'][0]
+    runs = scene['results']
+    assert set(runs) == {'GT rgbd', 'GT rgbd posed', 'GT rgbd posed + BA'}
+    un_posed = runs['GT rgbd']
+    assert 'error' not in un_posed and un_posed['processed'] == 1.0, un_posed
+    assert un_posed['registered'] >= 0.9 and un_posed['ATE_median'] < 0.06 and un_posed['AP25'] > 0.5, un_posed
+    run_dir = tmp_path / 'work' / scene['scene'] / 'gt_rgbd'
+    assert (run_dir / 'trajectory.tum').is_file() and (run_dir / 'summary.json').is_file()
+    assert 'frames localized' in proc.stdout

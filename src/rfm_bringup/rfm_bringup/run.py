@@ -4,8 +4,9 @@ In one process (each node on its own executor thread, the default) or, with ``--
 node processes talking over DDS. With ``--bag`` the bag is replayed by ``rfm play`` (with
 ``/clock``; the nodes use sim time); when it ends, the graph is given time to settle, the
 map is saved, and the output folder is written: ``map.rfm``, ``trajectory.tum``,
-``objects.json``, ``outputs.mcap/`` (the output topics, for Foxglove), ``report.md`` and
-``top_down.png`` (with the ground truth overlaid when the bag has it). With ``--live`` it
+``keyframes.tum``, ``objects.json``, ``outputs.mcap/`` (the output topics, for Foxglove),
+``report.md``, ``summary.json`` (the report's numbers) and ``top_down.png`` (with the ground
+truth overlaid when the bag has it). With ``--live`` it
 runs until Ctrl-C, then writes the same folder.
 """
 from __future__ import annotations
@@ -432,4 +433,6 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
                'edges_rejected': len(mapper.edges) - len(mapper.active_edges()), 'objects': len(mapper.tracks()),
                'wall_s': wall_s, 'bag_s': bag_s, 'realtime': bag_s / max(wall_s, 1e-9), 'accuracy': accuracy}
     write_report(output / 'report.md', summary)
+    machine = dict(summary, accuracy={k: v for k, v in accuracy.items() if k != 'alignment'} if accuracy else None)
+    (output / 'summary.json').write_text(json.dumps(machine, indent=1, default=float))
     return summary
