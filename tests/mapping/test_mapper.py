@@ -20,21 +20,24 @@ def mapped():
 
 
 def test_unposed_localization_and_mapping(mapped):
+    """Keyframes within 3 cm / 1 deg; every frame localized, the ones between keyframes
+    through their tracked pose (within 5 cm / 1 deg)."""
     loc, m = mapped.localization, mapped.mapping
     assert mapped.keyframes >= 8
-    assert loc['registered'] >= 0.95
-    assert loc['ATE_median'] < 0.03 and loc['ARE_median'] < 1.0, loc
+    assert loc['registered'] >= 0.95 and loc['keyframe_registered'] >= 0.95
+    assert loc['keyframe_ATE_median'] < 0.03 and loc['keyframe_ARE_median'] < 1.0, loc
+    assert loc['ATE_median'] < 0.05 and loc['ARE_median'] < 1.0, loc
     assert m['AP25'] > 0.7 and m['AR25'] > 0.7, m
 
 
 def test_posed_mapping_uses_the_given_poses():
     """Keyframes take the given poses exactly; the frames between them are tracked
-    against their keyframe, so they carry the tracking's error (a few cm)."""
+    against their keyframe, so they carry the tracking's error (a few cm, as un-posed)."""
     r = run_capture(SCENE, 'ground_truth:rgbd', noise_seed=3, posed=True)
     loc = r.localization
     assert loc['keyframe_registered'] == 1.0 and loc['registered'] == 1.0
     assert loc['keyframe_ATE_median'] < 1e-9 and loc['keyframe_ARE_median'] < 1e-6
-    assert loc['ATE_median'] < 0.03 and loc['ARE_median'] < 1.0, loc
+    assert loc['ATE_median'] < 0.05 and loc['ARE_median'] < 1.0, loc
     assert r.mapping['AP25'] > 0.7, r.mapping
 
 

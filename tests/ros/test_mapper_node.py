@@ -32,13 +32,15 @@ def _graph_messages():
     messages, truth, frames = [], {}, []
     for frame in capture.frames():
         obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1     # the gyroscope's, as the detector attaches it
         frames.append((frame, obs))
         keyframe, edges, track = graph.add(obs)
         if keyframe is not None:
-            det = frame_detections_to_msg(obs)
+            det = frame_detections_to_msg(keyframe.observations)
             messages.append(Keyframe(header=det.header, keyframe_id=keyframe.keyframe_id, detections=det))
             messages += [MatcherNode._edge_msg(e, obs.stamp_ns) for e in edges]
-            truth[keyframe.keyframe_id] = frame.pose_matrix
+            truth[keyframe.keyframe_id] = next(f.pose_matrix for f, _ in frames
+                                               if f.stamp_ns == keyframe.observations.stamp_ns)
         if track is not None:
             messages.append(tracked_frame_to_msg(track))
     return messages, truth, frames

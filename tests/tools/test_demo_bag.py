@@ -120,7 +120,8 @@ def test_demo_bag_plays_at_1x_without_drops():
     node.create_subscription(FrameDetections, TOPICS['gt_detections'],
                              lambda m: counts.__setitem__('gt', counts['gt'] + 1), reliable)
     try:
-        play_bag(node, DEMO, timeout=90)
+        play_bag(node, DEMO, '--wait-for', TOPICS['color'], TOPICS['depth'], TOPICS['imu'], TOPICS['gt_detections'],
+                 timeout=90)
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

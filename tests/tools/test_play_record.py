@@ -102,12 +102,12 @@ def test_play_remaps_filters_and_rate(small_bag):
     seen_topics = set()
     try:
         elapsed = play_bag(node, small_bag, '--rate', '4', '--topics', TOPICS['color'],
-                           '--remap', f'{TOPICS["color"]}:=/renamed/rgb', drain=1.0,
+                           '--remap', f'{TOPICS["color"]}:=/renamed/rgb', '--wait-for', TOPICS['color'], drain=1.0,
                            on_spin=lambda: seen_topics.update(t for t, _ in node.get_topic_names_and_types()))
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
-    assert len(got) == 20
+    assert len(got) == 20, [(m.header.stamp.nanosec // 10**8, t - arrival[0]) for m, t in zip(got, arrival)]
     assert TOPICS['depth'] not in seen_topics and TOPICS['color'] not in seen_topics
     assert elapsed < 3 + 1.9 / 4 + 20         # 1.9 s of bag at 4x, plus start-up (slow when loaded)
     assert arrival[-1] - arrival[0] < 1.2     # 1.9 s of images at 4x: ~0.5 s (1.9 s at 1x)

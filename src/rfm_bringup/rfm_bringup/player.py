@@ -160,5 +160,20 @@ class BagPlayer(Node):
                 sys.stderr.write('\n')
             if not opts.loop:
                 break
+        self._wait_for_delivery()
         self.get_logger().info(f'done: {sum(self.published.values())} messages')
         return dict(self.published)
+
+    def _wait_for_delivery(self, timeout_s: float = 2.0) -> None:
+        """Before the player exits: until reliable subscribers have acknowledged everything
+        (a message still being re-sent would be lost with the process), at most ``timeout_s``."""
+        from rclpy.duration import Duration  # noqa: PLC0415
+        deadline = time.monotonic() + timeout_s
+        for publisher in self._bag_publishers.values():
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            try:
+                publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+            except Exception:  # noqa: BLE001 - best effort (e.g. a best-effort publisher)
+                pass

@@ -19,14 +19,16 @@ __all__ = ['BagRecorder']
 class BagRecorder(Node):
 
     def __init__(self, path, topics=(), node_name: str = 'rfm_recorder',
-                 discovery_period: float = 0.5):
+                 discovery_period: float = 0.5, compression_level: int = 10):
+        """``compression_level``: zstd level of the chunks (10: small files; 1-3: cheap on the
+        CPU, for recording beside a running graph)."""
         super().__init__(node_name)
         from rfm_core.io.bag import BagWriter  # noqa: PLC0415
 
         self.path = path
         self.wanted = set(topics)
         self.counts: dict = {}
-        self._bag = BagWriter(path).__enter__()
+        self._bag = BagWriter(path, compression_level=compression_level).__enter__()
         self._subscriptions_by_topic = {}
         self._closed = False
         self.create_timer(discovery_period, self._discover)

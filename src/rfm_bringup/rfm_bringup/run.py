@@ -28,9 +28,10 @@ __all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
 BAG_REMAPS = {'rgb/image': '/camera/color/image_raw', 'rgb/camera_info': '/camera/color/camera_info',
               'depth/image': '/camera/depth/image_raw', 'imu': '/imu/data',
               'ground_truth/detections': '/ground_truth/detections'}
-OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames', '/rfm/keyframe_poses',
-                 '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map', '/rfm/object_markers', '/rfm/status',
-                 '/rfm/detection_markers', '/tf', '/tf_static', '/camera/color/image_raw']
+# What outputs.mcap records (with --live also the colour images, which a bag already has).
+OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames',
+                 '/rfm/keyframe_poses', '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map',
+                 '/rfm/object_markers', '/rfm/status', '/rfm/detection_markers', '/tf', '/tf_static']
 
 
 def _params(args, output: Path) -> dict:
@@ -325,7 +326,9 @@ def run_graph(args) -> int:
     start = time.monotonic()
     play_start = None                              # the first frame detected
     try:
-        recorder = BagRecorder(str(output / 'outputs.mcap'), topics=OUTPUT_TOPICS, node_name='rfm_run_recorder')
+        topics = OUTPUT_TOPICS + ([] if bag is not None else [remaps['rgb/image']])
+        recorder = BagRecorder(str(output / 'outputs.mcap'), topics=topics, node_name='rfm_run_recorder',
+                               compression_level=1)         # beside the graph: cheap on the CPU
         graph = (_ProcessGraph(params, remaps, output, lambda: recorder.counts.get('/rfm/detections', 0))
                  if args.processes else _InProcessGraph(params, remaps))
         graph.add(recorder)

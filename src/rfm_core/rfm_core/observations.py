@@ -62,6 +62,8 @@ class FrameObservations:
     object_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     corner_descriptors: np.ndarray | None = None   #: (N, 8, D) or None
     backend: str = ''
+    imu_rotation: np.ndarray | None = None   #: (3, 3) camera -> the gyroscope's drifting frame
+    imu_epoch: int = 0                       #: 0: none; rotations compare within one epoch
 
     def __post_init__(self):
         g = np.asarray(self.gravity_cam, dtype=np.float64).reshape(-1)
@@ -101,6 +103,13 @@ class FrameObservations:
                 raise ValueError(f'{name} has {len(value)} entries for {n} boxes')
         if self.embeddings.ndim != 2:
             raise ValueError(f'embeddings must be (N, D), got shape {self.embeddings.shape}')
+        if self.imu_rotation is not None:
+            r = np.asarray(self.imu_rotation, dtype=np.float64)
+            if r.shape != (3, 3) or not np.all(np.isfinite(r)) or not np.allclose(r @ r.T, np.eye(3), atol=1e-4):
+                raise ValueError('imu_rotation must be a finite 3x3 rotation')
+            self.imu_rotation = r
+        elif self.imu_epoch:
+            raise ValueError('imu_epoch is set without an imu_rotation')
         if self.corner_descriptors is not None:
             cd = np.asarray(self.corner_descriptors, dtype=np.float32)
             if cd.ndim != 3 or cd.shape[:2] != (n, 8):

@@ -160,9 +160,10 @@ class DetectorNode(Node):
             if self.uses_depth:
                 self.create_subscription(Image, 'depth/image', lambda m: self._add(2, m), sensor)
             inputs = f'{colour}, rgb/camera_info' + (', depth/image' if self.uses_depth else '')
-        if self.gravity_source == 'imu' and self.backend != 'ground_truth':
+        if self.gravity_source == 'imu' or self.backend == 'ground_truth':
+            # gravity (unless given or simulated) and the gyroscope's orientation
             self.create_subscription(Imu, 'imu', self._on_imu, sensor)
-            inputs += ', imu'
+            inputs += ', imu' if self.backend != 'ground_truth' else ', imu (optional)'
         self.create_timer(self.diagnostics_period, self._publish_diagnostics)
         self._worker = threading.Thread(target=self._work, name='detector_worker', daemon=True)
         self._worker.start()
@@ -256,8 +257,23 @@ class DetectorNode(Node):
                 self.get_logger().debug(f'publish failed: {exc!r}')
 
     def _process(self, kind, payload):
+        obs = self._detect(kind, payload)
+        if obs is not None:
+            self._attach_orientation(obs)
+        return obs
+
+    def _attach_orientation(self, obs) -> None:
+        """The gyroscope's orientation at the frame (the matcher checks relative yaws with it),
+        when the IMU is recent."""
+        found = self.gravity_filter.orientation_at(obs.stamp_ns)
+        if found is not None:
+            obs.imu_rotation, obs.imu_epoch = found
+
+    def _detect(self, kind, payload):
         if kind == 'ground_truth':
-            return self.detector.perturb(frame_detections_from_msg(payload))
+            obs = self.detector.perturb(frame_detections_from_msg(payload))
+            obs.imu_rotation, obs.imu_epoch = None, 0        # the simulator's; the IMU's is attached
+            return obs
         rgb_msg, info, depth_msg = (payload + (None,))[:3]
         stamp = stamp_to_ns(rgb_msg.header.stamp)
         intrinsics = camera_info_intrinsics(info)

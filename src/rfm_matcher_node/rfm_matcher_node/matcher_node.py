@@ -23,7 +23,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, TrackedFrame, ViewGraphEdge
 
 from rfm_core.io.messages import (
-    declare_range_error, frame_detections_from_msg, ns_to_stamp, parameter_descriptor, tracked_frame_to_msg,
+    declare_range_error, frame_detections_from_msg, frame_detections_to_msg, ns_to_stamp, parameter_descriptor,
+    tracked_frame_to_msg,
 )
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.learned import make_matcher
@@ -123,8 +124,10 @@ class MatcherNode(Node):
             self.get_logger().warning(f'detections dropped: {exc}', throttle_duration_sec=5.0)
             return
         keyframe, edges, track = self.graph.add(obs)
-        if keyframe is not None:
-            self.keyframe_pub.publish(Keyframe(header=msg.header, keyframe_id=keyframe.keyframe_id, detections=msg))
+        if keyframe is not None:                  # this frame or, bridging lost tracking, the previous one
+            detections = msg if keyframe.observations is obs else frame_detections_to_msg(keyframe.observations)
+            self.keyframe_pub.publish(Keyframe(header=detections.header, keyframe_id=keyframe.keyframe_id,
+                                               detections=detections))
             for edge in edges:
                 self.edge_pub.publish(self._edge_msg(edge, obs.stamp_ns))
             self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')

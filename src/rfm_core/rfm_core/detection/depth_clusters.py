@@ -118,6 +118,23 @@ def _in_footprint(xy: np.ndarray, surface_xy: np.ndarray, margin: float) -> np.n
     return np.all(xy @ eq[:, :2].T + eq[:, 2] <= margin, axis=1)
 
 
+
+def percentiles(a: np.ndarray, qs) -> list:
+    """np.percentile(a, qs, axis=0) (linear interpolation, the same values) from one
+    partial sort: several times faster on the small arrays of box fitting."""
+    a = np.asarray(a)
+    n = a.shape[0]
+    pos = [q / 100.0 * (n - 1) for q in qs]
+    lows = [int(np.floor(x)) for x in pos]
+    kth = sorted({k for lo in lows for k in (lo, min(lo + 1, n - 1))})
+    part = np.partition(a, kth, axis=0)
+    out = []
+    for x, lo in zip(pos, lows):
+        frac = x - lo
+        below, above = part[lo], part[min(lo + 1, n - 1)]
+        out.append(below + frac * (above - below) if frac else below.copy())
+    return out
+
 class DepthClustersDetector(Detector):
     name = 'depth_clusters'
     needs_depth = True
@@ -426,7 +443,7 @@ class DepthClustersDetector(Detector):
             """Robust (1st-99th percentile) bounds along the axes rotated by each theta."""
             c, s = np.cos(thetas), np.sin(thetas)
             a = np.stack([points @ np.stack([c, s]), points @ np.stack([-s, c])], -1)  # (N, K, 2)
-            lo, hi = np.percentile(a, [1, 99], axis=0)
+            lo, hi = percentiles(a, (1, 99))
             return lo, hi
 
         def best(points, thetas):
@@ -438,7 +455,7 @@ class DepthClustersDetector(Detector):
         fine = coarse + np.radians(np.arange(-1.5, 1.6, 0.5))
         yaw = fine[best(rel, fine)]
         lo, hi = (b[0] for b in extents(rel, np.array([yaw])))
-        z_lo, z_hi = np.percentile(pts[:, 2], [0.5, 99.5])
+        z_lo, z_hi = percentiles(pts[:, 2], (0.5, 99.5))
         # amodal completion downwards: objects stand on their support or the floor
         if support_z is not None:
             z_lo = support_z

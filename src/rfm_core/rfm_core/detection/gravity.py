@@ -8,8 +8,15 @@ samples (in the camera frame a fixed direction v moves as dv/dt = -w x v) and pu
 towards the accelerometer with time constant ``tau_s``. Without gyroscope readings it
 degrades to the low-pass. Everything is in the IMU's frame (the camera optical frame, or
 rotated into it by the caller).
+
+The gyroscope is also integrated into an orientation (IMU frame -> a fixed frame that
+drifts slowly with the gyroscope's bias): the rotation between two moments of one
+integration epoch, which the matcher uses to check relative poses. A gap in the stream
+(``max_gap_s``) or a sample without angular velocity starts a new epoch.
 """
 from __future__ import annotations
+
+from collections import deque
 
 import numpy as np
 
@@ -25,6 +32,22 @@ def _rotate(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
     return v * np.cos(angle) + np.cross(k, v) * np.sin(angle) + k * (k @ v) * (1 - np.cos(angle))
 
 
+def _orthonormal(m: np.ndarray) -> np.ndarray:
+    """The rotation nearest ``m`` (a long product of rotations drifts off orthonormality)."""
+    u, _, vt = np.linalg.svd(m)
+    return u @ vt
+
+
+def _rotation(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector (Rodrigues)."""
+    angle = np.linalg.norm(rotvec)
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rotvec / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * kx + (1 - np.cos(angle)) * (kx @ kx)
+
+
 class GravityFilter:
 
     def __init__(self, tau_s: float = 1.0, max_gap_s: float = 1.0):
@@ -34,6 +57,9 @@ class GravityFilter:
         self.max_gap_s = float(max_gap_s)
         self._force = None
         self._stamp_ns = None
+        self._orientation = None          # IMU frame -> integration frame, None without gyroscope
+        self._history = deque(maxlen=256)  # recent (stamp_ns, epoch, orientation)
+        self.epoch = 0                    # integration epoch of the orientation (0: none yet)
         self.samples = 0
         self.rejected = 0
 
@@ -49,19 +75,49 @@ class GravityFilter:
         if self._stamp_ns is not None and stamp_ns < self._stamp_ns:
             self.rejected += 1
             return False
+        w = None
+        if angular_velocity is not None:
+            w = np.asarray(angular_velocity, dtype=np.float64).reshape(3)
+            w = w if np.all(np.isfinite(w)) else None
         if self._force is None or (stamp_ns - self._stamp_ns) * 1e-9 > self.max_gap_s:
             self._force = f.copy()
+            self._orientation = None
         else:
             dt = (stamp_ns - self._stamp_ns) * 1e-9
-            if angular_velocity is not None:
-                w = np.asarray(angular_velocity, dtype=np.float64).reshape(3)
-                if np.all(np.isfinite(w)):
-                    self._force = _rotate(self._force, -w * dt)
+            if w is not None:
+                self._force = _rotate(self._force, -w * dt)
+                if self._orientation is not None:     # R <- R exp([w dt]x): body rates
+                    self._orientation = self._orientation @ _rotation(w * dt)
             alpha = 1.0 - np.exp(-dt / self.tau_s)
             self._force += alpha * (f - self._force)
+        if w is None:
+            self._orientation = None
+        elif self._orientation is None:               # a new integration epoch
+            self._orientation = np.eye(3)
+            self.epoch += 1
+        if self._orientation is not None:
+            self._history.append((int(stamp_ns), self.epoch, self._orientation))
         self._stamp_ns = int(stamp_ns)
         self.samples += 1
         return True
+
+    def orientation(self) -> np.ndarray | None:
+        """(3, 3) IMU frame -> integration frame at the last sample, or None (no gyroscope);
+        compare only orientations of one :attr:`epoch`."""
+        if self._orientation is None:
+            return None
+        return _orthonormal(self._orientation)
+
+    def orientation_at(self, stamp_ns: int, max_gap_s: float = 0.02):
+        """(orientation, epoch) of the sample nearest ``stamp_ns`` among the recent ones, if
+        within ``max_gap_s`` of it (a frame's IMU may arrive before or after it); else None."""
+        history = list(self._history)          # (a copy: the IMU callback may be appending)
+        if not history:
+            return None
+        stamp, epoch, rotation = min(history, key=lambda h: abs(h[0] - stamp_ns))
+        if abs(stamp - stamp_ns) > max_gap_s * 1e9:
+            return None
+        return _orthonormal(rotation), epoch
 
     @property
     def last_stamp_ns(self):

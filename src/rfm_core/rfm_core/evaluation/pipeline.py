@@ -3,9 +3,9 @@ mapper, then the paper's localization and mapping metrics.
 
 Ground truth stays out of the pipeline's inputs: detections come from a backend (the
 ``ground_truth`` backend perturbs the visible boxes by its noise model and hides object
-ids from everything but the evaluation), gravity is the frame's true gravity (the IMU
-filter's job, evaluated separately), and poses are used only in ``posed`` mode (the
-paper's posed rows) and for scoring.
+ids from everything but the evaluation), gravity and the gyroscope's orientation are the
+frame's true ones (the IMU filter's job, evaluated separately), and poses are used only in
+``posed`` mode (the paper's posed rows) and for scoring.
 """
 from __future__ import annotations
 
@@ -69,7 +69,7 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
                    matching=monocular(mcfg.matching) if detect.monocular else mcfg.matching)
     graph = ViewGraphBuilder(mcfg.matching, keyframe_config, matcher=matcher)
     mapper = Mapper(mcfg, matcher=graph.matcher)
-    truth, frame_truth, times = {}, {}, {'detect': 0.0, 'match': 0.0, 'map': 0.0}
+    truth, frame_truth, aligned_truth, times = {}, {}, {}, {'detect': 0.0, 'match': 0.0, 'map': 0.0}
     best_visibility = np.zeros(len(capture.room.objects))
     n_frames = 0
     for frame in (frames if frames is not None else capture.frames()):
@@ -78,21 +78,21 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
         np.maximum.at(best_visibility, gt.object_ids - 1, gt.visibility)
         t0 = time.perf_counter()
         obs = detect(frame)
+        # the gyroscope's orientation, as the detector node attaches it (here: the true one)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
         t1 = time.perf_counter()
         keyframe, edges, track = graph.add(obs)
         t2 = time.perf_counter()
         frame_truth[frame.stamp_ns] = frame.pose_matrix
-        if keyframe is not None:
+        aligned_truth[frame.stamp_ns] = frame.aligned_from_map()
+        if keyframe is not None:                  # (this frame or, bridging lost tracking, an earlier one)
             k = keyframe.keyframe_id
-            truth[k] = frame.pose_matrix
-            mapper.add_keyframe(k, obs)
+            truth[k] = frame_truth[keyframe.observations.stamp_ns]
+            mapper.add_keyframe(k, keyframe.observations)
             if posed:
-                mapper.set_keyframe_pose(k, frame.aligned_from_map())
+                mapper.set_keyframe_pose(k, aligned_truth[keyframe.observations.stamp_ns])
             for e in edges:
-                rel = e.relative
-                mapper.add_edge(EdgeRecord(e.source_id, e.target_id, rel.pose, rel.inliers, rel.inlier_scores,
-                                           np.asarray(rel.corner_inliers, float).reshape(-1, 5),
-                                           float(np.clip(rel.inlier_ratio, 0, 1))))
+                mapper.add_edge(EdgeRecord.from_edge(e))
             mapper.update()
         if track is not None:
             mapper.add_frame(track)

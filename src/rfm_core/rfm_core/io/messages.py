@@ -321,7 +321,20 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         object_ids=np.array([d.object_id for d in dets], dtype=np.int64),
         corner_descriptors=corner,
         backend=msg.backend,
+        **_imu_fields(msg),
     )
+
+
+def _imu_fields(msg) -> dict:
+    """imu_rotation / imu_epoch of a FrameDetections (none in messages of older rfm versions;
+    ValueError for a zero or non-finite quaternion with an epoch)."""
+    epoch = int(getattr(msg, 'imu_epoch', 0) or 0)
+    if not epoch:
+        return {}
+    q = _quat(msg.imu_orientation)
+    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+        raise ValueError('imu_orientation must be a finite non-zero quaternion')
+    return {'imu_rotation': matrix_from_quaternion(q / np.linalg.norm(q)), 'imu_epoch': epoch}
 
 
 def frame_detections_to_msg(obs: FrameObservations, make=ROS):
@@ -345,7 +358,13 @@ def frame_detections_to_msg(obs: FrameObservations, make=ROS):
     return make('rfm_msgs/msg/FrameDetections', header=header(make, obs.stamp_ns, obs.frame_id),
                 backend=obs.backend, fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.cx),
                 cy=float(intr.cy), width=int(intr.width), height=int(intr.height),
-                gravity=_vector3(make, obs.gravity_cam), detections=detections)
+                gravity=_vector3(make, obs.gravity_cam), imu_orientation=_quaternion(make, obs.imu_rotation),
+                imu_epoch=int(obs.imu_epoch) if obs.imu_rotation is not None else 0, detections=detections)
+
+
+def _quaternion(make, rotation):
+    q = quaternion_from_matrix(rotation) if rotation is not None else (0.0, 0.0, 0.0, 1.0)
+    return make('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
 
 
 def tracked_frame_to_msg(track: FrameTrack, make=ROS):

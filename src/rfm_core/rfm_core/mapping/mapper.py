@@ -101,6 +101,13 @@ class EdgeRecord:
         """Averaging weight: more verified objects, more trust."""
         return float(max(len(self.inliers), 1)) * max(self.score, 1e-3)
 
+    @classmethod
+    def from_edge(cls, edge) -> 'EdgeRecord':
+        """From a view-graph edge (:class:`rfm_core.matching.view_graph.Edge`)."""
+        rel = edge.relative
+        return cls(edge.source_id, edge.target_id, rel.pose, rel.inliers, rel.inlier_scores,
+                   np.asarray(rel.corner_inliers, float).reshape(-1, 5), float(np.clip(rel.inlier_ratio, 0, 1)))
+
 
 @dataclass
 class Relocalization:

@@ -35,7 +35,7 @@ from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import corner_permutation, quarter_turn_candidates, relabel
 
-__all__ = ['RelativePose', 'estimate_relative_pose']
+__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose']
 
 
 @dataclass
@@ -63,10 +63,23 @@ def _best_turn(candidates, yaw):
     return min(candidates, key=lambda kc: abs(wrap_angle(kc[1] - yaw)))
 
 
+@dataclass(frozen=True)
+class YawPrior:
+    """The relative yaw measured otherwise (the gyroscope): hypotheses further than
+    ``tolerance_rad`` from ``yaw_rad`` are not considered, and each single match proposes
+    the translation under that yaw (verified like any sample: by two objects at least). The
+    winner's own yaw is kept (boxes fix it within the tolerance; taking the measured yaw
+    and refitting the translation on box centres alone was measured worse)."""
+
+    yaw_rad: float
+    tolerance_rad: float
+
+
 def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: ObjectMatches,
-                           config: MatchingConfig | None = None) -> RelativePose | None:
+                           config: MatchingConfig | None = None, yaw_prior: YawPrior | None = None) -> RelativePose | None:
     """Verified T_b_a from matched boxes of two frames (gravity-aligned camera frames), or
-    None when no minimal sample passes verification."""
+    None when no minimal sample passes verification. ``yaw_prior``: T_b_a's yaw as measured
+    by other means (see :class:`YawPrior`)."""
     cfg = config or MatchingConfig()
     n = len(matches)
     if n < max(cfg.min_matches, 2):
@@ -84,21 +97,34 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
             if pick is not None:
                 hyps.append((i, j, k_i, pick[0]))
     best = None
-    if hyps:
-        h = np.array(hyps)
-        perms = np.stack([corner_permutation(k) for k in range(4)])          # (4, 8)
-        src = np.concatenate([corners_a[h[:, 0]], corners_a[h[:, 1]]], axis=1)  # (H, 16, 3)
-        dst = np.concatenate([np.take_along_axis(corners_b[h[:, 0]], perms[h[:, 2]][..., None], 1),
-                              np.take_along_axis(corners_b[h[:, 1]], perms[h[:, 3]][..., None], 1)],
-                             axis=1)
-        yaws, trans = kabsch_4dof_batch(src, dst)
+    if hyps or yaw_prior is not None:
+        h = np.array(hyps, dtype=int).reshape(-1, 4)
+        if len(h):
+            perms = np.stack([corner_permutation(k) for k in range(4)])          # (4, 8)
+            src = np.concatenate([corners_a[h[:, 0]], corners_a[h[:, 1]]], axis=1)  # (H, 16, 3)
+            dst = np.concatenate([np.take_along_axis(corners_b[h[:, 0]], perms[h[:, 2]][..., None], 1),
+                                  np.take_along_axis(corners_b[h[:, 1]], perms[h[:, 3]][..., None], 1)],
+                                 axis=1)
+            yaws, trans = kabsch_4dof_batch(src, dst)
+        else:
+            yaws, trans = np.zeros(0), np.zeros((0, 3))
+        if yaw_prior is not None:
+            # hypotheses the measured yaw rules out are dropped; each single match proposes
+            # the translation under the measured yaw (its own match as the sample's pair)
+            keep = np.abs(wrap_angle(yaws - yaw_prior.yaw_rad)) <= yaw_prior.tolerance_rad
+            single = np.arange(n)
+            h = np.concatenate([h[keep], np.stack([single, single, np.zeros(n, int), np.zeros(n, int)], 1)])
+            rot = yaw_matrix(yaw_prior.yaw_rad)
+            yaws = np.concatenate([yaws[keep], np.full(n, yaw_prior.yaw_rad)])
+            trans = np.concatenate([trans[keep], b[:, :3] - a[:, :3] @ rot.T])
         moved = np.repeat(a[None], len(h), axis=0)                            # (H, n, 7)
         moved[..., :3] = np.einsum('hij,hnj->hni', yaw_matrix(yaws), a[None, :, :3]) + trans[:, None]
         moved[..., 6] = wrap_angle(a[None, :, 6] + yaws[:, None])
         ious = _overlap(moved.reshape(-1, 7), np.tile(b, (len(h), 1)), cfg).reshape(len(h), n)
         inlier = ious >= cfg.inlier_iou
         rows = np.arange(len(h))
-        ok = inlier[rows, h[:, 0]] & inlier[rows, h[:, 1]] & (inlier.mean(1) >= cfg.min_inlier_ratio)
+        ok = (inlier[rows, h[:, 0]] & inlier[rows, h[:, 1]] & (inlier.mean(1) >= cfg.min_inlier_ratio)
+              & (inlier.sum(1) >= 2))                   # two objects, whatever proposed the pose
         if np.any(ok):
             errors = np.where(ok, np.mean(1.0 - ious, axis=1), np.inf)
             w = int(np.argmin(errors))               # the lowest mean error (first on ties)

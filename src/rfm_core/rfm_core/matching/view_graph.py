@@ -21,6 +21,7 @@ keyframe that starts a segment retrieves ``unordered_retrieved_keyframes`` candi
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -28,8 +29,8 @@ import numpy as np
 
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose
-from rfm_core.geometry import Pose4
+from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
+from rfm_core.geometry import Pose4, wrap_angle
 from rfm_core.observations import FrameObservations, FrameTrack
 
 __all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'GraphStep', 'ViewGraphBuilder', 'bag_of_objects']
@@ -37,7 +38,9 @@ __all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'GraphStep', 'ViewGraphBuilder'
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    min_overlap: float = 0.6          #: new keyframe when fewer than this share of objects match
+    min_overlap: float = 0.3          #: new keyframe when fewer than this share of objects match
+                                      #: (with the gyroscope checking tracking, 0.3 halves the
+                                      #: keyframes of 0.6 at the same accuracy: BENCHMARKS.md)
     max_translation_m: float = 0.5    #: ... or when it moved farther than this
     max_yaw_deg: float = 20.0         #: ... or turned more than this
     min_detections: int = 2           #: frames with fewer detections are skipped
@@ -53,6 +56,9 @@ class KeyframeConfig:
     max_speed_m_s: float = 1.5        #: ... or moving faster (plus the slack below) is rejected
     motion_slack_deg: float = 10.0    #: allowance on top of rate x time (detector noise)
     motion_slack_m: float = 0.3
+    imu_yaw_tolerance_deg: float = 3.0   #: within a stream, a relative pose's yaw may differ from the
+    imu_yaw_drift_deg_s: float = 1.0     #: gyroscope's by this plus this per second between the frames
+                                      #: (the averaging's outlier threshold, plus gyroscope bias)
     motion_prior: bool = True         #: use the motion prior within stream segments; False
                                       #: treats every frame as a separate view (stamps mean nothing)
     min_retrieved_inliers: int = 3    #: edges without the motion prior's check (across segments,
@@ -105,6 +111,8 @@ class _Tracking:
     keyframe_id: int                  #: the keyframe the last frame was localized against
     pose: Pose4                       #: T_keyframe_frame of that frame
     stamp_ns: int
+    observations: FrameObservations | None = None   #: that frame (None: it is the keyframe)
+    relative: RelativePose | None = None            #: its verified pose to the keyframe
 
 
 @dataclass
@@ -113,11 +121,15 @@ class _Stats:
     skipped: int = 0
     tracked: int = 0                  #: frames localized against a keyframe (keyframes included)
     segments: int = 0                 #: stream segments begun (separate views each begin one)
+    bridged: int = 0                  #: lost frames tracked through the previous frame made keyframe
     keyframes: int = 0
     pairs_tested: int = 0
     edges: int = 0
     implausible: int = 0
+    imu_rejected: int = 0             #: relative poses whose yaw the gyroscope contradicted
     last_candidates: list = field(default_factory=list)
+    tracking_s: float = 0.0           #: time spent localizing frames against the last keyframe
+    keyframe_s: float = 0.0           #: time spent matching new keyframes against candidates
 
 
 class ViewGraphBuilder:
@@ -137,12 +149,18 @@ class ViewGraphBuilder:
         self._tracking: _Tracking | None = None
 
     def _relative(self, source: FrameObservations, target: FrameObservations,
-                  matches=None) -> RelativePose | None:
+                  matches=None, stream: bool = False) -> RelativePose | None:
         """T_source_target from matching target against source (or from ``matches`` of
-        target against source, already computed)."""
+        target against source, already computed). ``stream``: the two frames belong to one
+        stream segment, so the gyroscope's rotation between them (when both carry it)
+        constrains the yaw."""
         if matches is None:
             matches = self.matcher.match(target, source)
-        rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching)
+        prior = None
+        measured = self._imu_yaw(source, target) if stream else None     # (of T_source_target)
+        if measured is not None:
+            prior = YawPrior(measured[0], np.radians(measured[1]))
+        rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching, prior)
         if rel is None:
             return None
         rel.inliers = rel.inliers[:, ::-1].copy()        # as (source, target) index pairs
@@ -160,9 +178,33 @@ class ViewGraphBuilder:
             return False
         return True
 
-    def _plausible(self, rel: RelativePose | None, stamp_a: int, stamp_b: int) -> RelativePose | None:
-        """``rel`` between two frames of one stream segment if the motion prior allows it."""
-        if rel is None or not self._reachable(rel.pose, stamp_a, stamp_b):
+    def _imu_yaw(self, a: FrameObservations, b: FrameObservations):
+        """(yaw of T_a_b as the gyroscope measured it, the deviation allowed in deg), or None
+        when the frames share no integration epoch."""
+        if not a.imu_epoch or a.imu_epoch != b.imu_epoch:
+            return None
+        delta = a.imu_rotation.T @ b.imu_rotation                    # camera b -> camera a
+        m = a.rotation_aligned_from_camera @ delta @ b.rotation_aligned_from_camera.T
+        cfg = self.config
+        allowed = cfg.imu_yaw_tolerance_deg + cfg.imu_yaw_drift_deg_s * abs(b.stamp_ns - a.stamp_ns) / 1e9
+        return float(np.arctan2(m[1, 0], m[0, 0])), allowed
+
+    def _imu_agrees(self, t_a_b: Pose4, a: FrameObservations, b: FrameObservations) -> bool:
+        """Whether a relative pose's yaw agrees with the rotation the gyroscope measured
+        between the two frames (True when they share no integration epoch)."""
+        measured = self._imu_yaw(a, b)
+        if measured is None:
+            return True
+        yaw, allowed = measured
+        if np.degrees(abs(wrap_angle(t_a_b.yaw - yaw))) > allowed:
+            self.stats.imu_rejected += 1
+            return False
+        return True
+
+    def _plausible(self, rel: RelativePose | None, a: FrameObservations, b: FrameObservations) -> RelativePose | None:
+        """``rel`` (T_a_b) between two frames of one stream segment if the motion prior and
+        the gyroscope allow it."""
+        if rel is None or not self._reachable(rel.pose, a.stamp_ns, b.stamp_ns) or not self._imu_agrees(rel.pose, a, b):
             return None
         return rel
 
@@ -171,7 +213,7 @@ class ViewGraphBuilder:
         stream the motion from the previous tracked frame must be plausible; across a gap
         the pose needs ``min_retrieved_inliers`` objects."""
         last = self.keyframes[-1]
-        rel = self._relative(last.observations, obs)
+        rel = self._relative(last.observations, obs, stream=stream)
         if rel is None:
             return None
         if not stream:
@@ -182,7 +224,7 @@ class ViewGraphBuilder:
             ok = self._reachable(prev.pose.inverse() @ rel.pose, prev.stamp_ns, obs.stamp_ns)
         else:
             ok = self._reachable(rel.pose, last.observations.stamp_ns, obs.stamp_ns)
-        return rel if ok else None
+        return rel if ok and self._imu_agrees(rel.pose, last.observations, obs) else None
 
     def _too_soon(self, obs: FrameObservations) -> bool:
         """Whether ``min_interval_s`` has not yet passed since the last keyframe."""
@@ -240,16 +282,45 @@ class ViewGraphBuilder:
             return GraphStep(None, [], None)
         # the pose to the last keyframe localizes the frame, decides whether it becomes a
         # keyframe, and is reused as that candidate's edge
+        start = time.perf_counter()
         last_rel = self._track(obs, stream) if self.keyframes else None
+        self.stats.tracking_s += time.perf_counter() - start
         if last_rel is not None and (self._too_soon(obs) or not self._is_keyframe(obs, last_rel)):
             last = self.keyframes[-1]
-            self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns)
+            self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel)
             self.stats.tracked += 1
             return GraphStep(None, [], FrameTrack(
                 obs.stamp_ns, obs.frame_id, obs.gravity_cam, last.keyframe_id, last.observations.stamp_ns, last_rel.pose,
                 len(last_rel.inliers), is_keyframe=False, continuous=stream))
+        if last_rel is None and stream and self._tracking is not None and self._tracking.observations is not None:
+            bridged = self._bridge(obs)
+            if bridged is not None:
+                return bridged
         if self._too_soon(obs):                     # lost, but no keyframe yet
             return GraphStep(None, [], None)
+        return self._new_keyframe(obs, last_rel, stream)
+
+    def _bridge(self, obs: FrameObservations) -> GraphStep | None:
+        """Tracking failed against the last keyframe: if the frame verifies against the last
+        frame that was tracked (moments earlier), that frame becomes the keyframe (it is linked
+        to the last keyframe by its tracked pose) and this frame is tracked against it."""
+        prev = self._tracking
+        start = time.perf_counter()
+        rel = self._plausible(self._relative(prev.observations, obs, stream=True), prev.observations, obs)
+        self.stats.tracking_s += time.perf_counter() - start
+        if rel is None:
+            return None
+        # the previous frame becomes a keyframe, linked by its tracked pose
+        step = self._new_keyframe(prev.observations, prev.relative, True)
+        keyframe = step.keyframe
+        self._tracking = _Tracking(keyframe.keyframe_id, rel.pose, obs.stamp_ns, obs, rel)
+        self.stats.bridged += 1
+        return GraphStep(keyframe, step.edges, FrameTrack(
+            obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, keyframe.observations.stamp_ns,
+            rel.pose, len(rel.inliers), is_keyframe=False, continuous=True))
+
+    def _new_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None, stream: bool) -> GraphStep:
+        start = time.perf_counter()
         descriptor = bag_of_objects(obs)
         keyframe = Keyframe(self._next_id, obs, descriptor, self._segment)
         self._next_id += 1
@@ -269,9 +340,9 @@ class ViewGraphBuilder:
             if i == last:
                 rel = last_rel
             else:
-                rel = self._relative(source.observations, obs, batched[i])
+                rel = self._relative(source.observations, obs, batched[i], stream=same)
                 if same:
-                    rel = self._plausible(rel, source.observations.stamp_ns, obs.stamp_ns)
+                    rel = self._plausible(rel, source.observations, obs)
             if rel is not None and ((same and i >= recent_from)
                                     or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
@@ -285,7 +356,8 @@ class ViewGraphBuilder:
         self.stats.keyframes += 1
         self.stats.tracked += 1
         self.stats.edges += len(edges)
-        self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns)
+        self.stats.keyframe_s += time.perf_counter() - start
+        self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns, None)
         return GraphStep(keyframe, edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, obs.stamp_ns,
             Pose4(0.0, (0.0, 0.0, 0.0)), 0, is_keyframe=True, continuous=stream))
