@@ -4,8 +4,9 @@ A handheld capture (320x240 at 10 Hz; plain and textured rooms, tuning seeds) is
 the core stages the node graph runs, in one process, every frame:
 
 - detection: ``depth_clusters`` on colour + depth (the simulator's gravity);
-- tracking: matching the frame against the last keyframe and verifying the relative pose
-  (the matcher does this for every frame);
+- tracking: matching the frame against the last keyframe (where the previous frame's pose
+  and the gyroscope predict its boxes, else with the object matcher) and verifying the
+  relative pose (the matcher does this for every frame);
 - keyframe matching: a new keyframe against its candidates (recent + retrieved);
 - map update: incremental pose averaging per new keyframe, logging the frame and composing
   its camera pose (the mapper does this for every frame);
@@ -44,6 +45,7 @@ def run(config: CaptureConfig) -> dict:
         t0 = time.perf_counter()
         obs = detector.detect(frame.detector_input())
         calls['detection'].append(time.perf_counter() - t0)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1        # the gyroscope's (here the true one)
         track_before, kf_before = graph.stats.tracking_s, graph.stats.keyframe_s
         keyframe, edges, track = graph.add(obs)
         calls['tracking'].append(graph.stats.tracking_s - track_before)
@@ -51,7 +53,7 @@ def run(config: CaptureConfig) -> dict:
             calls['keyframe matching'].append(graph.stats.keyframe_s - kf_before)
         t0 = time.perf_counter()
         if keyframe is not None:
-            mapper.add_keyframe(keyframe.keyframe_id, obs)
+            mapper.add_keyframe(keyframe.keyframe_id, keyframe.observations)
             for e in edges:
                 mapper.add_edge(EdgeRecord.from_edge(e))
             mapper.update()

@@ -40,7 +40,7 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     load_map(mapper, out / 'map.rfm')
     acc = evaluate_run(mapper, read_ground_truth(short_bag))
     loc, m = acc['localization'], acc['mapping']
-    assert len(mapper.keyframes) >= 5
+    assert 3 <= len(mapper.keyframes) < 20           # keyframes: a few of the 40 frames
     assert loc['registered'] >= 0.9 and loc['ATE_median'] < 0.06 and loc['ARE_median'] < 3.0, loc
     assert m['AP25'] > 0.5, m
     # a pose for every localized frame, the keyframes beside them

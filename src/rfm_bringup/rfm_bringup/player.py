@@ -45,7 +45,8 @@ class PlayOptions:
     topics: list = field(default_factory=list)   #: play only these topics (empty: all)
     remaps: dict = field(default_factory=dict)   #: bag topic -> published topic
     clock: bool = True                #: publish /clock with the bag time
-    clock_hz: float = 100.0           #: /clock rate while waiting between messages
+    clock_hz: float = 40.0            #: /clock rate (as ros2 bag play's --clock): every node
+                                      #: with use_sim_time wakes up for each /clock message
     delay: float = 0.0                #: seconds to wait (for subscribers) before playing
     wait_for: list = field(default_factory=list)  #: bag topics that need a subscriber first
     wait_timeout: float = 30.0        #: ... waited for at most this long (s)
@@ -130,6 +131,7 @@ class BagPlayer(Node):
             wall0 = time.monotonic()
             last_clock = 0.0
             last_progress = 0.0
+            last_stamp = None
             with self._reader_type([self.path]) as reader:
                 conns = [c for c in reader.connections if c.topic in self._topics]
                 if not conns:                  # nothing playable (an empty list reads every topic)
@@ -145,17 +147,22 @@ class BagPlayer(Node):
                             self._publish_clock(first + (now - wall0) * opts.rate * 1e9)
                             last_clock = now
                         time.sleep(min(target - now, 1.0 / opts.clock_hz))
-                    self._publish_clock(stamp)
-                    last_clock = time.monotonic()
+                    now = time.monotonic()
+                    if now - last_clock >= 1.0 / opts.clock_hz:
+                        self._publish_clock(stamp)
+                        last_clock = now
+                    last_stamp = stamp
                     self._bag_publishers[conn.topic].publish(bytes(raw))
                     self.published[opts.remaps.get(conn.topic, conn.topic)] += 1
-                    if show and last_clock - last_progress > 0.5:
-                        last_progress = last_clock
+                    if show and now - last_progress > 0.5:
+                        last_progress = now
                         done = (stamp - first) / duration
                         sys.stderr.write(f'\r[rfm play] {(stamp - first) / 1e9:7.2f} / '
                                          f'{duration / 1e9:.2f} s ({100 * done:3.0f}%) '
                                          f'{sum(self.published.values())} msgs')
                         sys.stderr.flush()
+            if last_stamp is not None:
+                self._publish_clock(last_stamp)          # the clock ends at the last message
             if show:
                 sys.stderr.write('\n')
             if not opts.loop:

@@ -16,20 +16,12 @@ integration epoch, which the matcher uses to check relative poses. A gap in the 
 """
 from __future__ import annotations
 
+import math
 from collections import deque
 
 import numpy as np
 
 __all__ = ['GravityFilter']
-
-
-def _rotate(v: np.ndarray, rotvec: np.ndarray) -> np.ndarray:
-    """Rotate v by the rotation vector (Rodrigues)."""
-    angle = np.linalg.norm(rotvec)
-    if angle < 1e-12:
-        return v
-    k = rotvec / angle
-    return v * np.cos(angle) + np.cross(k, v) * np.sin(angle) + k * (k @ v) * (1 - np.cos(angle))
 
 
 def _orthonormal(m: np.ndarray) -> np.ndarray:
@@ -40,7 +32,7 @@ def _orthonormal(m: np.ndarray) -> np.ndarray:
 
 def _rotation(rotvec: np.ndarray) -> np.ndarray:
     """Rotation matrix of a rotation vector (Rodrigues)."""
-    angle = np.linalg.norm(rotvec)
+    angle = math.sqrt(rotvec[0] * rotvec[0] + rotvec[1] * rotvec[1] + rotvec[2] * rotvec[2])
     if angle < 1e-12:
         return np.eye(3)
     k = rotvec / angle
@@ -68,7 +60,7 @@ class GravityFilter:
         (rad/s). Returns False (and ignores it) when invalid: non-finite, far from 1 g in
         magnitude, or older than the last accepted sample."""
         f = np.asarray(specific_force, dtype=np.float64).reshape(-1)
-        norm = np.linalg.norm(f) if f.size == 3 else np.nan
+        norm = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) if f.size == 3 else np.nan
         if not np.isfinite(norm) or not 4.0 < norm < 20.0:
             self.rejected += 1
             return False
@@ -85,9 +77,10 @@ class GravityFilter:
         else:
             dt = (stamp_ns - self._stamp_ns) * 1e-9
             if w is not None:
-                self._force = _rotate(self._force, -w * dt)
+                step = _rotation(w * dt)              # the body's rotation over dt
+                self._force = step.T @ self._force    # a fixed direction, seen from the body
                 if self._orientation is not None:     # R <- R exp([w dt]x): body rates
-                    self._orientation = self._orientation @ _rotation(w * dt)
+                    self._orientation = self._orientation @ step
             alpha = 1.0 - np.exp(-dt / self.tau_s)
             self._force += alpha * (f - self._force)
         if w is None:

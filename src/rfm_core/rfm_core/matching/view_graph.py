@@ -26,8 +26,9 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
+from scipy.optimize import linear_sum_assignment
 
-from rfm_core.matching.classical import ClassicalMatcher
+from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
 from rfm_core.geometry import Pose4, wrap_angle
@@ -56,6 +57,9 @@ class KeyframeConfig:
     max_speed_m_s: float = 1.5        #: ... or moving faster (plus the slack below) is rejected
     motion_slack_deg: float = 10.0    #: allowance on top of rate x time (detector noise)
     motion_slack_m: float = 0.3
+    track_gate_m: float = 0.3         #: tracking: a box matches the keyframe's nearest predicted box
+                                      #: within this (detector noise) plus the distance the camera
+                                      #: can have moved since the previous frame
     imu_yaw_tolerance_deg: float = 3.0   #: within a stream, a relative pose's yaw may differ from the
     imu_yaw_drift_deg_s: float = 1.0     #: gyroscope's by this plus this per second between the frames
                                       #: (the averaging's outlier threshold, plus gyroscope bias)
@@ -127,6 +131,7 @@ class _Stats:
     edges: int = 0
     implausible: int = 0
     imu_rejected: int = 0             #: relative poses whose yaw the gyroscope contradicted
+    predicted_tracking: int = 0       #: frames tracked with predicted matches (no object matcher)
     last_candidates: list = field(default_factory=list)
     tracking_s: float = 0.0           #: time spent localizing frames against the last keyframe
     keyframe_s: float = 0.0           #: time spent matching new keyframes against candidates
@@ -208,12 +213,43 @@ class ViewGraphBuilder:
             return None
         return rel
 
+    def _predicted_matches(self, keyframe: FrameObservations, obs: FrameObservations) -> ObjectMatches | None:
+        """Matches of the frame's boxes to the last keyframe's where the previous frame's pose
+        and the gyroscope's rotation predict them (nearest centre, one-to-one, within the
+        distance the camera can have moved plus the detector's noise): tracking without the
+        object matcher. None when nothing predicts the pose (no previous frame on this
+        keyframe, or no gyroscope)."""
+        prev = self._tracking
+        measured = self._imu_yaw(keyframe, obs)
+        if prev is None or measured is None or prev.keyframe_id != self.keyframes[-1].keyframe_id:
+            return None
+        if len(obs) == 0 or len(keyframe) == 0:
+            return None
+        predicted = Pose4(measured[0], prev.pose.t)                   # T_keyframe_frame
+        moved = predicted.transform_points(obs.boxes[:, :3])          # frame boxes in the keyframe
+        d = np.linalg.norm(moved[:, None, :] - keyframe.boxes[None, :, :3], axis=-1)
+        gate = self.config.track_gate_m + self.config.max_speed_m_s * abs(obs.stamp_ns - prev.stamp_ns) / 1e9
+        rows, cols = linear_sum_assignment(np.where(d < gate, d, 1e3))
+        keep = d[rows, cols] < gate
+        rows, cols = rows[keep], cols[keep]
+        return ObjectMatches(rows, cols, 1.0 - d[rows, cols] / gate)
+
     def _track(self, obs: FrameObservations, stream: bool) -> RelativePose | None:
         """The frame's verified pose relative to the last keyframe (tracking), or None. In a
-        stream the motion from the previous tracked frame must be plausible; across a gap
-        the pose needs ``min_retrieved_inliers`` objects."""
+        stream the boxes are first matched where the previous frame's pose and the gyroscope
+        predict them, and the object matcher is asked only when that does not verify; the
+        motion from the previous tracked frame must be plausible. Across a gap the pose
+        needs ``min_retrieved_inliers`` objects."""
         last = self.keyframes[-1]
-        rel = self._relative(last.observations, obs, stream=stream)
+        rel = None
+        predicted = self._predicted_matches(last.observations, obs) if stream else None
+        if predicted is not None and len(predicted) >= 2:
+            rel = self._relative(last.observations, obs, predicted, stream=stream)
+            if rel is not None and len(rel.inliers) < max(2, 0.5 * len(predicted)):
+                rel = None
+            self.stats.predicted_tracking += rel is not None
+        if rel is None:
+            rel = self._relative(last.observations, obs, stream=stream)
         if rel is None:
             return None
         if not stream:
