@@ -153,3 +153,26 @@ def test_pair_evaluation_scores_matches_and_poses():
     noisy = evaluate_pairs(pairs['ground_truth:rgb'], ClassicalMatcher())
     assert noisy.pairs == perfect.pairs
     assert noisy.median_translation_m > perfect.median_translation_m
+
+
+def test_a_measured_yaw_rules_out_hypotheses_and_one_object_proposes():
+    """With the gyroscope's yaw, hypotheses away from it are not considered (a pose the boxes
+    alone would give is refused when the measurement says otherwise), and the pose found
+    under it agrees with the truth."""
+    from rfm_core.matching.relative_pose import YawPrior
+    rng = np.random.default_rng(3)
+    a = np.array([[2.0, 0.5, 0.4, 1.2, 0.5, 0.8, 0.0], [3.0, -1.0, 0.3, 0.8, 0.3, 0.6, 0.3],
+                  [2.5, 1.5, 0.5, 0.6, 1.4, 1.0, -0.2]])
+    truth = Pose4(np.radians(12.0), (0.3, -0.2, 0.0))
+    b = truth.transform_boxes(a)
+    b[:, :3] += rng.normal(0, 0.01, (3, 3))
+    m = ObjectMatches(np.arange(3), np.arange(3), np.ones(3))
+    free = estimate_relative_pose(a, b, m)
+    right = estimate_relative_pose(a, b, m, yaw_prior=YawPrior(truth.yaw, np.radians(3.0)))
+    wrong = estimate_relative_pose(a, b, m, yaw_prior=YawPrior(truth.yaw + np.radians(40.0), np.radians(3.0)))
+    assert free is not None and right is not None and wrong is None
+    assert np.degrees(right.pose.angle_to(truth)) < 1.0 and np.linalg.norm(right.pose.t - truth.t) < 0.05
+    # the minimum: two matched objects, both verified under the measured yaw
+    two = ObjectMatches(np.arange(2), np.arange(2), np.ones(2))
+    single = estimate_relative_pose(a, b, two, yaw_prior=YawPrior(truth.yaw, np.radians(3.0)))
+    assert single is not None and len(single.inliers) == 2

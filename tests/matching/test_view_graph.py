@@ -120,3 +120,62 @@ def test_separate_views_are_told_from_a_stream_by_their_timing(stream):
     assert segments == len(stream) and inliers and min(inliers) >= 3 and candidates == 7
     assert all(t is None or not t.continuous for t in tracks)
     assert all(t is None or t.is_keyframe or t.num_inliers >= 3 for t in tracks)
+
+
+def _with_gyroscope(frame, obs, epoch=1, yaw_offset_deg=0.0):
+    """The detections with the gyroscope's orientation attached (the true one, optionally
+    turned about the vertical, as a gyroscope whose integration drifted)."""
+    from rfm_core.geometry import yaw_matrix
+    obs.imu_rotation = yaw_matrix(np.radians(yaw_offset_deg)) @ frame.rotation
+    obs.imu_epoch = epoch
+    return obs
+
+
+def test_the_gyroscope_checks_tracking_and_predicts_the_boxes(stream):
+    """With the gyroscope's orientation, frames are tracked mostly from predicted matches
+    (no object matcher) and agree with the truth; a relative pose whose yaw the gyroscope
+    contradicts is not trusted."""
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    graph = ViewGraphBuilder()
+    steps = [graph.add(_with_gyroscope(f, det.perturb(f.ground_truth))) for f in stream]
+    assert graph.stats.predicted_tracking >= 0.5 * len(stream)
+    assert all(s.track is not None for s in steps[1:])
+    truth = {f.stamp_ns: f for f in stream}
+    by_id = {k.keyframe_id: k for k in graph.keyframes}
+    for s in steps:
+        kf = truth[by_id[s.track.keyframe_id].observations.stamp_ns]
+        true = kf.aligned_from_map() @ truth[s.track.stamp_ns].aligned_from_map().inverse()
+        assert np.degrees(s.track.pose.angle_to(true)) < 3.0
+    # a relative pose whose yaw the gyroscope contradicts is not trusted
+    a, b = steps[0].keyframe.observations, det.perturb(stream[2].ground_truth)
+    _with_gyroscope(stream[2], b)
+    true = stream[0].aligned_from_map() @ stream[2].aligned_from_map().inverse()
+    from rfm_core.geometry import Pose4
+    assert graph._imu_agrees(Pose4(true.yaw + np.radians(1.0), true.t), a, b)
+    assert not graph._imu_agrees(Pose4(true.yaw + np.radians(30.0), true.t), a, b)
+
+
+def test_a_moment_without_objects_is_bridged_by_the_motion(stream):
+    """Frames that see nothing the last keyframe saw (here: their detections moved 5 m
+    away) become keyframes placed by the motion alone: the gyroscope's yaw, the position held,
+    no object matches; so the stream stays one connected graph."""
+    from dataclasses import replace
+    det = make_detector('ground_truth', preset='perfect')
+    graph = ViewGraphBuilder()
+    motion = []
+    for i, f in enumerate(stream[:16]):
+        obs = _with_gyroscope(f, det.perturb(f.ground_truth))
+        if i in (8, 9):
+            boxes = obs.boxes.copy()
+            boxes[:, 0] += 5.0
+            obs = replace(obs, boxes=boxes)
+        step = graph.add(obs)
+        motion += [e for e in step.edges if len(e.relative.inliers) == 0]
+    assert graph.stats.motion_edges >= 1 and motion
+    kf = {k.keyframe_id: k.observations.stamp_ns for k in graph.keyframes}
+    truth = {f.stamp_ns: f for f in stream}
+    for e in motion:
+        a, b = truth[kf[e.source_id]], truth[kf[e.target_id]]
+        true = a.aligned_from_map() @ b.aligned_from_map().inverse()
+        assert np.degrees(e.relative.pose.angle_to(true)) < 0.5          # the gyroscope's yaw
+        assert np.linalg.norm(e.relative.pose.t - true.t) < 1.5 * 0.25 + 0.1   # moved at most this

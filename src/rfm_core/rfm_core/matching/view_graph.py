@@ -57,6 +57,9 @@ class KeyframeConfig:
     max_speed_m_s: float = 1.5        #: ... or moving faster (plus the slack below) is rejected
     motion_slack_deg: float = 10.0    #: allowance on top of rate x time (detector noise)
     motion_slack_m: float = 0.3
+    max_motion_edge_s: float = 1.0    #: a keyframe that verified nothing, at most this long after the
+                                      #: last tracked frame, is linked by the motion (gyroscope yaw,
+                                      #: position held): no object matches, least averaging weight
     track_gate_m: float = 0.3         #: tracking: a box matches the keyframe's nearest predicted box
                                       #: within this (detector noise) plus the distance the camera
                                       #: can have moved since the previous frame
@@ -132,6 +135,7 @@ class _Stats:
     implausible: int = 0
     imu_rejected: int = 0             #: relative poses whose yaw the gyroscope contradicted
     predicted_tracking: int = 0       #: frames tracked with predicted matches (no object matcher)
+    motion_edges: int = 0             #: keyframes placed by the motion alone (tracking lost a moment)
     last_candidates: list = field(default_factory=list)
     tracking_s: float = 0.0           #: time spent localizing frames against the last keyframe
     keyframe_s: float = 0.0           #: time spent matching new keyframes against candidates
@@ -355,6 +359,23 @@ class ViewGraphBuilder:
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, keyframe.observations.stamp_ns,
             rel.pose, len(rel.inliers), is_keyframe=False, continuous=True))
 
+    def _motion_edge(self, obs: FrameObservations) -> RelativePose | None:
+        """Where the camera went while tracking was lost for a moment: the last keyframe to
+        this frame as the gyroscope's yaw and the last tracked frame's position predict it
+        (at most ``max_motion_edge_s`` after that frame). It has no object matches and the
+        least weight in the averaging: it only places a stretch that nothing else links."""
+        prev, last = self._tracking, self.keyframes[-1]
+        if prev is None or prev.keyframe_id != last.keyframe_id:
+            return None
+        if obs.stamp_ns - prev.stamp_ns > self.config.max_motion_edge_s * 1e9:
+            return None
+        measured = self._imu_yaw(last.observations, obs)
+        if measured is None:
+            return None
+        self.stats.motion_edges += 1
+        return RelativePose(Pose4(measured[0], prev.pose.t), np.zeros((0, 2), int), np.zeros(0), np.zeros(0),
+                            mean_error=1.0, num_matches=0)
+
     def _new_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None, stream: bool) -> GraphStep:
         start = time.perf_counter()
         descriptor = bag_of_objects(obs)
@@ -382,6 +403,10 @@ class ViewGraphBuilder:
             if rel is not None and ((same and i >= recent_from)
                                     or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
+        if not edges and stream and self.keyframes:
+            motion = self._motion_edge(obs)
+            if motion is not None:
+                edges.append(Edge(self.keyframes[-1].keyframe_id, keyframe.keyframe_id, motion))
         n = len(self.keyframes)
         if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe
             self._desc_buffer = np.zeros((64, len(descriptor)))
