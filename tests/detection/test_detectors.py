@@ -164,3 +164,27 @@ def test_an_occluded_bottom_is_recognised():
     assert det._bottom_hidden(pixels, depth, 2)
     low = np.stack([rows.ravel() + 60, cols.ravel()], 1)    # rows 100-118: cut by the border
     assert det._bottom_hidden(low, np.full((120, 160), 2.0, np.float32), 2)
+
+
+def test_gravity_filter_follows_a_camera_turned_unseen_and_integrates_the_gyroscope():
+    """The gyroscope's integrated orientation follows a turn; a camera turned while the
+    gyroscope saw nothing (at rest before and after) gets its gravity from the resting
+    accelerometer at once, and its orientation a new epoch."""
+    from rfm_core.detection.gravity import GravityFilter
+    g = GravityFilter()
+    up = np.array([0.0, -9.80665, 0.0])          # optical frame, level camera: up is -y
+    stamp = 0
+    for _ in range(100):                          # turning about the vertical at 0.5 rad/s
+        stamp += 5_000_000
+        g.add(stamp, up, [0.0, -0.5, 0.0])
+    assert g.epoch == 1
+    turned = g.orientation()
+    # 99 steps of 5 ms at 0.5 rad/s about the body's -y (up)
+    assert np.degrees(np.arccos((np.trace(turned) - 1) / 2)) == pytest.approx(np.degrees(0.5 * 0.495), abs=0.1)
+    c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    tilted = np.array([[1, 0, 0], [0, c, -s], [0, s, c]])          # pitched 30 deg, unseen
+    for _ in range(40):
+        stamp += 5_000_000
+        g.add(stamp, tilted @ up, [0.0, 0.0, 0.0])
+    assert g.rest_resets == 1 and g.epoch == 2
+    assert np.degrees(np.arccos(np.clip(g.gravity() @ (tilted @ -up) / 9.80665, -1, 1))) < 0.5

@@ -93,7 +93,18 @@ class MatcherNode(Node):
             max_yaw_rate_deg_s=p('max_yaw_rate_deg_s', k.max_yaw_rate_deg_s, _float(
                 'Motion prior: fastest plausible turn (deg/s)', 1, 3600)).value,
             max_speed_m_s=p('max_speed_m_s', k.max_speed_m_s, _float(
-                'Motion prior: fastest plausible motion (m/s)', 0.01, 100)).value)
+                'Motion prior: fastest plausible motion (m/s)', 0.01, 100)).value,
+            imu_yaw_tolerance_deg=p('imu_yaw_tolerance_deg', k.imu_yaw_tolerance_deg, _float(
+                "Within a stream, a relative pose's yaw may differ from the gyroscope's by this (deg) "
+                'plus imu_yaw_drift_deg_s per second between the frames', 0.1, 180)).value,
+            imu_yaw_drift_deg_s=p('imu_yaw_drift_deg_s', k.imu_yaw_drift_deg_s, _float(
+                "Allowance for the gyroscope's bias (deg/s); raise it for an uncalibrated IMU", 0, 90)).value,
+            track_gate_m=p('track_gate_m', k.track_gate_m, _float(
+                "Tracking: a box matches the keyframe's box predicted nearest within this (m, the "
+                'detector noise) plus the distance the camera can have moved', 0.01, 5)).value,
+            max_motion_edge_s=p('max_motion_edge_s', k.max_motion_edge_s, _float(
+                'A keyframe that verified nothing, at most this long after the last tracked frame, '
+                "is placed by the gyroscope's yaw and the held position (0: never)", 0, 60)).value)
         kind = p('matcher', 'learned', parameter_descriptor(
             "Object matcher: 'learned' (LightGlue-style, shipped weights per detector; falls back to "
             "'classical' for detectors without weights) or 'classical' (embedding similarity + size "

@@ -13,6 +13,14 @@ The gyroscope is also integrated into an orientation (IMU frame -> a fixed frame
 drifts slowly with the gyroscope's bias): the rotation between two moments of one
 integration epoch, which the matcher uses to check relative poses. A gap in the stream
 (``max_gap_s``) or a sample without angular velocity starts a new epoch.
+
+At rest (for ``rest_window_s`` the accelerometer reads 1 g within ``rest_tolerance`` and
+the gyroscope less than ``rest_gyro_rad_s``) the accelerometer is gravity itself. If its
+mean differs from what the gyroscope carried by more than ``rest_reset_deg``, the camera
+was turned without the gyroscope seeing it (a stretch of samples lost, a camera put down
+elsewhere): the estimate takes the accelerometer's mean at once, and the orientation
+starts a new epoch. (Taking it whenever the camera seems at rest was measured worse on
+handheld walks: slow motion passes for rest, and its acceleration tilts the estimate.)
 """
 from __future__ import annotations
 
@@ -42,11 +50,20 @@ def _rotation(rotvec: np.ndarray) -> np.ndarray:
 
 class GravityFilter:
 
-    def __init__(self, tau_s: float = 1.0, max_gap_s: float = 1.0):
+    #: standard gravity (m/s^2): the accelerometer's reading at rest
+    G = 9.80665
+
+    def __init__(self, tau_s: float = 1.0, max_gap_s: float = 1.0, rest_window_s: float = 0.1,
+                 rest_tolerance: float = 0.02, rest_gyro_rad_s: float = 0.05, rest_reset_deg: float = 5.0):
         if tau_s <= 0:
             raise ValueError('tau_s must be > 0')
         self.tau_s = float(tau_s)
         self.max_gap_s = float(max_gap_s)
+        self.rest_window_s = float(rest_window_s)
+        self.rest_tolerance = float(rest_tolerance)
+        self.rest_gyro_rad_s = float(rest_gyro_rad_s)
+        self.rest_reset_deg = float(rest_reset_deg)
+        self._rest = deque()               # recent samples that look like rest: (stamp_ns, force)
         self._force = None
         self._stamp_ns = None
         self._orientation = None          # IMU frame -> integration frame, None without gyroscope
@@ -54,6 +71,7 @@ class GravityFilter:
         self.epoch = 0                    # integration epoch of the orientation (0: none yet)
         self.samples = 0
         self.rejected = 0
+        self.rest_resets = 0              # times the resting accelerometer contradicted the gyroscope
 
     def add(self, stamp_ns: int, specific_force, angular_velocity=None) -> bool:
         """Add one IMU sample: specific force (m/s^2) and, optionally, angular velocity
@@ -83,6 +101,7 @@ class GravityFilter:
                     self._orientation = self._orientation @ step
             alpha = 1.0 - np.exp(-dt / self.tau_s)
             self._force += alpha * (f - self._force)
+        self._at_rest(stamp_ns, f, norm, w)
         if w is None:
             self._orientation = None
         elif self._orientation is None:               # a new integration epoch
@@ -93,6 +112,25 @@ class GravityFilter:
         self._stamp_ns = int(stamp_ns)
         self.samples += 1
         return True
+
+    def _at_rest(self, stamp_ns: int, f: np.ndarray, norm: float, w) -> None:
+        """Take gravity from the accelerometer once the camera has rested ``rest_window_s``."""
+        still = (w is not None and abs(norm - self.G) <= self.rest_tolerance * self.G
+                 and math.sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]) < self.rest_gyro_rad_s)
+        if not still:
+            self._rest.clear()
+            return
+        self._rest.append((int(stamp_ns), f))
+        while self._rest and stamp_ns - self._rest[0][0] > self.rest_window_s * 1e9:
+            self._rest.popleft()
+        if len(self._rest) < 3 or stamp_ns - self._rest[0][0] < 0.8 * self.rest_window_s * 1e9:
+            return
+        mean = np.mean([g for _, g in self._rest], axis=0)
+        cos = mean @ self._force / max(np.linalg.norm(mean) * np.linalg.norm(self._force), 1e-12)
+        if np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) > self.rest_reset_deg:
+            self._force = mean                # turned unseen: gravity from the resting accelerometer,
+            self._orientation = None          # and the orientation starts a new epoch (below)
+            self.rest_resets += 1
 
     def orientation(self) -> np.ndarray | None:
         """(3, 3) IMU frame -> integration frame at the last sample, or None (no gyroscope);
