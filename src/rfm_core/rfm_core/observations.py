@@ -35,6 +35,15 @@ class CameraIntrinsics:
         return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
 
 
+def unit_gravity(gravity) -> np.ndarray:
+    """Gravity as a unit 3-vector; ValueError unless finite and non-zero."""
+    g = np.asarray(gravity, dtype=np.float64).reshape(-1)
+    norm = np.linalg.norm(g) if g.size == 3 else 0.0
+    if g.size != 3 or not np.isfinite(norm) or norm < 1e-6:
+        raise ValueError(f'gravity must be a finite non-zero 3-vector, got {gravity!r}')
+    return g / norm
+
+
 def _empty_f32(*shape):
     return np.zeros(shape, dtype=np.float32)
 
@@ -66,11 +75,7 @@ class FrameObservations:
     imu_epoch: int = 0                       #: 0: none; rotations compare within one epoch
 
     def __post_init__(self):
-        g = np.asarray(self.gravity_cam, dtype=np.float64).reshape(-1)
-        norm = np.linalg.norm(g) if g.size == 3 else 0.0
-        if g.size != 3 or not np.isfinite(norm) or norm < 1e-6:
-            raise ValueError(f'gravity must be a finite non-zero 3-vector, got {self.gravity_cam!r}')
-        self.gravity_cam = g / norm
+        self.gravity_cam = unit_gravity(self.gravity_cam)
         self.boxes = np.asarray(self.boxes, dtype=np.float64).reshape(-1, BOX_DIM)
         n = len(self.boxes)
         if not np.all(np.isfinite(self.boxes)):
@@ -143,11 +148,7 @@ class FrameTrack:
     continuous: bool = True                 #: part of a stream the matcher followed (motion prior on)
 
     def __post_init__(self):
-        g = np.asarray(self.gravity_cam, dtype=np.float64).reshape(-1)
-        norm = np.linalg.norm(g) if g.size == 3 else 0.0
-        if g.size != 3 or not np.isfinite(norm) or norm < 1e-6:
-            raise ValueError(f'gravity must be a finite non-zero 3-vector, got {self.gravity_cam!r}')
-        self.gravity_cam = g / norm
+        self.gravity_cam = unit_gravity(self.gravity_cam)
         if not (np.isfinite(self.pose.yaw) and np.all(np.isfinite(self.pose.t))):
             raise ValueError('frame pose is not finite')
 
