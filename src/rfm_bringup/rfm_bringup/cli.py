@@ -362,7 +362,11 @@ def cmd_eval(args) -> int:
     from rfm_core.evaluation.suite import (  # noqa: PLC0415
         SETTINGS, eval_configs, format_tables, run_graph_suite, run_suite, summarize)
 
-    settings = [s for s in SETTINGS if not args.settings or any(k.lower() in s.name.lower() for k in args.settings)]
+    def chosen(key):                 # a setting's exact name picks it alone, else a substring picks all
+        exact = [s for s in SETTINGS if s.name.lower() == key.lower()]
+        return exact or [s for s in SETTINGS if key.lower() in s.name.lower()]
+    picked = {s.name for k in (args.settings or []) for s in chosen(k)}
+    settings = [s for s in SETTINGS if not args.settings or s.name in picked]
     if not settings:
         raise SystemExit(f'rfm eval: no setting matches {args.settings}; settings: {[s.name for s in SETTINGS]}')
     configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps)
@@ -546,7 +550,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='first scene seed (default 5000: disjoint from training, tuning and other suites)')
     p.add_argument('--frames', type=int, default=100)
     p.add_argument('--fps', type=float, default=10.0)
-    p.add_argument('--settings', nargs='+', help='only settings whose name contains one of these (e.g. rgbd)')
+    p.add_argument('--settings', nargs='+', help='only these settings: an exact name, or a part of names (e.g. rgbd)')
     p.add_argument('--jobs', type=int, default=1,
                    help='scenes evaluated in parallel (each graph in its own ROS domain)')
     p.add_argument('--offline', action='store_true',
