@@ -149,7 +149,7 @@ def test_rfm_eval_measures_the_graph_a_user_runs(tmp_path):
     the outputs: every frame of the input counted, with the frames the detector processed."""
     out = tmp_path / 'eval.json'
     proc = subprocess.run([shutil.which('rfm'), 'eval', '--scenes', '1', '--frames', '24', '--fps', '8',
-                           '--settings', 'GT rgbd', '--work', str(tmp_path / 'work'), '--json', str(out)],
+                           '--settings', 'rgbd', '--work', str(tmp_path / 'work'), '--json', str(out)],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     import json
@@ -157,10 +157,20 @@ def test_rfm_eval_measures_the_graph_a_user_runs(tmp_path):
     assert result['path'] == 'graph'
     scene = result['scenes'][0]
     runs = scene['results']
-    assert set(runs) == {'GT rgbd', 'GT rgbd posed', 'GT rgbd posed + BA'}
+    assert set(runs) == {'GT rgbd', 'GT rgbd posed', 'GT rgbd posed + BA'}      # 'rgbd': a part of names
     un_posed = runs['GT rgbd']
     assert 'error' not in un_posed and un_posed['processed'] == 1.0, un_posed
     assert un_posed['registered'] >= 0.9 and un_posed['ATE_median'] < 0.06 and un_posed['AP25'] > 0.5, un_posed
     run_dir = tmp_path / 'work' / scene['scene'] / 'gt_rgbd'
     assert (run_dir / 'trajectory.tum').is_file() and (run_dir / 'summary.json').is_file()
     assert 'frames localized' in proc.stdout
+
+
+def test_eval_settings_by_exact_name_or_part_of_names():
+    from rfm_core.evaluation.suite import SETTINGS, select_settings
+    names = lambda keys: [s.name for s in select_settings(keys)]  # noqa: E731
+    assert names(None) == [s.name for s in SETTINGS]
+    assert names(['GT rgbd']) == ['GT rgbd']                          # an exact name: that row alone
+    assert names(['gt RGBD', 'RGB-D (depth_clusters)']) == ['RGB-D (depth_clusters)', 'GT rgbd']
+    assert names(['rgbd posed']) == ['GT rgbd posed', 'GT rgbd posed + BA']
+    assert names(['no such setting']) == []

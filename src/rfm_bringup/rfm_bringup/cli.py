@@ -360,13 +360,9 @@ def cmd_eval(args) -> int:
     """The paper's localization and mapping tables over generated scenes: through the node
     graph (bags replayed by rfm run) by default, in-process with --offline."""
     from rfm_core.evaluation.suite import (  # noqa: PLC0415
-        SETTINGS, eval_configs, format_tables, run_graph_suite, run_suite, summarize)
+        SETTINGS, eval_configs, format_tables, run_graph_suite, run_suite, select_settings, summarize)
 
-    def chosen(key):                 # a setting's exact name picks it alone, else a substring picks all
-        exact = [s for s in SETTINGS if s.name.lower() == key.lower()]
-        return exact or [s for s in SETTINGS if key.lower() in s.name.lower()]
-    picked = {s.name for k in (args.settings or []) for s in chosen(k)}
-    settings = [s for s in SETTINGS if not args.settings or s.name in picked]
+    settings = select_settings(args.settings)
     if not settings:
         raise SystemExit(f'rfm eval: no setting matches {args.settings}; settings: {[s.name for s in SETTINGS]}')
     configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps)

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['SETTINGS', 'Setting', 'eval_configs', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
+__all__ = ['SETTINGS', 'Setting', 'eval_configs', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
            'run_graph_suite', 'summarize', 'format_tables']
 
 
@@ -66,6 +66,17 @@ SETTINGS = (
     Setting('GT rgb posed', 'ground_truth:rgb', posed=True),
     Setting('GT rgb posed + BA', 'ground_truth:rgb', posed=True, bundle_adjustment=True),
 )
+
+
+def select_settings(keys=None) -> list:
+    """The settings named by ``keys`` (all when empty), in SETTINGS order: a key equal to a
+    setting's name (case-insensitive) picks that setting alone, any other key every setting
+    whose name contains it ('rgbd': the three ground_truth:rgbd rows)."""
+    def chosen(key):
+        exact = [s for s in SETTINGS if s.name.lower() == key.lower()]
+        return exact or [s for s in SETTINGS if key.lower() in s.name.lower()]
+    picked = {s.name for k in keys or () for s in chosen(k)}
+    return [s for s in SETTINGS if not keys or s.name in picked]
 
 
 def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps: float = 10.0):
