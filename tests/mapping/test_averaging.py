@@ -104,3 +104,46 @@ def test_incremental_map_frame_stays_put():
     assert after[0].angle_to(Pose4(0.0, (0, 0, 0))) < 1e-12 and np.allclose(after[0].t, 0)
     moved = [np.linalg.norm(before[k].t - after[k].t) for k in before if k < 20]
     assert np.median(moved) < 0.05
+
+
+def _chain(n=6, seed=5):
+    """True poses of a short walk and exact edges between consecutive keyframes."""
+    truth, _, _ = synthetic_view_graph(n, seed=seed, neighbours=1, loops=0.0)
+    edge = {(k - 1, k): truth[k - 1] @ truth[k].inverse() for k in range(1, n)}
+    return truth, edge
+
+
+def test_gyroscope_yaw_edges_outvote_a_heavier_wrong_edge():
+    """As on the demo bag: keyframe 3 has a correct edge from 2 (3 objects) and a heavier one
+    from 1 (4 objects) whose yaw is 5 deg off. Boxes alone place 3 by the heavier edge and
+    drop the correct one; the gyroscope's yaw-only edges between consecutive keyframes
+    outvote it, and a keyframe linked by the gyroscope alone is not registered."""
+    truth, edge = _chain()
+    wrong = truth[1] @ truth[3].inverse()
+    wrong = Pose4(wrong.yaw + np.radians(5.0), wrong.t)
+
+    def solve(gyro):
+        inc = IncrementalAverager()
+        for k in range(6):
+            inc.add_keyframe(k)
+            if k:
+                if k != 3:
+                    inc.add_edge(k - 1, k, edge[(k - 1, k)], 3.0)
+                if gyro:
+                    inc.add_edge(k - 1, k, edge[(k - 1, k)], 10.0, yaw_only=True)
+            if k == 3:
+                inc.add_edge(2, 3, edge[(2, 3)], 3.0)
+                inc.add_edge(1, 3, wrong, 4.0)
+            inc.update()
+        inc.add_keyframe(6)                                   # the gyroscope alone: no position
+        inc.add_edge(5, 6, Pose4(0.3, (0.0, 0.0, 0.0)), 10.0, yaw_only=True)
+        inc.update(force_full=True)
+        return inc
+
+    boxes_only, fused = solve(False), solve(True)
+    assert (1, 3) in boxes_only.active_edges() and (2, 3) not in boxes_only.active_edges()
+    assert _errors(boxes_only.poses, {k: truth[k] for k in range(6)})['ARE_median'] > 2.0
+    assert (2, 3) in fused.active_edges() and (1, 3) not in fused.active_edges()
+    err = _errors(fused.poses, {k: truth[k] for k in range(6)})
+    assert err['ARE_median'] < 1e-6 and err['ATE_median'] < 1e-6, err
+    assert 6 not in fused.poses and all((s, t) != (5, 6) for s, t in fused.active_edges())

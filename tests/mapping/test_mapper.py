@@ -191,3 +191,32 @@ def test_relocalization_of_a_second_trajectory(tmp_path):
     assert err['ARE_median'] < 2.0 and err['ATE_median'] < 0.06, err   # one small room; see rfm eval
     assert err['ATE_rmse'] < 0.1 and err['wrong'] == 0.0, err   # no gross failures
     assert len(mapper.keyframes) == len(mapped.mapper.keyframes)      # the map did not change
+
+
+def test_consecutive_keyframes_of_one_gyroscope_epoch_get_its_yaw():
+    """The mapper links consecutive keyframes integrated by one gyroscope epoch by the yaw
+    it measured (a yaw-only averaging edge); none across epochs, none when switched off."""
+    from rfm_core.mapping.averaging import AveragingConfig
+    from rfm_core.mapping.mapper import MapperConfig
+
+    def frame(yaw_deg, epoch):
+        obs = _obs([[2, 0, 0, 0.5, 0.5, 0.5, 0]], [[1.0, 0.0]])
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        # camera-to-world of a level camera (optical z forward) turned by yaw about up
+        level = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+        obs.imu_rotation, obs.imu_epoch = np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]]) @ level, epoch
+        return obs
+
+    def gyro_edges(config=None, epochs=(1, 1, 2)):
+        m = Mapper(config)
+        for k, (yaw, epoch) in enumerate(zip((0.0, 20.0, 35.0), epochs)):
+            m.add_keyframe(k, frame(yaw, epoch))
+        e = m.averager.edges
+        return [(int(a), int(b), float(np.degrees(y))) for a, b, y in zip(e.src[e.yaw_only], e.dst[e.yaw_only],
+                                                                        e.yaw[e.yaw_only])]
+
+    (edge,) = gyro_edges()
+    assert edge[:2] == (0, 1) and abs(edge[2] - 20.0) < 1e-6          # T_0_1: the 20 deg turn measured
+    assert len(gyro_edges(epochs=(1, 1, 1))) == 2 and gyro_edges(epochs=(0, 0, 0)) == []
+    off = MapperConfig(averaging=AveragingConfig(gyro_yaw_weight=0.0))
+    assert gyro_edges(off) == []

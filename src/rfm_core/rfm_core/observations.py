@@ -44,6 +44,17 @@ def unit_gravity(gravity) -> np.ndarray:
     return g / norm
 
 
+def imu_relative_yaw(a, b) -> float | None:
+    """Yaw (rad) of T_a_b, between two frames' gravity-aligned camera frames, as the
+    gyroscope measured it (their ``imu_rotation``), or None when they share no integration
+    epoch. ``a``, ``b``: FrameObservations."""
+    if not a.imu_epoch or a.imu_epoch != b.imu_epoch or a.imu_rotation is None or b.imu_rotation is None:
+        return None
+    delta = a.imu_rotation.T @ b.imu_rotation                    # camera b -> camera a
+    m = a.rotation_aligned_from_camera @ delta @ b.rotation_aligned_from_camera.T
+    return float(np.arctan2(m[1, 0], m[0, 0]))
+
+
 def _empty_f32(*shape):
     return np.zeros(shape, dtype=np.float32)
 

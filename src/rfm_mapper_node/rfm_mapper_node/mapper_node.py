@@ -115,7 +115,10 @@ class MapperNode(Node):
             window=p('averaging_window', a.window, _int(
                 'Keyframes re-solved per incremental update', 1, 100000)).value,
             full_every=p('full_solve_every', a.full_every, _int(
-                'Full re-solve every n keyframes (0: only when a loop closes)', 0, 100000)).value)
+                'Full re-solve every n keyframes (0: only when a loop closes)', 0, 100000)).value,
+            gyro_yaw_weight=p('gyro_yaw_weight', a.gyro_yaw_weight, _float(
+                "Weight of the gyroscope's yaw between consecutive keyframes of a stream in yaw "
+                'averaging, in verified objects (0: boxes alone decide the yaw)', 0, 1000)).value)
         tracks = TrackConfig(
             merge_affinity=p('merge_affinity', t.merge_affinity, _float(
                 'Merge duplicate tracks above this affinity (paper: 0.25)', 0, 2)).value,

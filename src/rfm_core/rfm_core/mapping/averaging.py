@@ -52,6 +52,9 @@ class AveragingConfig:
     full_every: int = 100                    #: incremental: full re-solve every n keyframes (0: never)
     loop_min_edges: int = 2                  #: incremental: full re-solve once this many edges to
                                              #: keyframes outside the window disagree
+    gyro_yaw_weight: float = 10.0            #: yaw-only edge from the gyroscope between consecutive
+                                             #: keyframes of a stream, weighing as this many verified
+                                             #: objects (0: none)
 
 
 @dataclass
@@ -272,10 +275,12 @@ def average_poses(ids, edges, config: AveragingConfig | None = None) -> Averagin
     return AveragingResult(poses, active & inside, yaw_r, t_r, time.perf_counter() - start)
 
 
-def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None):
+def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
-    mask, component mask."""
+    mask, component mask. ``yaw_only`` edges (the gyroscope's) count in the yaw stage only:
+    they neither place nor connect keyframes."""
     active = np.ones(len(src), bool)
+    full = ~yaw_only if yaw_only is not None else np.ones(len(src), bool)
     theta = np.full(n, np.nan)
     centres = np.full((n, 3), np.nan)
     comp = np.zeros(n, bool)
@@ -284,15 +289,15 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None):
     order = np.arange(n) if anchor_order is None else anchor_order
 
     def component():
-        c = largest_component(np.arange(n), src[active], dst[active])
+        c = largest_component(np.arange(n), src[active & full], dst[active & full])
         return c, next(k for k in order if c[k])
 
     comp, root = component()
-    use = active & comp[src] & comp[dst]
+    use = active & full & comp[src] & comp[dst]
     theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg)
     for stage in ('yaw', 'translation'):
         for _ in range(max(cfg.rounds, 1)):
-            use = active & comp[src] & comp[dst]
+            use = active & comp[src] & comp[dst] & (full if stage == 'translation' else True)
             free = comp.copy()
             free[root] = False
             if stage == 'yaw':
@@ -310,7 +315,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None):
             active &= ~bad
             new_comp, new_root = component()
             if new_root != root:            # the anchor left the component: re-initialise it
-                use = active & new_comp[src] & new_comp[dst]
+                use = active & full & new_comp[src] & new_comp[dst]
                 theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use],
                                                new_root, cfg)
             comp, root = new_comp, new_root
@@ -330,21 +335,23 @@ class _EdgeStore:
         self._trans = np.zeros((64, 3))
         self._weight = np.zeros(64)
         self._active = np.zeros(64, bool)
+        self._yaw_only = np.zeros(64, bool)
 
-    def append(self, s, t, yaw, trans, weight):
+    def append(self, s, t, yaw, trans, weight, yaw_only=False):
         if self.n == len(self._src):
-            for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active'):
+            for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only'):
                 old = getattr(self, name)
                 setattr(self, name, np.concatenate([old, np.zeros_like(old)]))
         i = self.n
         self._src[i], self._dst[i], self._yaw[i] = s, t, yaw
         self._trans[i], self._weight[i], self._active[i] = trans, weight, True
+        self._yaw_only[i] = yaw_only
         self.n += 1
 
     def keep(self, mask):
         """Drop the edges where ``mask`` is False."""
         idx = np.flatnonzero(mask)
-        for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active'):
+        for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only'):
             arr = getattr(self, name)
             arr[:len(idx)] = arr[idx]
         self.n = len(idx)
@@ -355,6 +362,7 @@ class _EdgeStore:
     trans = property(lambda self: self._trans[:self.n])
     weight = property(lambda self: self._weight[:self.n])
     active = property(lambda self: self._active[:self.n])
+    yaw_only = property(lambda self: self._yaw_only[:self.n])
 
     def __len__(self):
         return self.n
@@ -400,14 +408,18 @@ class IncrementalAverager:
         self._registered = np.r_[self._registered, False]
         self._new.append(keyframe_id)
 
-    def add_edge(self, source_id: int, target_id: int, pose: Pose4, weight: float = 1.0) -> None:
-        """An edge T_source_target; unknown keyframes are added."""
+    def add_edge(self, source_id: int, target_id: int, pose: Pose4, weight: float = 1.0,
+                 yaw_only: bool = False) -> None:
+        """An edge T_source_target; unknown keyframes are added. ``yaw_only``: only the yaw
+        is measured (the gyroscope's rotation between two keyframes): it counts in yaw
+        averaging but neither places nor connects keyframes."""
         for k in (source_id, target_id):
             self.add_keyframe(k)
         s, t = self._index[source_id], self._index[target_id]
         if s == t:
             return
-        self.edges.append(s, t, float(pose.yaw), np.asarray(pose.t, float), float(weight))
+        self.edges.append(s, t, float(pose.yaw), np.zeros(3) if yaw_only else np.asarray(pose.t, float),
+                          float(weight), yaw_only)
         self._new_edges = True
 
     def remove_keyframe_edges(self, keyframe_id: int) -> None:
@@ -436,9 +448,11 @@ class IncrementalAverager:
         return Pose4(float(th), -(Pose4(float(th), (0, 0, 0)).rotation @ c))
 
     def active_edges(self) -> list:
-        """[(source id, target id)] of the edges the current solution keeps."""
+        """[(source id, target id)] of the edges the current solution keeps (yaw-only
+        edges aside)."""
         e = self.edges
-        return [(self.ids[a], self.ids[b]) for a, b in zip(e.src[e.active], e.dst[e.active])]
+        keep = e.active & ~e.yaw_only
+        return [(self.ids[a], self.ids[b]) for a, b in zip(e.src[keep], e.dst[keep])]
 
     # ------------------------------------------------------------------ solving
 
@@ -474,7 +488,7 @@ class IncrementalAverager:
         self.update()                            # fold pending input first, then overwrite
         keep = set(map(tuple, active_edges))
         e = self.edges
-        e.active[:] = [(self.ids[a], self.ids[b]) in keep for a, b in zip(e.src, e.dst)]
+        e.active[:] = [(self.ids[a], self.ids[b]) in keep for a, b in zip(e.src, e.dst)] | e.yaw_only
         self._registered[:] = False
         self._theta[:] = np.nan
         self._centres[:] = np.nan
@@ -493,6 +507,7 @@ class IncrementalAverager:
         if not len(self.edges):
             return False
         src, dst = self._arrays()[:2]
+        src, dst = src[~self.edges.yaw_only], dst[~self.edges.yaw_only]
         linked = np.zeros(len(self.ids), bool)
         linked[src] = linked[dst] = True
         return np.count_nonzero(linked & ~self._registered) > np.count_nonzero(self._registered)
@@ -502,7 +517,8 @@ class IncrementalAverager:
         n = len(self.ids)
         # anchor: the earliest registered keyframe keeps the map frame stable
         order = np.r_[np.flatnonzero(self._registered), np.flatnonzero(~self._registered)]
-        theta, centres, active, comp = _solve_all(n, src, dst, yaw, trans, weight, self.config, order)
+        theta, centres, active, comp = _solve_all(n, src, dst, yaw, trans, weight, self.config, order,
+                                                  self.edges.yaw_only)
         if np.any(self._registered & comp):
             # keep the previous gauge: express the new solution relative to the anchor's old pose
             anchor = next(k for k in order if comp[k])
@@ -523,9 +539,10 @@ class IncrementalAverager:
         theta, centres = self._theta.copy(), self._centres.copy()
         registered = self._registered.copy()
         active = self.edges.active.copy()
+        full = ~self.edges.yaw_only
         # place new keyframes from their edges to registered ones (robust vote)
         # (edges with an unregistered end: a chain of new keyframes is placed link by link)
-        use = active & ~(registered[src] & registered[dst])
+        use = active & full & ~(registered[src] & registered[dst])
         if np.any(registered) and np.any(use):
             theta, centres, registered = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use],
                                                     None, cfg, theta, centres, registered)
@@ -542,9 +559,10 @@ class IncrementalAverager:
             self._theta, self._centres, self._registered = theta, centres, registered
             return True
         theta = _solve_yaw(theta, src[use], dst[use], yaw[use], weight[use], free, cfg)
-        centres = _solve_centres(theta, centres, src[use], dst[use], trans[use], weight[use], free, cfg)
+        ut = use & full
+        centres = _solve_centres(theta, centres, src[ut], dst[ut], trans[ut], weight[ut], free, cfg)
         yr, tr = _residuals(theta, centres, src[use], dst[use], yaw[use], trans[use])
-        bad = (yr > cfg.max_yaw_residual_deg) | (tr > cfg.max_translation_residual_m)
+        bad = (yr > cfg.max_yaw_residual_deg) | ((tr > cfg.max_translation_residual_m) & full[use])
         idx = np.flatnonzero(use)[bad]
         inside = free[src[idx]] & free[dst[idx]]
         self.edges.active[idx[inside]] = False     # local outliers: drop

@@ -28,7 +28,7 @@ from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import estimate_relative_pose
 from rfm_core.matching.view_graph import bag_of_objects
-from rfm_core.observations import FrameObservations, FrameTrack
+from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 
 __all__ = ['MapperConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
 
@@ -155,12 +155,25 @@ class Mapper:
         """Add a keyframe; False (ignored) in localization mode or when already known."""
         if self.mode != 'mapping' or keyframe_id in self.keyframes:
             return False
+        previous = max(self.keyframes, default=None)
         self.keyframes[keyframe_id] = obs
         self._descriptors[keyframe_id] = bag_of_objects(obs)
         if not self.config.posed:
             self.averager.add_keyframe(keyframe_id)
+            if previous is not None and previous < keyframe_id:
+                self._add_gyroscope_edge(previous, keyframe_id)
         self._tracks = None
         return True
+
+    def _add_gyroscope_edge(self, source: int, target: int) -> None:
+        """The gyroscope's yaw between consecutive keyframes of one integration epoch, as a
+        yaw-only edge of weight ``averaging.gyro_yaw_weight`` (pose averaging): an edge from
+        boxes whose yaw it contradicts is outvoted and dropped instead of turning the map.
+        (A map loaded from a file has no gyroscope readings: its keyframes get none.)"""
+        weight = self.config.averaging.gyro_yaw_weight
+        yaw = imu_relative_yaw(self.keyframes[source], self.keyframes[target]) if weight > 0 else None
+        if yaw is not None:
+            self.averager.add_edge(source, target, Pose4(yaw, (0.0, 0.0, 0.0)), weight, yaw_only=True)
 
     def add_edge(self, edge: EdgeRecord) -> bool:
         """Add a verified edge; False when ignored (localization mode, unknown keyframe,

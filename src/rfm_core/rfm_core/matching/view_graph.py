@@ -32,7 +32,7 @@ from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
 from rfm_core.geometry import Pose4, wrap_angle
-from rfm_core.observations import FrameObservations, FrameTrack
+from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 
 __all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'GraphStep', 'ViewGraphBuilder', 'bag_of_objects']
 
@@ -190,13 +190,12 @@ class ViewGraphBuilder:
     def _imu_yaw(self, a: FrameObservations, b: FrameObservations):
         """(yaw of T_a_b as the gyroscope measured it, the deviation allowed in deg), or None
         when the frames share no integration epoch."""
-        if not a.imu_epoch or a.imu_epoch != b.imu_epoch:
+        yaw = imu_relative_yaw(a, b)
+        if yaw is None:
             return None
-        delta = a.imu_rotation.T @ b.imu_rotation                    # camera b -> camera a
-        m = a.rotation_aligned_from_camera @ delta @ b.rotation_aligned_from_camera.T
         cfg = self.config
         allowed = cfg.imu_yaw_tolerance_deg + cfg.imu_yaw_drift_deg_s * abs(b.stamp_ns - a.stamp_ns) / 1e9
-        return float(np.arctan2(m[1, 0], m[0, 0])), allowed
+        return yaw, allowed
 
     def _imu_agrees(self, t_a_b: Pose4, a: FrameObservations, b: FrameObservations) -> bool:
         """Whether a relative pose's yaw agrees with the rotation the gyroscope measured
