@@ -297,7 +297,9 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg)
     for stage in ('yaw', 'translation'):
         for _ in range(max(cfg.rounds, 1)):
-            use = active & comp[src] & comp[dst] & (full if stage == 'translation' else True)
+            use = active & comp[src] & comp[dst]
+            if stage == 'translation':
+                use &= full
             free = comp.copy()
             free[root] = False
             if stage == 'yaw':
@@ -488,7 +490,7 @@ class IncrementalAverager:
         self.update()                            # fold pending input first, then overwrite
         keep = set(map(tuple, active_edges))
         e = self.edges
-        e.active[:] = [(self.ids[a], self.ids[b]) in keep for a, b in zip(e.src, e.dst)] | e.yaw_only
+        e.active[:] = np.array([(self.ids[a], self.ids[b]) in keep for a, b in zip(e.src, e.dst)], bool) | e.yaw_only
         self._registered[:] = False
         self._theta[:] = np.nan
         self._centres[:] = np.nan
