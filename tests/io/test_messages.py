@@ -5,10 +5,10 @@ import pytest
 pytest.importorskip('rfm_msgs.msg')
 
 from rfm_core.geometry import (  # noqa: E402
-    Pose4, box_corners, gravity_aligned_rotation, matrix_from_quaternion,
+    BOX_EDGES, Pose4, box_corners, gravity_aligned_rotation, matrix_from_quaternion,
 )
 from rfm_core.io.messages import (  # noqa: E402
-    frame_detections_from_msg, frame_detections_to_msg, matrix_to_pose, ns_to_stamp,
+    box_markers_msg, frame_detections_from_msg, frame_detections_to_msg, matrix_to_pose, ns_to_stamp,
     pose4_to_pose, pose_to_matrix, pose_to_pose4, stamp_to_ns,
 )
 from rfm_core.observations import CameraIntrinsics, FrameObservations  # noqa: E402
@@ -115,3 +115,22 @@ def test_observations_validate_lengths_and_fill_optional_fields():
         FrameObservations(0, 'cam', intr, [0, 1, 0], boxes=np.zeros((2, 7)), scores=[0.5])
     with pytest.raises(ValueError, match='image size'):
         CameraIntrinsics(500.0, 500.0, 320.0, 240.0, 0, 480)
+
+
+def test_box_markers_draw_every_edge_and_label_each_box():
+    """One DELETEALL, then per box a LINE_LIST through its 12 edges and a facing label."""
+    boxes = np.array([[1.0, 2.0, 0.5, 0.4, 0.6, 1.0, 0.3], [-1.0, 0.0, 0.2, 1.0, 1.0, 0.4, 0.0]])
+    corners = box_corners(boxes)
+    msg = box_markers_msg(corners, ['chair 0.90', 'table 0.50'], boxes[:, :3], [(1, 0, 0, 1), (0, 1, 0, 1)],
+                          1_500_000_000, 'map', ids=[7, 9], text_colour=(1, 1, 1, 1))
+    clear, *rest = msg.markers
+    assert clear.action == clear.DELETEALL and clear.header.frame_id == 'map'
+    lines, texts = rest[0::2], rest[1::2]
+    assert [m.id for m in lines] == [7, 9] and all(m.type == m.LINE_LIST for m in lines)
+    assert all(m.type == m.TEXT_VIEW_FACING for m in texts) and [m.text for m in texts] == ['chair 0.90', 'table 0.50']
+    for m, c in zip(lines, corners):
+        points = np.array([[p.x, p.y, p.z] for p in m.points]).reshape(12, 2, 3)
+        assert np.allclose(points, c[BOX_EDGES])                    # each edge joins its two corners
+        assert m.header.stamp.sec == 1 and m.header.stamp.nanosec == 500_000_000
+    assert texts[1].pose.position.x == -1.0 and texts[0].color.g == 1.0 and lines[1].color.g == 1.0
+    assert len(box_markers_msg(np.zeros((0, 8, 3)), [], np.zeros((0, 3)), [], 0, 'map').markers) == 1

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
-    'BOX_DIM', 'CORNER_SIGNS', 'Pose4', 'wrap_angle', 'yaw_matrix', 'box_corners',
+    'BOX_DIM', 'CORNER_SIGNS', 'BOX_EDGES', 'Pose4', 'wrap_angle', 'yaw_matrix', 'box_corners',
     'bev_corners', 'box_volume', 'boxes_from_oriented', 'oriented_from_boxes',
     'gravity_from_accelerometer', 'gravity_aligned_rotation', 'quaternion_from_matrix',
     'matrix_from_quaternion', 'kabsch_4dof', 'kabsch_4dof_batch', 'ray_covariances',
@@ -51,6 +51,10 @@ CORNER_SIGNS = np.array([
     [-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1],
     [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1],
 ], dtype=np.float64)
+
+#: The 12 edges of a box as corner index pairs (corner order above); shape (12, 2).
+BOX_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
+                      [0, 4], [1, 5], [2, 6], [3, 7]])
 
 # Distances below this (m) are "the same point" for polygon clipping and hulls.
 _LENGTH_TOL = 1e-9

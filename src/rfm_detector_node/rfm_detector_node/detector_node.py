@@ -22,14 +22,12 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rfm_msgs.msg import FrameDetections
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
-from std_msgs.msg import ColorRGBA
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
 from rfm_core.detection import make_detector
 from rfm_core.detection.base import DetectorInput
@@ -37,14 +35,12 @@ from rfm_core.detection.gravity import GravityFilter
 from rfm_core.geometry import box_corners
 from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import (
-    camera_info_intrinsics, frame_detections_from_msg, frame_detections_to_msg, imu_reading,
+    box_markers_msg, camera_info_intrinsics, frame_detections_from_msg, frame_detections_to_msg, imu_reading,
     parameter_descriptor, stamp_to_ns,
 )
 from rfm_core.io.sync import ApproximateTimeSynchronizer
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
 
-_EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4),
-          (0, 4), (1, 5), (2, 6), (3, 7)]
 _TIME_JUMP_NS = 2_000_000_000      # a stamp this much older than the last one: bag looped
 
 
@@ -298,33 +294,14 @@ class DetectorNode(Node):
     # ------------------------------------------------------------------ outputs
 
     def _markers(self, obs) -> MarkerArray:
-        out = MarkerArray()
-        clear = Marker()
-        clear.action = Marker.DELETEALL
-        out.markers.append(clear)
-        camera_from_aligned = obs.rotation_aligned_from_camera.T
-        stamp = rclpy.time.Time(nanoseconds=obs.stamp_ns).to_msg()
-        for i, (box, score) in enumerate(zip(obs.boxes, obs.scores)):
-            corners = box_corners(box) @ camera_from_aligned.T
-            lines = Marker()
-            lines.header.frame_id, lines.header.stamp = obs.frame_id, stamp
-            lines.ns, lines.id, lines.type = 'boxes', i, Marker.LINE_LIST
-            lines.scale.x = 0.01
-            lines.pose.orientation.w = 1.0
-            lines.color = ColorRGBA(r=1.0 - float(score), g=float(score), b=0.2, a=1.0)
-            lines.points = [Point(x=float(c[0]), y=float(c[1]), z=float(c[2]))
-                            for a, b in _EDGES for c in (corners[a], corners[b])]
-            text = Marker()
-            text.header = lines.header
-            text.ns, text.id, text.type = 'scores', i, Marker.TEXT_VIEW_FACING
-            top = corners[4:].mean(0)
-            text.pose.position = Point(x=float(top[0]), y=float(top[1]), z=float(top[2]))
-            text.pose.orientation.w = 1.0
-            text.scale.z = 0.08
-            text.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
-            text.text = f'{obs.labels[i] + " " if obs.labels[i] else ""}{score:.2f}'
-            out.markers += [lines, text]
-        return out
+        """The frame's boxes in the camera's optical frame, coloured by score."""
+        corners = box_corners(obs.boxes).reshape(-1, 8, 3) @ obs.rotation_aligned_from_camera   # aligned -> camera
+        scores = np.asarray(obs.scores, float)
+        return box_markers_msg(
+            corners, [f'{label + " " if label else ""}{score:.2f}' for label, score in zip(obs.labels, scores)],
+            corners[:, 4:].mean(1), np.stack([1.0 - scores, scores, np.full_like(scores, 0.2), np.ones_like(scores)], 1),
+            obs.stamp_ns, obs.frame_id, line_width=0.01, text_size=0.08, text_colour=(1.0, 1.0, 1.0, 1.0),
+            namespaces=('boxes', 'scores'))
 
     def _publish_diagnostics(self) -> None:
         status = DiagnosticStatus(name='rfm detector', hardware_id=self.backend)

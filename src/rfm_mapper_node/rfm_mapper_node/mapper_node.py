@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from geometry_msgs.msg import Point, PoseArray, PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped
 from nav_msgs.msg import Path as PathMsg
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
@@ -25,13 +25,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rfm_msgs.msg import FrameDetections, Keyframe, MapperStatus, ObjectMap, TrackedFrame, ViewGraphEdge
 from rfm_msgs.srv import LoadMap, Relocalize, SaveMap, SetMode
-from std_msgs.msg import ColorRGBA
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker, MarkerArray
+from visualization_msgs.msg import MarkerArray
 
 from rfm_core.geometry import Pose4, box_corners
 from rfm_core.io.messages import (
-    declare_range_error, frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, parameter_descriptor, pose_stamped_msg,
+    box_markers_msg, declare_range_error, frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, parameter_descriptor, pose_stamped_msg,
     pose_to_matrix, stamp_to_ns, tracked_frame_from_msg, transform_stamped_msg, vector3_to_numpy,
 )
 from rfm_core.mapping.averaging import AveragingConfig
@@ -47,9 +46,6 @@ try:                                               # tf2_ros is optional (pip in
 except ImportError:                                # pragma: no cover - depends on the install
     TransformBroadcaster = None
 
-_EDGES = [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
-
-
 def _float(text, lo, hi):
     return parameter_descriptor(text, lo, hi)
 
@@ -62,9 +58,10 @@ def _text(text, read_only=False):
     return parameter_descriptor(text, read_only=read_only)
 
 
-def _colour(track_id: int) -> ColorRGBA:
+def _colour(track_id: int) -> tuple:
+    """RGBA of a track's markers: its picture colour, lightened."""
     r, g, b = track_colour(track_id)
-    return ColorRGBA(r=0.3 + 0.7 * r, g=0.3 + 0.7 * g, b=0.3 + 0.7 * b, a=1.0)
+    return 0.3 + 0.7 * r, 0.3 + 0.7 * g, 0.3 + 0.7 * b, 1.0
 
 
 def edge_record_from_msg(msg: ViewGraphEdge) -> EdgeRecord:
@@ -460,29 +457,15 @@ class MapperNode(Node):
         self.marker_pub.publish(self._markers(tracks, stamp_ns))
 
     def _markers(self, tracks, stamp_ns: int) -> MarkerArray:
-        out = MarkerArray()
-        clear = Marker(action=Marker.DELETEALL)
-        clear.header.frame_id = self.map_frame
-        out.markers.append(clear)
-        stamp = ns_to_stamp(stamp_ns)
-        for t in tracks:
-            colour = _colour(t.track_id)
-            box = Marker(type=Marker.LINE_LIST, action=Marker.ADD, ns='boxes', id=int(t.track_id % 2**31))
-            box.header.frame_id, box.header.stamp = self.map_frame, stamp
-            box.pose.orientation.w = 1.0
-            box.scale.x = 0.02
-            box.color = colour
-            c = box_corners(t.box)
-            box.points = [Point(x=float(c[i][0]), y=float(c[i][1]), z=float(c[i][2])) for e in _EDGES for i in e]
-            text = Marker(type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, ns='labels', id=int(t.track_id % 2**31))
-            text.header.frame_id, text.header.stamp = self.map_frame, stamp
-            text.pose.position = Point(x=float(t.box[0]), y=float(t.box[1]), z=float(t.box[2] + t.box[5] / 2 + 0.08))
-            text.pose.orientation.w = 1.0
-            text.scale.z = 0.1
-            text.color = colour
-            text.text = f'{t.label or "object"} {t.score:.2f} ({t.num_observations})'
-            out.markers += [box, text]
-        return out
+        """The map's tracks, each in its own colour, labelled with class, score and views."""
+        boxes = np.array([t.box for t in tracks]).reshape(-1, 7)
+        colours = [_colour(t.track_id) for t in tracks]
+        return box_markers_msg(
+            box_corners(boxes).reshape(-1, 8, 3),
+            [f'{t.label or "object"} {t.score:.2f} ({t.num_observations})' for t in tracks],
+            boxes[:, :3] + np.c_[np.zeros((len(boxes), 2)), boxes[:, 5] / 2 + 0.08],
+            colours, stamp_ns, self.map_frame,
+            ids=[int(t.track_id % 2**31) for t in tracks])
 
     def _publish_status(self) -> None:
         mp = self.mapper

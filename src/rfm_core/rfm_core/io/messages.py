@@ -15,7 +15,7 @@ import importlib
 import numpy as np
 
 from rfm_core.geometry import (
-    Pose4, boxes_from_oriented, gravity_aligned_rotation, matrix_from_quaternion,
+    BOX_EDGES, Pose4, boxes_from_oriented, gravity_aligned_rotation, matrix_from_quaternion,
     oriented_from_boxes, quaternion_from_matrix,
 )
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR, MatchingConfig
@@ -23,7 +23,7 @@ from rfm_core.observations import CameraIntrinsics, FrameObservations, FrameTrac
 
 __all__ = [
     'ROS', 'RosMessages', 'BagMessages', 'ros_message_class', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
-    'camera_info_msg', 'imu_msg', 'object_map_msg', 'parameter_descriptor', 'declare_range_error',
+    'camera_info_msg', 'imu_msg', 'object_map_msg', 'box_markers_msg', 'parameter_descriptor', 'declare_range_error',
     'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
@@ -152,6 +152,39 @@ def imu_msg(linear_acceleration, angular_velocity, stamp_ns: int, frame_id: str,
                 angular_velocity_covariance=np.eye(3).reshape(-1) * gyro_sigma ** 2,
                 linear_acceleration=_vector3(make, linear_acceleration),
                 linear_acceleration_covariance=np.eye(3).reshape(-1) * accel_sigma ** 2)
+
+
+def box_markers_msg(corners, texts, text_positions, colours, stamp_ns: int, frame_id: str, ids=None,
+                    line_width: float = 0.02, text_size: float = 0.1, text_colour=None,
+                    namespaces=('boxes', 'labels'), make=ROS):
+    """visualization_msgs/MarkerArray drawing boxes for RViz / Foxglove: a DELETEALL, then per
+    box a LINE_LIST of its 12 edges and a TEXT_VIEW_FACING label. ``corners`` (N, 8, 3) in
+    ``frame_id`` (corner order of rfm_core.geometry), ``texts`` (N,), ``text_positions`` (N, 3),
+    ``colours`` (N, 4) RGBA in [0, 1]; ``ids`` (N,) marker ids (default 0..N-1);
+    ``text_colour``: one RGBA for every label (default: the box's). Needs ROS (``make``:
+    rclpy message objects)."""
+    def point(p):
+        return make('geometry_msgs/msg/Point', x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+    def colour(c):
+        return make('std_msgs/msg/ColorRGBA', r=float(c[0]), g=float(c[1]), b=float(c[2]), a=float(c[3]))
+
+    line_list, text_facing, add, delete_all = 5, 9, 0, 3      # visualization_msgs/Marker constants
+    head = header(make, stamp_ns, frame_id)
+    identity = make('geometry_msgs/msg/Quaternion', x=0.0, y=0.0, z=0.0, w=1.0)
+    out = [make('visualization_msgs/msg/Marker', header=head, action=delete_all)]
+    corners = np.asarray(corners, float).reshape(-1, 8, 3)
+    ids = range(len(corners)) if ids is None else ids
+    for c, text, at, rgba, i in zip(corners, texts, text_positions, colours, ids):
+        out.append(make('visualization_msgs/msg/Marker', header=head, ns=namespaces[0], id=int(i), type=line_list,
+                        action=add, pose=make('geometry_msgs/msg/Pose', orientation=identity),
+                        scale=make('geometry_msgs/msg/Vector3', x=float(line_width), y=0.0, z=0.0),
+                        color=colour(rgba), points=[point(c[k]) for edge in BOX_EDGES for k in edge]))
+        out.append(make('visualization_msgs/msg/Marker', header=head, ns=namespaces[1], id=int(i), type=text_facing,
+                        action=add, pose=make('geometry_msgs/msg/Pose', position=point(at), orientation=identity),
+                        scale=make('geometry_msgs/msg/Vector3', x=0.0, y=0.0, z=float(text_size)),
+                        color=colour(rgba if text_colour is None else text_colour), text=str(text)))
+    return make('visualization_msgs/msg/MarkerArray', markers=out)
 
 
 def object_map_msg(boxes, labels, ids, stamp_ns: int, frame_id: str = 'map', scores=None,

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rfm_core.geometry import convex_hull_area, box_corners
+from rfm_core.geometry import BOX_EDGES, box_corners, convex_hull_area
 from rfm_core.observations import CameraIntrinsics
 from rfm_core.sim.room import Material, Room
 
@@ -22,9 +22,6 @@ __all__ = ['RenderOutput', 'Renderer', 'NoiseModel']
 _NEAR = 0.05                                  # m: rays start this far in front of the camera
 _LIGHT = np.array([0.35, 0.55, 1.0]) / np.linalg.norm([0.35, 0.55, 1.0])  # to the light, map frame
 _AMBIENT, _DIFFUSE = 0.5, 0.5
-# Box edges as corner index pairs (corner order of rfm_core.geometry).
-_EDGES = np.array([[0, 1], [1, 2], [2, 3], [3, 0], [4, 5], [5, 6], [6, 7], [7, 4],
-                   [0, 4], [1, 5], [2, 6], [3, 7]])
 
 
 @dataclass(frozen=True)
@@ -179,7 +176,7 @@ class Renderer:
         if np.any(truncated):
             area[truncated] = convex_hull_area(self._uv(cam[truncated]))
         for k in np.flatnonzero(~full & np.any(in_front, axis=1)):
-            a, b = cam[k, _EDGES[:, 0]], cam[k, _EDGES[:, 1]]
+            a, b = cam[k, BOX_EDGES[:, 0]], cam[k, BOX_EDGES[:, 1]]
             crosses = (a[:, 2] > _NEAR) != (b[:, 2] > _NEAR)
             t = (_NEAR - a[crosses, 2]) / (b[crosses, 2] - a[crosses, 2])
             pts = np.concatenate([cam[k, in_front[k]],
