@@ -30,7 +30,7 @@ import torch  # noqa: E402
 
 from rfm_core.detection import make_detector  # noqa: E402
 from rfm_core.mapping.mapper import EdgeRecord, Mapper  # noqa: E402
-from rfm_core.matching.learned import make_matcher  # noqa: E402
+from rfm_core.matching.factory import make_matcher  # noqa: E402
 from rfm_core.matching.view_graph import ViewGraphBuilder  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
 

@@ -26,7 +26,7 @@ def maps():
     import torch  # noqa: PLC0415
 
     from rfm_core.evaluation.pipeline import run_capture  # noqa: PLC0415
-    from rfm_core.matching.learned import make_matcher  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import CaptureConfig  # noqa: PLC0415
 
     torch.set_num_threads(1)

@@ -25,7 +25,7 @@ def scene(args) -> dict:
     import torch
     torch.set_num_threads(1)
     from rfm_core.evaluation.pipeline import run_capture
-    from rfm_core.matching.learned import make_matcher
+    from rfm_core.matching.factory import make_matcher
     from rfm_core.matching.view_graph import KeyframeConfig
     from rfm_core.sim.capture import CaptureConfig
     if seed >= 5000:

@@ -9,8 +9,9 @@ from rfm_core.evaluation.matching import evaluate_pairs
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.learned import (
     LearnedMatcher, MatcherNetConfig, ObjectMatcherNet, batch_inputs, default_weights,
-    load_matcher_net, make_matcher, mutual_matches, save_matcher_net,
+    load_matcher_net, mutual_matches, save_matcher_net,
 )
+from rfm_core.matching.factory import make_matcher
 from rfm_core.matching.training import (
     STRUCTURE_ID_BASE, LabelledFrame, TrainConfig, assign_object_ids, label_structure, labelled_pairs,
     match_targets, scene_configs, train_matcher,
@@ -194,3 +195,18 @@ def test_batched_matching_equals_pair_by_pair():
     classical = ClassicalMatcher()
     for b, m in zip(others, classical.match_many(query, others)):
         np.testing.assert_array_equal(m.a, classical.match(query, b).a)
+
+
+def test_the_classical_matcher_never_loads_torch():
+    """Nodes started with matcher:=classical import neither the learned matcher nor torch."""
+    import subprocess
+    import sys
+    code = ('import sys\n'
+            'import rfm_matcher_node.matcher_node, rfm_mapper_node.mapper_node\n'
+            'from rfm_core.matching.factory import make_matcher\n'
+            "make_matcher('classical')\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\n"
+            "make_matcher('learned')\n"
+            "assert 'torch' in sys.modules\n")
+    proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]

@@ -39,7 +39,7 @@ from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig, camera_to_
 from rfm_core.observations import FrameTrack
 from rfm_core.mapping.tracks import TrackConfig, track_colour
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.learned import make_matcher
+from rfm_core.matching.factory import make_matcher
 
 try:                                               # tf2_ros is optional (pip installs lack it)
     from tf2_ros import TransformBroadcaster

@@ -27,7 +27,7 @@ from rfm_core.io.messages import (
     tracked_frame_to_msg,
 )
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.learned import make_matcher
+from rfm_core.matching.factory import make_matcher
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 
 

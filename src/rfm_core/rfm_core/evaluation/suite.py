@@ -97,7 +97,7 @@ def evaluate_scene(args) -> dict:
     import torch  # noqa: PLC0415
 
     from rfm_core.evaluation.pipeline import run_capture  # noqa: PLC0415
-    from rfm_core.matching.learned import make_matcher  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     torch.set_num_threads(1)
@@ -297,7 +297,7 @@ def relocalization_scene(args) -> dict:
     from rfm_core.evaluation.trajectory import map_to_truth  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map, save_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
-    from rfm_core.matching.learned import make_matcher  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     torch.set_num_threads(1)

@@ -28,7 +28,7 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.observations import FrameObservations
 
 __all__ = ['MatcherNetConfig', 'ObjectMatcherNet', 'LearnedMatcher', 'box_features',
-           'WEIGHTS_DIR', 'default_weights', 'load_matcher_net', 'save_matcher_net', 'make_matcher']
+           'WEIGHTS_DIR', 'default_weights', 'load_matcher_net', 'save_matcher_net']
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / 'weights'
 POSITION_FEATURES = 7
@@ -299,16 +299,3 @@ class LearnedMatcher:
             return self.fallback.match(a, b)
         rows, cols, p = mutual_matches(log_assignment, self.config.match_threshold)
         return ObjectMatches(rows, cols, p)
-
-
-def make_matcher(kind: str, config: MatchingConfig | None = None, weights=None, on_fallback=None):
-    """'learned' (falls back to classical where it has no weights) or 'classical'."""
-    from rfm_core.matching.classical import ClassicalMatcher  # noqa: PLC0415
-
-    config = config or MatchingConfig()
-    if kind == 'classical':
-        return ClassicalMatcher(config)
-    if kind == 'learned':
-        return LearnedMatcher(config, weights=weights or None, threads=1,
-                              fallback=ClassicalMatcher(config), on_fallback=on_fallback)
-    raise ValueError(f"unknown matcher {kind!r}; choose 'learned' or 'classical'")
