@@ -191,7 +191,11 @@ def load_matcher_net(path) -> tuple[ObjectMatcherNet, dict]:
     if not path.is_file():
         raise FileNotFoundError(f'object matcher weights not found: {path} '
                                 f'(train them with `rfm train-matcher`)')
-    blob = torch.load(path, map_location='cpu', weights_only=True)
+    try:
+        blob = torch.load(path, map_location='cpu', weights_only=True)
+    except Exception as exc:  # noqa: BLE001 - torch raises several kinds for a damaged file
+        raise ValueError(f'{path} cannot be read as an rfm object-matcher checkpoint ({exc.__class__.__name__}); '
+                         'retrain it with `rfm train-matcher` or pass another file') from exc
     if not isinstance(blob, dict) or blob.get('format') != 'rfm-object-matcher':
         raise ValueError(f'{path} is not an rfm object-matcher checkpoint')
     if blob.get('version') != 1:
