@@ -83,7 +83,7 @@ def test_checkpoint_round_trip_and_refusals(tmp_path):
     with pytest.raises(FileNotFoundError, match='rfm train-matcher'):
         load_matcher_net(tmp_path / 'missing.pt')
     (tmp_path / 'junk.pt').write_bytes(b'not a checkpoint')
-    with pytest.raises(ValueError, match='cannot be read .* rfm train-matcher'):
+    with pytest.raises(ValueError, match='cannot be read .* retrain it with .rfm train-matcher'):
         load_matcher_net(tmp_path / 'junk.pt')
     torch.save({'format': 'something-else'}, tmp_path / 'other.pt')
     with pytest.raises(ValueError, match='not an rfm object-matcher'):
