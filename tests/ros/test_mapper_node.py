@@ -126,8 +126,10 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         n_kf = len(truth)
         n_edges = sum(isinstance(m, ViewGraphEdge) for m in messages)
         n_tracked = sum(isinstance(m, TrackedFrame) for m in messages)
+        # ... and once the input has been idle for idle_full_solve_s, all poses re-solved at once
         done = h.wait(lambda: len(mapper.mapper.keyframes) == n_kf and not mapper.pending_edges
                       and mapper.counts['edges'] == n_edges and not mapper._dirty
+                      and mapper._full_solve_due is None and mapper.mapper.averager.stats.kind == 'full'
                       and h.poses and len(h.poses[-1].poses) == n_kf)
         assert done, (len(mapper.mapper.keyframes), n_kf, len(mapper.pending_edges),
                       len(h.poses[-1].poses) if h.poses else None, mapper.counts, mapper.message)

@@ -88,6 +88,10 @@ class MapperNode(Node):
             'Broadcast map -> camera frame of the latest registered keyframe on /tf')).value
         self.tf_child = p('tf_child_frame', '', _text(
             'Child frame of that transform; empty: the keyframes\' camera optical frame')).value
+        self.idle_full_solve_s = p('idle_full_solve_s', 1.0, _float(
+            'Once no keyframe or edge has arrived for this long after incremental updates, re-solve '
+            'all poses at once (the incremental solve re-solves a window of recent keyframes); 0: never',
+            0.0, 3600.0)).value
         self.map_period = p('map_publish_period_s', 1.0, _float(
             'Rebuild and publish the object map at most this often (s)', 0.05, 60.0)).value
         self.map_cpu_share = p('map_max_cpu_share', 0.2, _float(
@@ -155,6 +159,7 @@ class MapperNode(Node):
         self.message = ''
         self._dirty = False
         self._map_dirty = False
+        self._full_solve_due = None              # monotonic time of the idle full re-solve
         self._last_map_time = 0.0
         self._map_seconds = 0.0                  # cost of the last object-map rebuild
         self.num_objects = 0                     # objects in the last published map
@@ -383,14 +388,19 @@ class MapperNode(Node):
     # ------------------------------------------------------------------ output
 
     def _tick(self) -> None:
-        if self._dirty:
+        idle_solve = (not self._dirty and self._full_solve_due is not None
+                      and time.monotonic() >= self._full_solve_due)
+        if self._dirty or idle_solve:
             self._dirty = False
+            self._full_solve_due = None
             try:
-                self.mapper.update()
+                stats = self.mapper.update(force_full=idle_solve)
             except Exception as exc:                        # noqa: BLE001 - never die on a solve
                 self.message = f'update failed: {exc}'
                 self.get_logger().error(self.message, throttle_duration_sec=5.0)
                 return
+            if stats is not None and stats.kind == 'local' and self.idle_full_solve_s > 0:
+                self._full_solve_due = time.monotonic() + self.idle_full_solve_s
             self._map_dirty = True
             self._publish_poses()
             if self.autosave_every and self._since_save >= self.autosave_every:
