@@ -216,22 +216,28 @@ class ViewGraphBuilder:
             return None
         return rel
 
+    def _predicted_pose(self, obs: FrameObservations) -> Pose4 | None:
+        """T_keyframe_frame to the last keyframe as the previous tracked frame's position and
+        the gyroscope's yaw predict it; None without a previous frame on that keyframe or
+        without a gyroscope."""
+        prev, last = self._tracking, self.keyframes[-1]
+        if prev is None or prev.keyframe_id != last.keyframe_id:
+            return None
+        measured = self._imu_yaw(last.observations, obs)
+        return None if measured is None else Pose4(measured[0], prev.pose.t)
+
     def _predicted_matches(self, keyframe: FrameObservations, obs: FrameObservations) -> ObjectMatches | None:
-        """Matches of the frame's boxes to the last keyframe's where the previous frame's pose
-        and the gyroscope's rotation predict them (nearest centre, one-to-one, within the
-        distance the camera can have moved plus the detector's noise): tracking without the
-        object matcher. None when nothing predicts the pose (no previous frame on this
-        keyframe, or no gyroscope)."""
-        prev = self._tracking
-        measured = self._imu_yaw(keyframe, obs)
-        if prev is None or measured is None or prev.keyframe_id != self.keyframes[-1].keyframe_id:
+        """Matches of the frame's boxes to the last keyframe's where the predicted pose puts
+        them (:meth:`_predicted_pose`; nearest centre, one-to-one, within the distance the
+        camera can have moved plus the detector's noise): tracking without the object
+        matcher. None when nothing predicts the pose."""
+        predicted = self._predicted_pose(obs)                         # T_keyframe_frame
+        if predicted is None or len(obs) == 0 or len(keyframe) == 0:
             return None
-        if len(obs) == 0 or len(keyframe) == 0:
-            return None
-        predicted = Pose4(measured[0], prev.pose.t)                   # T_keyframe_frame
         moved = predicted.transform_points(obs.boxes[:, :3])          # frame boxes in the keyframe
         d = np.linalg.norm(moved[:, None, :] - keyframe.boxes[None, :, :3], axis=-1)
-        gate = self.config.track_gate_m + self.config.max_speed_m_s * abs(obs.stamp_ns - prev.stamp_ns) / 1e9
+        dt = abs(obs.stamp_ns - self._tracking.stamp_ns) / 1e9
+        gate = self.config.track_gate_m + self.config.max_speed_m_s * dt
         rows, cols = linear_sum_assignment(np.where(d < gate, d, 1e3))
         keep = d[rows, cols] < gate
         rows, cols = rows[keep], cols[keep]
@@ -363,17 +369,11 @@ class ViewGraphBuilder:
         this frame as the gyroscope's yaw and the last tracked frame's position predict it
         (at most ``max_motion_edge_s`` after that frame). It has no object matches and the
         least weight in the averaging: it only places a stretch that nothing else links."""
-        prev, last = self._tracking, self.keyframes[-1]
-        if prev is None or prev.keyframe_id != last.keyframe_id:
-            return None
-        if obs.stamp_ns - prev.stamp_ns > self.config.max_motion_edge_s * 1e9:
-            return None
-        measured = self._imu_yaw(last.observations, obs)
-        if measured is None:
+        predicted = self._predicted_pose(obs)
+        if predicted is None or obs.stamp_ns - self._tracking.stamp_ns > self.config.max_motion_edge_s * 1e9:
             return None
         self.stats.motion_edges += 1
-        return RelativePose(Pose4(measured[0], prev.pose.t), np.zeros((0, 2), int), np.zeros(0), np.zeros(0),
-                            mean_error=1.0, num_matches=0)
+        return RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
 
     def _new_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None, stream: bool) -> GraphStep:
         start = time.perf_counter()
