@@ -172,7 +172,7 @@ def test_ground_truth_backend_republishes_noisy_ground_truth(graph, scene):
     from rfm_core.io.messages import frame_detections_to_msg
     from rfm_msgs.msg import FrameDetections
     cap, frames = scene
-    detector, pubs, got, _ = graph(backend='ground_truth', ground_truth_preset='rgbd')
+    detector, pubs, got, _ = graph(backend='ground_truth', **{'ground_truth.preset': 'rgbd'})
     pub = detector.create_publisher(FrameDetections, 'ground_truth/detections', 10)
     assert wait_for(lambda: pub.get_subscription_count() > 0)
     for frame in frames[:3]:

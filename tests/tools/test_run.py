@@ -1,4 +1,5 @@
 """`rfm run --bag`: the whole graph on a generated bag, in one process and as processes."""
+import re
 import shutil
 import subprocess
 
@@ -55,9 +56,11 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     assert {'/rfm/detections', '/rfm/keyframes', '/rfm/object_map', '/rfm/keyframe_poses'} <= topics
 
 
-def test_rfm_run_gives_an_rgb_only_detector_along_ray_errors(tmp_path):
+def test_rfm_run_parameters_are_typed_and_reach_every_node_that_has_them(tmp_path):
     """`rfm run` passes the matcher and mapper the monocular range error exactly when the
-    detector judges distance from RGB alone; --param still overrides it."""
+    detector judges distance from RGB alone; --param still overrides it. A --param is checked
+    against the node's configuration: typed, ranged, and without a node name it goes to every
+    node that declares it (the matcher's and the mapper's matching settings)."""
     from rfm_bringup.cli import build_parser
     from rfm_bringup.run import _params
     from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
@@ -67,9 +70,22 @@ def test_rfm_run_gives_an_rgb_only_detector_along_ray_errors(tmp_path):
                        tmp_path)
     rgb = params('--preset', 'rgb')
     for node in ('matcher', 'mapper'):
-        assert (rgb[node]['range_error'], rgb[node]['range_error_per_m']) == MONOCULAR_RANGE_ERROR
-    assert 'range_error' not in params('--preset', 'rgbd')['matcher']
-    assert params('--preset', 'rgb', '--param', 'matcher.range_error:=0.05')['matcher']['range_error'] == 0.05
+        assert (rgb[node]['matching.range_error'], rgb[node]['matching.range_error_per_m']) == MONOCULAR_RANGE_ERROR
+    assert 'matching.range_error' not in params('--preset', 'rgbd')['matcher']
+    one = params('--preset', 'rgb', '--param', 'matcher.matching.range_error:=0.05')
+    assert (one['matcher']['matching.range_error'], one['mapper']['matching.range_error']) == (0.05, 0.03)
+    # a name without a node goes to every node that has the parameter, typed as declared
+    both = params('--param', 'matching.inlier_iou:=0.3', 'averaging.rounds:=4', 'detector.gravity:=[0,0,1]')
+    assert both['matcher']['matching.inlier_iou'] == both['mapper']['matching.inlier_iou'] == 0.3
+    assert 'averaging.rounds' not in both['matcher'] and both['mapper']['averaging.rounds'] == 4
+    assert both['detector']['gravity'] == [0.0, 0.0, 1.0]
+    assert isinstance(params('--param', 'keyframes.max_yaw_deg:=25')['matcher']['keyframes.max_yaw_deg'], float)
+    for bad, says in (('matching.inlier_iu:=0.3', 'did you mean matching.inlier_iou'),
+                      ('mapper.keyframes.min_overlap:=0.3', 'NODE.NAME'),
+                      ('matching.inlier_iou:=2', 'outside [0.0, 1.0]'),
+                      ('mapper.mode:=flying', "'flying' is not one of mapping, localization")):
+        with pytest.raises(SystemExit, match=re.escape(says)):
+            params("--param", bad)
     with pytest.raises(SystemExit):
         params('--preset', 'sonar')
 

@@ -33,7 +33,7 @@ def generate_launch_description():
         *[DeclareLaunchArgument(name, default_value=default, description=text)
           for name, (default, text) in ARGS.items()],
         Node(package='rfm_detector_node', executable='detector', name='detector', output='screen',
-             parameters=[{'backend': cfg['backend'], 'cutr_checkpoint': cfg['cutr_checkpoint'], **sim}],
+             parameters=[{'backend': cfg['backend'], 'cutr.checkpoint': cfg['cutr_checkpoint'], **sim}],
              remappings=[('rgb/image', cfg['color']), ('rgb/camera_info', cfg['camera_info']),
                          ('depth/image', cfg['depth']), ('imu', cfg['imu']),
                          ('ground_truth/detections', '/ground_truth/detections')]),

@@ -426,6 +426,32 @@ def replace_capture(config):
     return replace(config, capture='handheld')
 
 
+def cmd_params(args) -> int:
+    """The nodes' parameters (rfm_core.config) as tables; --readme rewrites a README's."""
+    from rfm_core.config import NODES, node_settings, update_parameter_tables  # noqa: PLC0415
+    from rfm_core.settings import markdown_table  # noqa: PLC0415
+
+    if args.readme:
+        path = Path(args.readme)
+        text = path.read_text()
+        new = update_parameter_tables(text)
+        if args.check:
+            if new != text:
+                print(f'rfm params: the parameter tables of {path} are out of date: rfm params --readme {path}')
+                return 1
+            return 0
+        path.write_text(new)
+        print(f'rfm params: {path}: parameter tables {"updated" if new != text else "already up to date"}')
+        return 0
+    for node in args.nodes or NODES:
+        try:
+            table = markdown_table(node_settings(node))
+        except ValueError as exc:
+            raise SystemExit(f'rfm params: {exc}') from None
+        print(f'## {node}\n\n{table}')
+    return 0
+
+
 def cmd_run(args) -> int:
     """The detector -> matcher -> mapper graph on a bag or a live camera."""
     from rfm_bringup.run import run_graph  # noqa: PLC0415
@@ -566,6 +592,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--jobs', type=int, default=1)
     p.set_defaults(func=cmd_eval_reloc)
 
+    p = sub.add_parser('params', help="the nodes' parameters with defaults and descriptions (markdown)")
+    p.add_argument('nodes', nargs='*', metavar='NODE',
+                   help='detector, matcher and/or mapper (default: all)')
+    p.add_argument('--readme', metavar='FILE', help='rewrite the generated parameter tables of this README')
+    p.add_argument('--check', action='store_true', help='with --readme: only check them (exit 1 if stale)')
+    p.set_defaults(func=cmd_params)
+
     p = sub.add_parser('run', help='run detector -> matcher -> mapper on a bag (--bag) or live camera (--live)')
     p.add_argument('--bag', help='rosbag2 directory to replay (uses /clock and sim time)')
     p.add_argument('--live', action='store_true', help='subscribe to live camera topics until Ctrl-C')
@@ -582,7 +615,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--remap', nargs='+', metavar='FROM:=TO',
                    help='detector input remaps (defaults: RealSense-style /camera/... and /imu/data)')
     p.add_argument('--param', nargs='+', metavar='NODE.NAME:=VALUE',
-                   help='node parameters, e.g. matcher.keyframe_max_translation_m:=0.3')
+                   help='node parameters, e.g. matcher.keyframes.max_translation_m:=0.3 (NODE.NAME), or matching.inlier_iou:=0.3 for every node that has it; rfm params lists them')
     p.add_argument('--settle', type=float, default=3.0,
                    help='after the bag ends, stop once nothing changed for this long (s)')
     p.add_argument('--quiet', action='store_true', help='no progress line')

@@ -12,6 +12,7 @@ runs until Ctrl-C, then writes the same folder.
 from __future__ import annotations
 
 import datetime
+import difflib
 import json
 import os
 import shutil
@@ -35,13 +36,16 @@ OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '
 
 
 def _params(args, output: Path) -> dict:
-    """Parameters of each node from the command line (name: {param: value})."""
+    """Parameters of each node from the command line (name: {param: value}), each checked
+    against the node's configuration (rfm_core.config) and converted to its type."""
+    from rfm_core.config import NODES, node_settings  # noqa: PLC0415
+
     sim_time = bool(args.bag)
     detector = {'backend': args.backend, 'use_sim_time': sim_time}
     if args.backend == 'ground_truth':
-        detector['ground_truth_preset'] = args.preset
+        detector['ground_truth.preset'] = args.preset
     if args.cutr_checkpoint:
-        detector['cutr_checkpoint'] = args.cutr_checkpoint
+        detector['cutr.checkpoint'] = args.cutr_checkpoint
     matcher = {'matcher': args.matcher, 'use_sim_time': sim_time}
     mapper = {'map_path': str(output / 'map.rfm'), 'use_sim_time': sim_time, 'matcher': args.matcher}
     if args.posed:
@@ -50,17 +54,26 @@ def _params(args, output: Path) -> dict:
         from rfm_core.matching.config import MONOCULAR_RANGE_ERROR  # noqa: PLC0415
 
         for node in (matcher, mapper):      # distances misjudged along the viewing rays
-            node['range_error'], node['range_error_per_m'] = MONOCULAR_RANGE_ERROR
+            node['matching.range_error'], node['matching.range_error_per_m'] = MONOCULAR_RANGE_ERROR
     nodes = {'detector': detector, 'matcher': matcher, 'mapper': mapper}
+    declared = {node: {s.name: s for s in node_settings(node)} for node in NODES}
     for item in args.param or []:
-        try:
-            name, value = item.split(':=', 1)
-            node, param = name.split('.', 1)
-        except ValueError:
-            raise SystemExit(f'rfm run: --param {item!r}: expected NODE.NAME:=VALUE') from None
-        if node not in nodes:
-            raise SystemExit(f'rfm run: --param {item!r}: node must be one of {sorted(nodes)}')
-        nodes[node][param] = _parse_value(value)
+        name, sep, value = item.partition(':=')
+        node, _, param = name.partition('.')
+        targets = [node] if node in nodes and param else [n for n in NODES if name in declared[n]]
+        param = param if node in nodes and param else name
+        if not sep or not targets or any(param not in declared[n] for n in targets):
+            known = sorted({f'{n}.{p}' for n in NODES for p in declared[n]} | {p for n in NODES for p in declared[n]})
+            close = difflib.get_close_matches(name, known, n=3, cutoff=0.6)
+            raise SystemExit(f'rfm run: --param {item!r}: expected NODE.NAME:=VALUE or NAME:=VALUE (every node '
+                             'with that parameter), NAME a parameter of that node (rfm params lists them)'
+                             + (f'; did you mean {", ".join(close)}?' if close else ''))
+        for n in targets:
+            try:
+                setting = declared[n][param]
+                nodes[n][param] = setting.check(value if setting.kind == 'str' else _parse_value(value))
+            except ValueError as exc:
+                raise SystemExit(f'rfm run: --param {item!r}: {n}.{exc}') from None
     return nodes
 
 
@@ -74,6 +87,13 @@ def _ground_truth_monocular(preset: str) -> bool:
 
 
 def _parse_value(text: str):
+    """A command-line value: a number, true/false, a [list] of numbers, or a string."""
+    text = text.strip()
+    if text.startswith('[') and text.endswith(']'):
+        try:
+            return [float(v) for v in text[1:-1].split(',') if v.strip()]
+        except ValueError:
+            return text
     for cast in (int, float):
         try:
             return cast(text)

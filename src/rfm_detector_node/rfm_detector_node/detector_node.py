@@ -29,97 +29,41 @@ from rfm_msgs.msg import FrameDetections
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from visualization_msgs.msg import MarkerArray
 
+from rfm_core.config import DetectorNodeConfig
 from rfm_core.detection import make_detector
 from rfm_core.detection.base import DetectorInput
 from rfm_core.detection.gravity import GravityFilter
 from rfm_core.geometry import box_corners
 from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import (
-    box_markers_msg, camera_info_intrinsics, frame_detections_from_msg, frame_detections_to_msg, imu_reading,
-    parameter_descriptor, stamp_to_ns,
+    box_markers_msg, camera_info_intrinsics, frame_detections_from_msg, frame_detections_to_msg, imu_reading, stamp_to_ns,
 )
+from rfm_core.io.parameters import declare_config
 from rfm_core.io.sync import ApproximateTimeSynchronizer
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
 
 _TIME_JUMP_NS = 2_000_000_000      # a stamp this much older than the last one: bag looped
 
 
-def _describe(text, lo=None, hi=None, step=None, integer=False):
-    return parameter_descriptor(text, lo, hi, integer=integer)
-
-
 class DetectorNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('detector', **kwargs)
-        p = self.declare_parameter
-        self.backend = p('backend', 'depth_clusters', _describe(
-            'Detector: depth_clusters (RGB-D, no learning), cutr (Cubify Transformer, needs '
-            'cutr_checkpoint), ground_truth (simulator ground truth + noise model, for '
-            'evaluation only)')).value
-        self.score_threshold = p('score_threshold', 0.25, _describe(
-            'Keep detections scoring at least this (paper: 0.25)', 0.0, 1.0)).value
-        self.max_detections = p('max_detections', 100, _describe(
-            'At most this many detections per frame', 1, 1000, integer=True)).value
-        self.stride = p('stride', 2, _describe(
-            'depth_clusters input resolution: use every n-th pixel', 1, 8, integer=True)).value
-        self.depth_score_model = p('depth_score_model', 'default', _describe(
-            "depth_clusters: calibrated score model, 'default' (shipped), a JSON path from "
-            "rfm train-depth-score, or '' for the raw score")).value
-        self.gt_preset = p('ground_truth_preset', 'rgbd', _describe(
-            'ground_truth noise preset: perfect, rgbd, rgb')).value
-        self.gt_seed = p('ground_truth_seed', 0, _describe('ground_truth noise seed')).value
-        self.device = p('device', 'cpu', _describe('Torch device for learned backends: cpu or cuda')).value
-        self.cutr_checkpoint = p('cutr_checkpoint', '', _describe(
-            'cutr: path to cutr_rgb.pth or cutr_rgbd.pth (not shipped: research licence)')).value
-        self.cutr_max_side = p('cutr_max_side_px', 1024, _describe(
-            'cutr: resize so the long image side is at most this', 64, 1024, integer=True)).value
-        self.every_nth = p('every_nth_frame', 1, _describe(
-            'Process one synchronised frame in n', 1, 100, integer=True)).value
-        self.image_transport = p('image_transport', 'raw', _describe(
-            "Colour image transport: 'raw' (rgb/image, sensor_msgs/Image) or 'compressed' "
-            '(rgb/image/compressed, sensor_msgs/CompressedImage: JPEG or PNG)')).value
-        queue = p('queue_size', 10, _describe('Synchroniser queue per input', 1, 100, integer=True)).value
-        slop = p('sync_slop_s', 0.05, _describe(
-            'Max stamp difference between image, camera_info and depth (s)', 0.0, 1.0)).value
-        self.gravity_source = p('gravity_source', 'imu', _describe(
-            "Gravity from 'imu' (low-pass of the accelerometer) or 'parameter'")).value
-        gravity = p('gravity', [0.0, 1.0, 0.0], _describe(
-            'Gravity ("down") in the camera optical frame when gravity_source is parameter')).value
-        tau = p('imu_tau_s', 1.0, _describe(
-            'Gravity filter time constant (s): the gyroscope carries the estimate between '
-            'accelerometer corrections', 0.01, 10.0)).value
-        self.imu_max_age_s = p('imu_max_age_s', 1.0, _describe(
-            'Drop frames when the last IMU sample is older than this (s)', 0.01, 60.0)).value
-        self.imu_wait_s = p('imu_wait_s', 0.05, _describe(
-            'Wait up to this long for IMU samples up to a frame\'s stamp (s)', 0.0, 1.0)).value
-        self.publish_markers = p('publish_markers', True, _describe(
-            'Publish rfm/detection_markers (boxes as line lists with score labels)')).value
-        self.diagnostics_period = p('diagnostics_period_s', 1.0, _describe(
-            'Period of /diagnostics (s)', 0.1, 60.0)).value
-
-        options = {'score_threshold': self.score_threshold, 'max_detections': self.max_detections}
-        if self.backend == 'depth_clusters':
-            options.update(stride=self.stride, score_model=self.depth_score_model)
-        elif self.backend == 'ground_truth':
-            options.update(preset=self.gt_preset, seed=self.gt_seed)
-        elif self.backend == 'cutr':
-            options.update(checkpoint=self.cutr_checkpoint, device=self.device,
-                           max_side_px=self.cutr_max_side)
-        self.detector = make_detector(self.backend, **options)
+        self.config = cfg = declare_config(self, DetectorNodeConfig())
+        self.backend, self.every_nth, self.image_transport = cfg.backend, cfg.every_nth_frame, cfg.image_transport
+        self.gravity_source, self.imu_max_age_s, self.imu_wait_s = cfg.gravity_source, cfg.imu_max_age_s, cfg.imu_wait_s
+        self.publish_markers, self.diagnostics_period = cfg.publish_markers, cfg.diagnostics_period_s
+        self.detector = make_detector(self.backend, cfg.backend_config())
         if self.detector.monocular:
             error, per_m = MONOCULAR_RANGE_ERROR
             self.get_logger().info(
                 f'{self.backend} judges distance from RGB alone: give the matcher and mapper '
-                f'range_error:={error} range_error_per_m:={per_m} (rfm run does for ground_truth rgb)')
-        if self.image_transport not in ('raw', 'compressed'):
-            raise ValueError("image_transport must be 'raw' or 'compressed'")
-        self.fixed_gravity = np.asarray(gravity, dtype=np.float64)
-        if self.gravity_source not in ('imu', 'parameter'):
-            raise ValueError("gravity_source must be 'imu' or 'parameter'")
+                f'matching.range_error:={error} matching.range_error_per_m:={per_m} (rfm run does for '
+                'ground_truth rgb)')
+        self.fixed_gravity = np.asarray(cfg.gravity, dtype=np.float64)
         if self.gravity_source == 'parameter' and np.linalg.norm(self.fixed_gravity) < 1e-6:
             raise ValueError('gravity parameter must be a non-zero 3-vector')
-        self.gravity_filter = GravityFilter(tau_s=tau)
+        self.gravity_filter = GravityFilter(tau_s=cfg.imu_tau_s)
 
         self.counts = dict(received=0, processed=0, published=0, dropped_busy=0,
                            dropped_invalid=0, dropped_no_gravity=0, dropped_out_of_order=0,
@@ -145,7 +89,7 @@ class DetectorNode(Node):
         else:
             self.uses_depth = self.detector.needs_depth
             n = 3 if self.uses_depth else 2
-            self.sync = ApproximateTimeSynchronizer(n, int(slop * 1e9), queue, self._on_synced)
+            self.sync = ApproximateTimeSynchronizer(n, int(cfg.sync_slop_s * 1e9), cfg.queue_size, self._on_synced)
             if self.image_transport == 'compressed':
                 colour = 'rgb/image/compressed'
                 self.create_subscription(CompressedImage, colour, lambda m: self._add(0, m), sensor)

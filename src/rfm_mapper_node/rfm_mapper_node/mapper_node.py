@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -29,34 +30,22 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from rfm_core.geometry import Pose4, box_corners
+from rfm_core.config import MapperNodeConfig
 from rfm_core.io.messages import (
-    box_markers_msg, declare_range_error, frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, parameter_descriptor, pose_stamped_msg,
+    box_markers_msg, frame_detections_from_msg, matrix_to_pose, ns_to_stamp, object_map_msg, pose_stamped_msg,
     pose_to_matrix, stamp_to_ns, tracked_frame_from_msg, transform_stamped_msg, vector3_to_numpy,
 )
-from rfm_core.mapping.averaging import AveragingConfig
+from rfm_core.io.parameters import declare_config
 from rfm_core.mapping.map_io import MapFileError, load_map, save_map
-from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig, camera_to_map
-from rfm_core.observations import FrameTrack
-from rfm_core.mapping.tracks import TrackConfig, track_colour
-from rfm_core.matching.config import MatchingConfig
+from rfm_core.mapping.mapper import EdgeRecord, Mapper, camera_to_map
+from rfm_core.mapping.tracks import track_colour
 from rfm_core.matching.factory import make_matcher
+from rfm_core.observations import FrameTrack
 
 try:                                               # tf2_ros is optional (pip installs lack it)
     from tf2_ros import TransformBroadcaster
 except ImportError:                                # pragma: no cover - depends on the install
     TransformBroadcaster = None
-
-def _float(text, lo, hi):
-    return parameter_descriptor(text, lo, hi)
-
-
-def _int(text, lo, hi):
-    return parameter_descriptor(text, lo, hi, integer=True)
-
-
-def _text(text, read_only=False):
-    return parameter_descriptor(text, read_only=read_only)
-
 
 def _colour(track_id: int) -> tuple:
     """RGBA of a track's markers: its picture colour, lightened."""
@@ -81,76 +70,21 @@ class MapperNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('mapper', **kwargs)
-        p = self.declare_parameter
-        a, t, m = AveragingConfig(), TrackConfig(), MatchingConfig()
-        self.map_frame = p('map_frame', 'map', _text('Frame of the map (gravity-aligned, z up)')).value
-        self.publish_tf = p('publish_tf', True, _text(
-            'Broadcast map -> camera frame of the latest registered keyframe on /tf')).value
-        self.tf_child = p('tf_child_frame', '', _text(
-            'Child frame of that transform; empty: the keyframes\' camera optical frame')).value
-        self.idle_full_solve_s = p('idle_full_solve_s', 1.0, _float(
-            'Once no keyframe or edge has arrived for this long after incremental updates, re-solve '
-            'all poses at once (the incremental solve re-solves a window of recent keyframes); 0: never',
-            0.0, 3600.0)).value
-        self.map_period = p('map_publish_period_s', 1.0, _float(
-            'Rebuild and publish the object map at most this often (s)', 0.05, 60.0)).value
-        self.map_cpu_share = p('map_max_cpu_share', 0.2, _float(
-            'Rebuilding the object map (tracks, merging) may take at most this share of the time: '
-            'a map that takes 0.3 s to build is published at most every 1.5 s at 0.2', 0.01, 1.0)).value
-        self.map_path = p('map_path', str(Path(os.environ.get('ROS_HOME', '~/.ros')) / 'rfm' / 'map.rfm'),
-                          _text('Map file of save_map / load_map requests with an empty path, and '
-                                'of autosave')).value
-        self.autosave_every = p('autosave_every_n_keyframes', 10, _int(
-            'Save the map to map_path every n new keyframes (0: never)', 0, 100000)).value
-        load_on_start = p('load_map_on_start', False, _text('Load map_path at start-up', True)).value
-        mode = p('mode', 'mapping', _text("Start in 'mapping' or 'localization' mode")).value
-        self.pose_source = p('pose_source', '', _text(
-            "Posed mode: '' (un-posed: averaging), 'topic' (rfm/external_pose, PoseStamped of the "
-            "camera in the map frame) or 'tf' (map_frame -> camera frame lookups)", True)).value
-        averaging = AveragingConfig(
-            rounds=p('averaging_rounds', a.rounds, _int('Outlier-removal rounds (paper: 3)', 1, 20)).value,
-            max_yaw_residual_deg=p('max_yaw_residual_deg', a.max_yaw_residual_deg, _float(
-                'Drop edges whose yaw disagrees by more (deg, paper: 3)', 0.1, 180)).value,
-            max_translation_residual_m=p('max_translation_residual_m', a.max_translation_residual_m, _float(
-                'Drop edges whose translation disagrees by more (m, paper: 0.10)', 0.001, 10)).value,
-            window=p('averaging_window', a.window, _int(
-                'Keyframes re-solved per incremental update', 1, 100000)).value,
-            full_every=p('full_solve_every', a.full_every, _int(
-                'Full re-solve every n keyframes (0: only when a loop closes)', 0, 100000)).value,
-            gyro_yaw_weight=p('gyro_yaw_weight', a.gyro_yaw_weight, _float(
-                "Weight of the gyroscope's yaw between consecutive keyframes of a stream in yaw "
-                'averaging, in verified objects (0: boxes alone decide the yaw)', 0, 1000)).value)
-        tracks = TrackConfig(
-            merge_affinity=p('merge_affinity', t.merge_affinity, _float(
-                'Merge duplicate tracks above this affinity (paper: 0.25)', 0, 2)).value,
-            suppress_iou=p('suppress_iou', t.suppress_iou, _float(
-                'Suppress an unmerged track overlapping a stronger one above this IoU3D (paper: 0.15)',
-                0, 1)).value,
-            min_observations=p('min_observations', t.min_observations, _int(
-                'Publish tracks seen in at least this many keyframes', 1, 1000)).value)
-        matching = MatchingConfig(
-            match_threshold=p('match_threshold', m.match_threshold, _float(
-                'Relocalization: object match threshold (paper: 0.5)', 0, 1)).value,
-            **declare_range_error(self, 'Relocalization: '))
-        kind = p('matcher', 'learned', _text(
-            "Relocalization object matcher: 'learned' or 'classical'", True)).value
-        weights = p('matcher_weights', '', _text('Learned matcher checkpoint; empty: shipped', True)).value
-        bundle = p('bundle_adjustment', False, _text(
-            'Refine object boxes by partial bundle adjustment against their projected corners (paper '
-            '3.6; helps monocular RGB detectors when poses are good)')).value
-        config = MapperConfig(averaging=averaging, tracks=tracks, matching=matching,
-                              posed=bool(self.pose_source), bundle_adjustment=bool(bundle))
-        if self.pose_source not in ('', 'topic', 'tf'):
-            raise ValueError("pose_source must be '', 'topic' or 'tf'")
-        if mode not in ('mapping', 'localization'):
-            raise ValueError("mode must be 'mapping' or 'localization'")
+        self.config = cfg = declare_config(self, MapperNodeConfig())
+        self.map_frame, self.publish_tf, self.tf_child = cfg.map_frame, cfg.publish_tf, cfg.tf_child_frame
+        self.idle_full_solve_s = cfg.idle_full_solve_s
+        self.map_period, self.map_cpu_share = cfg.map_publish_period_s, cfg.map_max_cpu_share
+        self.map_path = cfg.map_path or str(Path(os.environ.get('ROS_HOME', '~/.ros')) / 'rfm' / 'map.rfm')
+        self.autosave_every = cfg.autosave_every_n_keyframes
+        self.pose_source = cfg.pose_source
+        config = replace(cfg.mapper, posed=bool(self.pose_source))
         try:
-            matcher = make_matcher(kind, matching, weights or None,
+            matcher = make_matcher(cfg.matcher, config.matching, cfg.matcher_weights or None,
                                    on_fallback=lambda msg: self.get_logger().warning(msg))
         except FileNotFoundError as exc:
             raise ValueError(str(exc)) from exc
         self.mapper = Mapper(config, matcher=matcher)
-        self.mapper.mode = mode
+        self.mapper.mode = mode = cfg.mode
 
         self.pending_edges: list = []        # edges whose keyframes have not arrived yet
         self.pending_keyframes: list = []    # posed mode: keyframes waiting for a pose
@@ -210,7 +144,7 @@ class MapperNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(0.1, self._tick, clock=steady)
         self.create_timer(1.0, self._publish_status, clock=steady)
-        if load_on_start:
+        if cfg.load_map_on_start:
             try:
                 header = self._load(self.map_path)
                 self.get_logger().info(f'loaded {self.map_path}: {header["keyframes"]} keyframes')

@@ -8,6 +8,8 @@ Backends:
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput
 
 __all__ = ['BACKENDS', 'Detector', 'DetectorConfig', 'DetectorInput', 'make_detector', 'detector_for_spec']
@@ -15,18 +17,23 @@ __all__ = ['BACKENDS', 'Detector', 'DetectorConfig', 'DetectorInput', 'make_dete
 BACKENDS = ('depth_clusters', 'ground_truth', 'cutr')
 
 
-def make_detector(backend: str, **options) -> Detector:
-    """A detector by name; ``options`` are fields of that backend's config dataclass."""
+def make_detector(backend: str, config: DetectorConfig | None = None, **options) -> Detector:
+    """A detector by name, from that backend's config dataclass (``config``) and/or
+    ``options`` (fields of it, replacing ``config``'s)."""
     if backend == 'depth_clusters':
-        from rfm_core.detection.depth_clusters import DepthClustersConfig, DepthClustersDetector
-        return DepthClustersDetector(DepthClustersConfig(**options))
-    if backend == 'ground_truth':
-        from rfm_core.detection.ground_truth import GroundTruthConfig, GroundTruthDetector
-        return GroundTruthDetector(GroundTruthConfig(**options))
-    if backend == 'cutr':
-        from rfm_core.detection.cutr import CutrConfig, CutrDetector
-        return CutrDetector(CutrConfig(**options))
-    raise ValueError(f'unknown detector backend {backend!r}; choose one of {BACKENDS}')
+        from rfm_core.detection.depth_clusters import DepthClustersConfig as Config
+        from rfm_core.detection.depth_clusters import DepthClustersDetector as Detector_
+    elif backend == 'ground_truth':
+        from rfm_core.detection.ground_truth import GroundTruthConfig as Config
+        from rfm_core.detection.ground_truth import GroundTruthDetector as Detector_
+    elif backend == 'cutr':
+        from rfm_core.detection.cutr import CutrConfig as Config
+        from rfm_core.detection.cutr import CutrDetector as Detector_
+    else:
+        raise ValueError(f'unknown detector backend {backend!r}; choose one of {BACKENDS}')
+    if config is not None and not isinstance(config, Config):
+        raise TypeError(f'{backend} needs a {Config.__name__}, got {type(config).__name__}')
+    return Detector_(replace(config, **options) if config is not None else Config(**options))
 
 
 def detector_for_spec(spec: str, noise_seed: int = 0) -> Detector:

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rfm_core.observations import CameraIntrinsics, FrameObservations
+from rfm_core.settings import setting
 
 __all__ = ['DetectorInput', 'DetectorConfig', 'Detector', 'finalize']
 
@@ -42,12 +43,13 @@ class DetectorInput:
                 raise ValueError('depth image has no valid pixels')
 
 
-@dataclass
+@dataclass(frozen=True)
 class DetectorConfig:
     """Settings common to every backend (paper defaults)."""
 
-    score_threshold: float = 0.25         #: paper: 0.25 on CA-1M
-    max_detections: int = 100
+    score_threshold: float = setting(0.25, 'Keep detections scoring at least this', lo=0.0, hi=1.0,
+                                     paper='0.25 on CA-1M')
+    max_detections: int = setting(100, 'At most this many detections per frame (the best scores)', lo=1, hi=1000)
 
 
 class Detector:

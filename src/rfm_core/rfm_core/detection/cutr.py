@@ -15,6 +15,7 @@ import numpy as np
 from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput, finalize
 from rfm_core.geometry import boxes_from_oriented, gravity_aligned_rotation
 from rfm_core.observations import FrameObservations
+from rfm_core.settings import setting
 
 __all__ = ['CutrConfig', 'CutrDetector', 'load_cutr']
 
@@ -23,11 +24,12 @@ _HOW_TO_GET = ('The CuTR weights (cutr_rgb.pth / cutr_rgbd.pth) are released by 
                'shipped with rfm: download them there and set the checkpoint parameter to the file.')
 
 
-@dataclass
+@dataclass(frozen=True)
 class CutrConfig(DetectorConfig):
-    checkpoint: str = ''          #: path to cutr_rgb.pth or cutr_rgbd.pth
-    device: str = 'cpu'           #: torch device: cpu, cuda, cuda:1, ...
-    max_side_px: int = 1024       #: resize so the long image side is at most this (<= 1024)
+    checkpoint: str = setting('', 'Path to cutr_rgb.pth or cutr_rgbd.pth (not shipped: research licence; the '
+                              'variant is read from the file)', read_only=True)
+    device: str = setting('cpu', 'Torch device: cpu, cuda, cuda:1, ...', read_only=True)
+    max_side_px: int = setting(1024, 'Resize so the long image side is at most this (px)', lo=32, hi=1024)
 
 
 def load_cutr(path, device: str = 'cpu'):

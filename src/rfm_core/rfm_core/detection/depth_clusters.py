@@ -19,7 +19,7 @@ Works on any registered RGB-D stream with gravity; it never reads instance ids.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
@@ -28,40 +28,45 @@ from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput, fin
 from rfm_core.detection.score_model import DEFAULT_SCORE_MODEL, box_features, load_score_model
 from rfm_core.geometry import gravity_aligned_rotation
 from rfm_core.observations import FrameObservations
+from rfm_core.settings import setting
 
 __all__ = ['DepthClustersConfig', 'DepthClustersDetector', 'EMBEDDING_DIM']
 
 EMBEDDING_DIM = 24
 
 
-@dataclass
+@dataclass(frozen=True)
 class DepthClustersConfig(DetectorConfig):
-    stride: int = 2                       #: use every stride-th pixel (input resolution)
-    min_depth_m: float = 0.2
-    max_depth_m: float = 6.0
-    surface_tolerance_m: float = 0.04     #: floor / ceiling / wall inlier distance at 0 m ...
-    depth_noise_per_m2: float = 0.002       #: ... plus this x range^2 (depth error growth)
-    wall_min_height_m: float = 1.0        #: a wall spans at least this much vertically
-    wall_max_behind: float = 0.03         #: fraction of points allowed behind a wall
-    max_walls: int = 4
-    ransac_iterations: int = 120
-    voxel_m: float = 0.04                 #: clustering connectivity
-    min_cluster_points: int = 25          #: after striding
-    support_min_points: int = 20          #: upward-facing points that make a support surface
-    floor_snap_m: float = 0.3             #: extend boxes down to the floor within this, or
-                                          #: from any height when an occluder hides the bottom
-    occluder_gap_m: float = 0.1           #: an occluder is this much nearer than the object
-    wall_snap_m: float = 0.5              #: extend unseen backs to a wall within this
-    amodal_min_depth_m: float = 0.3       #: a box whose back is unseen gets the depth of its
-    amodal_max_depth_m: float = 0.7       #: visible width (footprints are rarely slabs), clipped
-    truncated_score_factor: float = 0.6   #: score multiplier of boxes cut by the image border
-    #: calibrated score (rfm_core.detection.score_model): path of a model, 'default' for the
-    #: shipped one, '' for the raw score (points x shape x truncation)
-    score_model: str = 'default'
-    refine_gravity: bool = True           #: align gravity with the floor plane when visible
-    max_gravity_correction_deg: float = 6.0   #: ... if it is within this of the input gravity
-    seed: int = 0                         #: RANSAC sampling
-    extra: dict = field(default_factory=dict)
+    stride: int = setting(2, 'Input resolution: use every n-th pixel', lo=1, hi=8)
+    min_depth_m: float = setting(0.2, 'Ignore depth nearer than this (m)', lo=0.0, hi=10.0)
+    max_depth_m: float = setting(6.0, 'Ignore depth farther than this (m)', lo=0.1, hi=100.0)
+    surface_tolerance_m: float = setting(0.04, 'Floor / ceiling / wall inlier distance at 0 m (m) ...',
+                                         lo=0.001, hi=1.0)
+    depth_noise_per_m2: float = setting(0.002, '... plus this x range^2 (depth error growth, 1/m)', lo=0.0, hi=1.0)
+    wall_min_height_m: float = setting(1.0, 'A wall spans at least this much vertically (m)', lo=0.1, hi=10.0)
+    wall_max_behind: float = setting(0.03, 'Share of points allowed behind a wall', lo=0.0, hi=1.0)
+    max_walls: int = setting(4, 'Walls removed per frame', lo=0, hi=20)
+    ransac_iterations: int = setting(120, 'RANSAC iterations per plane', lo=1, hi=10000)
+    voxel_m: float = setting(0.04, 'Clustering connectivity (m)', lo=0.005, hi=1.0)
+    min_cluster_points: int = setting(25, 'Least points of a cluster (after striding)', lo=1, hi=100000)
+    support_min_points: int = setting(20, 'Upward-facing points that make a support surface', lo=1, hi=100000)
+    floor_snap_m: float = setting(0.3, 'Extend boxes down to the floor within this (m), or from any height when '
+                                  'an occluder hides the bottom', lo=0.0, hi=5.0)
+    occluder_gap_m: float = setting(0.1, 'An occluder is this much nearer than the object (m)', lo=0.0, hi=5.0)
+    wall_snap_m: float = setting(0.5, "Extend a box's unseen back to a wall within this (m)", lo=0.0, hi=5.0)
+    amodal_min_depth_m: float = setting(0.3, 'A box whose back is unseen gets the depth of its visible width '
+                                        '(footprints are rarely slabs), clipped to at least this (m) ...',
+                                        lo=0.0, hi=5.0)
+    amodal_max_depth_m: float = setting(0.7, '... and at most this (m)', lo=0.0, hi=5.0)
+    truncated_score_factor: float = setting(0.6, 'Score multiplier of boxes cut by the image border',
+                                            lo=0.0, hi=1.0)
+    score_model: str = setting('default', "Calibrated score (rfm_core.detection.score_model): 'default' for the "
+                               "shipped model, a JSON path from rfm train-depth-score, or '' for the raw score "
+                               '(points x shape x truncation)')
+    refine_gravity: bool = setting(True, 'Align gravity with the floor plane when visible')
+    max_gravity_correction_deg: float = setting(6.0, '... if it is within this of the input gravity (deg)',
+                                                lo=0.0, hi=90.0)
+    seed: int = setting(0, 'RANSAC sampling seed', lo=0, hi=2**31 - 1)
 
 
 def _normals(points: np.ndarray, step: int = 1) -> np.ndarray:

@@ -31,6 +31,7 @@ import numpy as np
 from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput, finalize
 from rfm_core.geometry import wrap_angle
 from rfm_core.observations import FrameObservations
+from rfm_core.settings import setting
 
 __all__ = ['GroundTruthNoise', 'PRESETS', 'GroundTruthConfig', 'GroundTruthDetector', 'EMBEDDING_DIM']
 
@@ -72,11 +73,11 @@ def _base_embedding(label: str, size) -> np.ndarray:
     return v / np.linalg.norm(v)
 
 
-@dataclass
+@dataclass(frozen=True)
 class GroundTruthConfig(DetectorConfig):
-    preset: str = 'rgbd'
-    noise: GroundTruthNoise | None = None    #: overrides the preset when given
-    seed: int = 0
+    preset: str = setting('rgbd', 'Noise model of the simulated detections', choices=PRESETS)
+    noise: GroundTruthNoise | None = setting(None, 'Overrides the preset when given', ros=False)
+    seed: int = setting(0, 'Seed of the simulated detection noise', lo=0, hi=2**31 - 1)
 
 
 class GroundTruthDetector(Detector):

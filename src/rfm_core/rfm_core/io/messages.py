@@ -18,12 +18,11 @@ from rfm_core.geometry import (
     BOX_EDGES, Pose4, boxes_from_oriented, gravity_aligned_rotation, matrix_from_quaternion,
     oriented_from_boxes, quaternion_from_matrix,
 )
-from rfm_core.matching.config import MONOCULAR_RANGE_ERROR, MatchingConfig
 from rfm_core.observations import CameraIntrinsics, FrameObservations, FrameTrack
 
 __all__ = [
     'ROS', 'RosMessages', 'BagMessages', 'ros_message_class', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
-    'camera_info_msg', 'imu_msg', 'object_map_msg', 'box_markers_msg', 'parameter_descriptor', 'declare_range_error',
+    'camera_info_msg', 'imu_msg', 'object_map_msg', 'box_markers_msg',
     'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
@@ -206,37 +205,6 @@ def object_map_msg(boxes, labels, ids, stamp_ns: int, frame_id: str = 'map', sco
             observation_indices=np.zeros(0, dtype=np.uint32)))
     return make('rfm_msgs/msg/ObjectMap', header=header(make, stamp_ns, frame_id),
                 revision=int(revision), objects=objects)
-
-
-def parameter_descriptor(text: str, lo=None, hi=None, integer: bool = False, read_only: bool = False,
-                         make=ROS):
-    """rcl_interfaces/ParameterDescriptor: a description and optionally a range."""
-    fields = {'description': text, 'read_only': read_only}
-    if lo is not None and integer:
-        fields['integer_range'] = [make('rcl_interfaces/msg/IntegerRange', from_value=int(lo), to_value=int(hi),
-                                        step=1)]
-    elif lo is not None:
-        fields['floating_point_range'] = [make('rcl_interfaces/msg/FloatingPointRange', from_value=float(lo),
-                                               to_value=float(hi), step=0.0)]
-    return make('rcl_interfaces/msg/ParameterDescriptor', **fields)
-
-
-def declare_range_error(node, purpose: str = '') -> dict:
-    """Declare the along-ray error parameters a matcher and a mapper share (``range_error``,
-    ``range_error_per_m``) on ``node``; returns them as MatchingConfig fields. ``purpose``
-    prefixes the descriptions (e.g. 'Relocalization: ')."""
-    default, (error, per_m) = MatchingConfig(), MONOCULAR_RANGE_ERROR
-    return {
-        'refine_range_error': node.declare_parameter('range_error', default.refine_range_error, parameter_descriptor(
-            f"{purpose}Relative error of the detector's distances along the viewing ray: 0 for a depth "
-            f'sensor; an RGB-only detector (cutr RGB, ground_truth rgb) misjudges distance, ~{error}: '
-            'verification then lets a box slide along its ray by that much and the pose refit '
-            'weights each match by its along-ray covariance', 0, 1)).value,
-        'refine_range_error_per_m': node.declare_parameter(
-            'range_error_per_m', default.refine_range_error_per_m, parameter_descriptor(
-                f'{purpose}... growing by this per metre of range (~{per_m} for an RGB-only detector)',
-                0, 1)).value,
-    }
 
 
 def stamp_to_ns(stamp) -> int:

@@ -35,6 +35,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 
 from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.settings import setting
 
 __all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager',
            'largest_component']
@@ -42,19 +43,24 @@ __all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAv
 
 @dataclass(frozen=True)
 class AveragingConfig:
-    rounds: int = 3                          #: outlier-removal rounds of each stage (paper: 3)
-    max_yaw_residual_deg: float = 3.0        #: drop edges disagreeing by more (paper: 3 deg)
-    max_translation_residual_m: float = 0.10  #: ... or by more than this (paper: 10 cm)
-    yaw_scale_deg: float = 1.0               #: robust (Cauchy) loss scale of yaw residuals
-    translation_scale_m: float = 0.03        #: ... and of translation residuals
-    iterations: int = 8                      #: Gauss-Newton / IRLS iterations per round
-    window: int = 30                         #: incremental: keyframes re-solved per update
-    full_every: int = 100                    #: incremental: full re-solve every n keyframes (0: never)
-    loop_min_edges: int = 2                  #: incremental: full re-solve once this many edges to
-                                             #: keyframes outside the window disagree
-    gyro_yaw_weight: float = 10.0            #: yaw-only edge from the gyroscope between consecutive
-                                             #: keyframes of a stream, weighing as this many verified
-                                             #: objects (0: none)
+    rounds: int = setting(3, 'Outlier-removal rounds of each stage (yaw, then translation)', lo=1, hi=20, paper=3)
+    max_yaw_residual_deg: float = setting(3.0, 'Drop edges whose yaw disagrees with the solution by more (deg)',
+                                          lo=0.1, hi=180.0, paper=3.0)
+    max_translation_residual_m: float = setting(0.10, 'Drop edges whose translation disagrees by more (m)',
+                                                lo=0.001, hi=10.0, paper=0.10)
+    yaw_scale_deg: float = setting(1.0, 'Robust (Cauchy) loss scale of yaw residuals (deg)', lo=0.01, hi=90.0)
+    translation_scale_m: float = setting(0.03, 'Robust (Cauchy) loss scale of translation residuals (m)',
+                                         lo=0.001, hi=10.0)
+    iterations: int = setting(8, 'Gauss-Newton / IRLS iterations per round', lo=1, hi=100)
+    window: int = setting(30, 'Incremental solve: keyframes re-solved per update', lo=1, hi=100000)
+    full_every: int = setting(100, 'Incremental solve: full re-solve every n keyframes (0: only when a loop '
+                              'closes)', lo=0, hi=100000)
+    loop_min_edges: int = setting(2, 'Incremental solve: full re-solve once this many edges to keyframes '
+                                  'outside the window disagree', lo=1, hi=1000)
+    gyro_yaw_weight: float = setting(10.0, "Weight of the gyroscope's yaw between consecutive keyframes of a "
+                                     'stream in yaw averaging, in verified objects (yaw only: it neither '
+                                     'places nor connects keyframes; 0: boxes alone decide the yaw)',
+                                     lo=0.0, hi=1000.0)
 
 
 @dataclass

@@ -12,7 +12,7 @@ frozen; frames are only relocalized). ``posed`` mode takes keyframe poses from o
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,25 +29,35 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import estimate_relative_pose
 from rfm_core.matching.view_graph import bag_of_objects
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
+from rfm_core.settings import from_dict, section, setting
 
-__all__ = ['MapperConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
+__all__ = ['MapperConfig', 'RelocalizationConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
 
 MODES = ('mapping', 'localization')
 
 
 @dataclass(frozen=True)
+class RelocalizationConfig:
+    candidates: int = setting(10, 'Keyframes tried per relocalization query (most similar by bag of objects)',
+                              lo=1, hi=1000)
+    min_inliers: int = setting(2, 'Query objects the agreeing keyframes must verify; raise it to trade recall '
+                               'for fewer wrong poses', lo=1, hi=100,
+                               paper='2 (one keyframe verified by the relative-pose test)')
+    min_keyframe_inliers: int = setting(2, "A keyframe's vote needs this many inliers", lo=1, hi=100)
+
+
+@dataclass(frozen=True)
 class MapperConfig:
-    averaging: AveragingConfig = field(default_factory=AveragingConfig)
-    tracks: TrackConfig = field(default_factory=TrackConfig)
-    matching: MatchingConfig = field(default_factory=MatchingConfig)
-    relocalization_candidates: int = 10      #: keyframes tried per relocalization query
-    #: query objects verified by the agreeing keyframes (paper: one keyframe verified by the
-    #: relative-pose test, i.e. 2; raise it to trade recall for fewer wrong poses)
-    relocalization_min_inliers: int = 2
-    relocalization_min_keyframe_inliers: int = 2  #: a keyframe's vote needs this many inliers
-    posed: bool = False                      #: poses come from outside (set_keyframe_pose)
-    bundle_adjustment: bool = False          #: refine track boxes by partial BA (paper 3.6)
-    bundle: BundleConfig = field(default_factory=BundleConfig)
+    averaging: AveragingConfig = section(AveragingConfig, 'pose averaging (paper 3.5)')
+    tracks: TrackConfig = section(TrackConfig, 'object tracks (paper 3.6)')
+    matching: MatchingConfig = section(MatchingConfig, 'relocalization: object matching and verification '
+                                       "(as the matcher's)")
+    relocalization: RelocalizationConfig = section(RelocalizationConfig, 'relocalization (paper appendix)')
+    posed: bool = setting(False, 'Poses come from outside (set_keyframe_pose)', ros=False)
+    bundle_adjustment: bool = setting(False, 'Refine object boxes by partial bundle adjustment against their '
+                                      'projected corners (paper 3.6; helps monocular RGB detectors when '
+                                      'poses are good)')
+    bundle: BundleConfig = section(BundleConfig, 'bundle adjustment')
 
     def to_dict(self) -> dict:
         """Every setting, nested by stage (stored in map files)."""
@@ -57,33 +67,7 @@ class MapperConfig:
     def from_dict(cls, values: dict) -> 'MapperConfig':
         """From :meth:`to_dict`'s output; settings it lacks keep their defaults, unknown ones
         are ignored (files of other rfm versions). ValueError for a value of the wrong type."""
-        return _from_dict(cls, values)
-
-
-def _from_dict(cls, values):
-    if not isinstance(values, dict):
-        raise ValueError(f'{cls.__name__}: expected a mapping, got {type(values).__name__}')
-    kwargs = {}
-    default = cls()
-    for f in fields(cls):
-        if f.name not in values:
-            continue
-        current, value = getattr(default, f.name), values[f.name]
-        if is_dataclass(current):
-            kwargs[f.name] = _from_dict(type(current), value)
-        elif isinstance(current, bool):
-            if not isinstance(value, bool):
-                raise ValueError(f'{cls.__name__}.{f.name}: expected true/false, got {value!r}')
-            kwargs[f.name] = value
-        elif isinstance(current, (int, float)):
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-                raise ValueError(f'{cls.__name__}.{f.name}: expected a finite number, got {value!r}')
-            if isinstance(current, int) and value != int(value):
-                raise ValueError(f'{cls.__name__}.{f.name}: expected an integer, got {value!r}')
-            kwargs[f.name] = type(current)(value)
-        else:
-            kwargs[f.name] = value
-    return cls(**kwargs)
+        return from_dict(cls, values)
 
 
 @dataclass
@@ -353,12 +337,12 @@ class Mapper:
 
     def relocalize(self, query: FrameObservations) -> Relocalization | None:
         """The paper's procedure, made more robust: match the query against registered
-        keyframes (the ``relocalization_candidates`` most similar by bag-of-objects
+        keyframes (the ``relocalization.candidates`` most similar by bag-of-objects
         descriptor) and verify each relative pose. The paper takes the keyframe with the most
         object inliers; here every keyframe verified with at least
-        ``relocalization_min_keyframe_inliers`` objects votes for its pose; the pose whose
+        ``relocalization.min_keyframe_inliers`` objects votes for its pose; the pose whose
         agreeing keyframes (within the averaging outlier thresholds) verify the most distinct
-        query objects wins, needs ``relocalization_min_inliers`` of them, is averaged over
+        query objects wins, needs ``relocalization.min_inliers`` of them, is averaged over
         the agreeing keyframes and refitted on the map's tracks. ``keyframe_id`` is the
         agreeing keyframe with the most inliers."""
         cfg = self.config
@@ -369,16 +353,16 @@ class Mapper:
         desc = bag_of_objects(query)
         if np.any(desc) and ids and all(self._descriptors[k].size == desc.size for k in ids):
             sims = np.array([self._descriptors[k] @ desc for k in ids])
-            order = np.argsort(-sims)[:cfg.relocalization_candidates]
+            order = np.argsort(-sims)[:cfg.relocalization.candidates]
             candidates = [ids[i] for i in order]
         else:
-            candidates = ids[-cfg.relocalization_candidates:]
+            candidates = ids[-cfg.relocalization.candidates:]
         found = []
         for k in candidates:
             kf = self.keyframes[k]
             matches = self.matcher.match(query, kf)
             rel = estimate_relative_pose(query.boxes, kf.boxes, matches, cfg.matching)
-            if rel is None or len(rel.inliers) < cfg.relocalization_min_keyframe_inliers:
+            if rel is None or len(rel.inliers) < cfg.relocalization.min_keyframe_inliers:
                 continue
             # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
             found.append((k, rel, rel.pose.inverse() @ poses[k]))
@@ -394,7 +378,7 @@ class Mapper:
             seen = {int(iq) for j in agree for iq in found[j][1].inliers[:, 0]}
             supports.append((len(seen), agree))
         total, agree = max(supports, key=lambda s: s[0])
-        if total < cfg.relocalization_min_inliers:
+        if total < cfg.relocalization.min_inliers:
             return None
         best = max(agree, key=lambda j: (len(found[j][1].inliers), -found[j][1].mean_error))
         k, rel, _ = found[best]

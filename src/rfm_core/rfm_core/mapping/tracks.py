@@ -27,21 +27,25 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from rfm_core.geometry import box_corners, giou_3d_paired, iou_3d_paired
+from rfm_core.settings import setting
 
 __all__ = ['TrackConfig', 'Track', 'build_tracks', 'track_colour']
 
 
 @dataclass(frozen=True)
 class TrackConfig:
-    merge_giou_gate: float = -0.6        #: paper: ignore track pairs with GIoU3D below this
-    merge_affinity: float = 0.25         #: paper: merge when the track affinity exceeds this
-    suppress_iou: float = 0.15           #: paper: suppress an unmerged overlapping track
-    min_observations: int = 1            #: tracks with fewer observations are not reported
-    single_view_iou: float = 0.25        #: mutual-IoU term of a track seen once: no evidence of
-                                         #: consistency, so the least a verified second view
-                                         #: would show (the inlier IoU); ranks it below
-                                         #: tracks whose views agree
-    max_pair_observations: int = 6       #: merging: observations per track compared (best scores)
+    merge_giou_gate: float = setting(-0.6, 'Merging: ignore track pairs with GIoU3D below this', lo=-1.0, hi=1.0,
+                                     paper=-0.6)
+    merge_affinity: float = setting(0.25, 'Merge duplicate tracks whose affinity exceeds this', lo=0.0, hi=2.0,
+                                    paper=0.25)
+    suppress_iou: float = setting(0.15, 'Suppress an unmerged track overlapping a stronger one above this '
+                                  'IoU3D', lo=0.0, hi=1.0, paper=0.15)
+    min_observations: int = setting(1, 'Publish tracks seen in at least this many keyframes', lo=1, hi=1000)
+    single_view_iou: float = setting(0.25, 'Mutual-IoU term of a track seen once: no evidence of consistency, so '
+                                     'the least a verified second view would show (the inlier IoU); ranks it '
+                                     'below tracks whose views agree', lo=0.0, hi=1.0)
+    max_pair_observations: int = setting(6, 'Merging: observations per track compared (best scores)',
+                                         lo=1, hi=1000)
 
 
 @dataclass

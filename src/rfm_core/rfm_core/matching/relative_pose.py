@@ -10,7 +10,7 @@ matching error (1 - IoU3D over all matches) wins. Corners of inlier matches that
 the winning pose is refitted on all its inlier matches, weighted by their distance from the
 camera (``refine``), and kept when it still verifies and explains the matches as well.
 
-For a detector that judges distance from RGB alone (``refine_range_error`` > 0), whose
+For a detector that judges distance from RGB alone (``range_error`` > 0), whose
 errors run along the viewing rays, two things change: before its IoU is measured, a
 transferred box may slide along the viewing ray by the distance error the detector is
 expected to make, and the refit is the maximum-likelihood pose under that anisotropic error
@@ -186,14 +186,14 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
 
 def _overlap(moved, b, cfg) -> np.ndarray:
     """IoU3D of transferred boxes with their matches (paired). Under along-ray errors
-    (``refine_range_error``) each transferred box may first slide along frame b's viewing ray,
+    (``range_error``) each transferred box may first slide along frame b's viewing ray,
     scaled about the camera by up to one standard deviation of the two frames' combined
     distance error (as far as it brings the box centres together): a correct match whose
     distance was misjudged by a few percent then still verifies, a box elsewhere does not."""
     if not cfg.along_rays:
         return iou_3d_paired(moved, b)
     cm, cb = moved[:, :3], b[:, :3]
-    tolerance = np.sqrt(2.0) * (cfg.refine_range_error + cfg.refine_range_error_per_m * np.linalg.norm(cb, axis=1))
+    tolerance = np.sqrt(2.0) * (cfg.range_error + cfg.range_error_per_m * np.linalg.norm(cb, axis=1))
     scale = np.einsum('ni,ni->n', cm, cb) / np.maximum(np.einsum('ni,ni->n', cm, cm), 1e-9)
     scaled = moved.copy()
     scaled[:, :6] *= np.clip(scale, 1.0 - tolerance, 1.0 + tolerance)[:, None]
@@ -202,13 +202,13 @@ def _overlap(moved, b, cfg) -> np.ndarray:
 
 def _refit_along_rays(pose: Pose4, ca, cb, cfg) -> Pose4:
     """Maximum-likelihood refit on the box centres of every match consistent with ``pose``
-    under the along-ray error model (``refine_range_error``): a monocular detector's
+    under the along-ray error model (``range_error``): a monocular detector's
     misjudged distance can cost a true match its IoU inlier status, yet its bearing still
     says much; a wrong match loses its say through a Cauchy weight."""
     def cov(points):
         rng = np.linalg.norm(points, axis=1)
         return ray_covariances(points, cfg.refine_sigma_m + cfg.refine_sigma_per_m * rng,
-                               cfg.refine_range_error + cfg.refine_range_error_per_m * rng)
+                               cfg.range_error + cfg.range_error_per_m * rng)
 
     cov_a, cov_b = cov(ca), cov(cb)
     rot = pose.rotation

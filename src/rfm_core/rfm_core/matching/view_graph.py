@@ -33,45 +33,58 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
 from rfm_core.geometry import Pose4, wrap_angle
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
+from rfm_core.settings import setting
 
 __all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'GraphStep', 'ViewGraphBuilder', 'bag_of_objects']
 
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    min_overlap: float = 0.3          #: new keyframe when fewer than this share of objects match
-                                      #: (with the gyroscope checking tracking, 0.3 halves the
-                                      #: keyframes of 0.6 at the same accuracy: BENCHMARKS.md)
-    max_translation_m: float = 0.5    #: ... or when it moved farther than this
-    max_yaw_deg: float = 20.0         #: ... or turned more than this
-    min_detections: int = 2           #: frames with fewer detections are skipped
-    min_interval_s: float = 0.0       #: no new keyframe sooner than this after the last one
-    recent_keyframes: int = 3         #: always match against this many latest keyframes
-    retrieved_keyframes: int = 5      #: plus this many most similar older ones
-    unordered_retrieved_keyframes: int = 15   #: ... for a keyframe that starts a stream
-                                      #: segment (separate views: retrieval finds the overlaps)
-    min_retrieval_similarity: float = 0.3
-    max_frame_gap_s: float = 0.5      #: frames further apart than this are separate views
-                                      #: (a new stream segment): no motion prior between them
-    max_yaw_rate_deg_s: float = 90.0  #: motion prior: an edge turning faster than this ...
-    max_speed_m_s: float = 1.5        #: ... or moving faster (plus the slack below) is rejected
-    motion_slack_deg: float = 10.0    #: allowance on top of rate x time (detector noise)
-    motion_slack_m: float = 0.3
-    max_motion_edge_s: float = 1.0    #: a keyframe that verified nothing, at most this long after the
-                                      #: last tracked frame, is linked by the motion (gyroscope yaw,
-                                      #: position held): no object matches, least averaging weight
-    track_gate_m: float = 0.3         #: tracking: a box matches the keyframe's nearest predicted box
-                                      #: within this (detector noise) plus the distance the camera
-                                      #: can have moved since the previous frame
-    imu_yaw_tolerance_deg: float = 3.0   #: within a stream, a relative pose's yaw may differ from the
-    imu_yaw_drift_deg_s: float = 1.0     #: gyroscope's by this plus this per second between the frames
-                                      #: (the averaging's outlier threshold, plus gyroscope bias)
-    motion_prior: bool = True         #: use the motion prior within stream segments; False
-                                      #: treats every frame as a separate view (stamps mean nothing)
-    min_retrieved_inliers: int = 3    #: edges without the motion prior's check (across segments,
-                                      #: or to retrieved keyframes) need this many verified
-                                      #: objects: two objects verify nothing beyond the minimal
-                                      #: sample, and repeated furniture aliases
+    min_overlap: float = setting(0.3, 'New keyframe when fewer than this share of objects match the last '
+                                 'keyframe (with the gyroscope checking tracking, 0.3 halves the keyframes '
+                                 'of 0.6 at the same accuracy: BENCHMARKS.md)', lo=0.0, hi=1.0)
+    max_translation_m: float = setting(0.5, 'New keyframe after moving this far from the last one (m)',
+                                       lo=0.0, hi=100.0)
+    max_yaw_deg: float = setting(20.0, 'New keyframe after turning this much from the last one (deg)',
+                                 lo=0.0, hi=180.0)
+    min_detections: int = setting(2, 'Skip frames with fewer detections', lo=0, hi=1000)
+    min_interval_s: float = setting(0.0, 'No new keyframe sooner than this after the last one (s; 0: off). '
+                                    'Fewer keyframes cost less matching but lower accuracy (BENCHMARKS.md)',
+                                    lo=0.0, hi=60.0)
+    recent_keyframes: int = setting(3, 'Match a new keyframe against this many latest keyframes', lo=0, hi=100)
+    retrieved_keyframes: int = setting(5, '... plus this many most similar older ones (retrieval)', lo=0, hi=100)
+    unordered_retrieved_keyframes: int = setting(
+        15, 'Retrieved keyframes for a keyframe that starts a stream segment (a separate view: retrieval '
+        'is what finds the overlaps)', lo=0, hi=100)
+    min_retrieval_similarity: float = setting(0.3, 'Retrieval: least bag-of-objects similarity of a '
+                                              'candidate keyframe', lo=0.0, hi=1.0)
+    max_frame_gap_s: float = setting(0.5, 'Frames further apart than this are separate views (photos): no '
+                                     'motion prior between them, and their edges need min_retrieved_inliers '
+                                     'objects; closer frames are one stream', lo=0.01, hi=3600.0)
+    max_yaw_rate_deg_s: float = setting(90.0, 'Motion prior: fastest plausible turn (deg/s)', lo=1.0, hi=3600.0)
+    max_speed_m_s: float = setting(1.5, 'Motion prior: fastest plausible motion (m/s)', lo=0.01, hi=100.0)
+    motion_slack_deg: float = setting(10.0, 'Motion prior: turn allowed on top of rate x time (detector '
+                                      'noise, deg)', lo=0.0, hi=180.0)
+    motion_slack_m: float = setting(0.3, 'Motion prior: motion allowed on top of speed x time (m)',
+                                    lo=0.0, hi=10.0)
+    max_motion_edge_s: float = setting(1.0, 'A keyframe that verified nothing, at most this long after the '
+                                       "last tracked frame, is placed by the gyroscope's yaw and the held "
+                                       'position (no object matches, least averaging weight; 0: never)',
+                                       lo=0.0, hi=60.0)
+    track_gate_m: float = setting(0.3, "Tracking: a box matches the keyframe's box predicted nearest within "
+                                  'this (m, detector noise) plus the distance the camera can have moved',
+                                  lo=0.01, hi=5.0)
+    imu_yaw_tolerance_deg: float = setting(3.0, "Within a stream, a relative pose's yaw may differ from the "
+                                           "gyroscope's by this (deg; the averaging's outlier threshold) ...",
+                                           lo=0.1, hi=180.0)
+    imu_yaw_drift_deg_s: float = setting(1.0, '... plus this per second between the frames (gyroscope bias; '
+                                         'raise it for an uncalibrated IMU)', lo=0.0, hi=90.0)
+    motion_prior: bool = setting(True, 'Within a stream, reject tracking and edges implying faster motion than '
+                                 'max_yaw_rate_deg_s / max_speed_m_s plus the slack; false: every frame is a '
+                                 'separate view (stamps mean nothing)')
+    min_retrieved_inliers: int = setting(3, 'Verified objects an edge needs where the motion prior cannot check '
+                                         'it (separate views, retrieved keyframes): two verify nothing beyond '
+                                         'the minimal sample, and repeated furniture aliases', lo=2, hi=100)
 
 
 @dataclass

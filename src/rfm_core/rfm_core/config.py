@@ -1,0 +1,145 @@
+"""Every setting of rfm in one tree: :class:`RfmConfig`.
+
+Each stage keeps its frozen dataclass next to its code (``DepthClustersConfig``,
+``MatchingConfig``, ``KeyframeConfig``, ``AveragingConfig``, ``TrackConfig``,
+``RelocalizationConfig``, ``BundleConfig``), every field declared with its default,
+description, range and the paper's value (:mod:`rfm_core.settings`). This module adds the
+nodes' own settings and assembles the tree a node graph runs with:
+
+- ``detector``: :class:`DetectorNodeConfig` (inputs, gravity, and one section per backend);
+- ``matcher``: :class:`MatcherNodeConfig` (``matching.*``, ``keyframes.*``);
+- ``mapper``: :class:`MapperNodeConfig` (outputs, map file, and the mapper's
+  ``averaging.*``, ``tracks.*``, ``matching.*``, ``relocalization.*``, ``bundle.*``).
+
+A setting's dotted name is its ROS parameter name on that node
+(:func:`rfm_core.io.parameters.declare_config`); the README's parameter tables are generated
+from here (``rfm params --readme README.md``) and a test keeps them in step.
+"""
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, replace
+
+from rfm_core.detection import BACKENDS
+from rfm_core.detection.base import DetectorConfig
+from rfm_core.detection.cutr import CutrConfig
+from rfm_core.detection.depth_clusters import DepthClustersConfig
+from rfm_core.detection.ground_truth import GroundTruthConfig
+from rfm_core.mapping.mapper import MODES, MapperConfig
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.view_graph import KeyframeConfig
+from rfm_core.settings import Setting, markdown_table, same_setting, section, setting, settings_of
+
+__all__ = ['DetectorNodeConfig', 'MatcherNodeConfig', 'MapperNodeConfig', 'RfmConfig', 'NODES', 'node_settings',
+           'update_parameter_tables']
+
+_COMMON = tuple(s.name for s in settings_of(DetectorConfig))     # set once for every backend
+MATCHERS = ('learned', 'classical')
+
+
+@dataclass(frozen=True)
+class DetectorNodeConfig:
+    backend: str = setting('depth_clusters', 'Detector: depth_clusters (RGB-D, no learning), cutr (Cubify '
+                           'Transformer, needs cutr.checkpoint), ground_truth (simulator ground truth + noise '
+                           'model, for evaluation only)', choices=BACKENDS, read_only=True)
+    score_threshold: float = same_setting(DetectorConfig, 'score_threshold')
+    max_detections: int = same_setting(DetectorConfig, 'max_detections')
+    image_transport: str = setting('raw', "Colour image transport: 'raw' (rgb/image, sensor_msgs/Image) or "
+                                   "'compressed' (rgb/image/compressed: JPEG or PNG); rfm run picks it from the "
+                                   'bag', choices=('raw', 'compressed'), read_only=True)
+    every_nth_frame: int = setting(1, 'Process one synchronised frame in n', lo=1, hi=100)
+    queue_size: int = setting(10, 'Synchroniser queue per input', lo=1, hi=100, read_only=True)
+    sync_slop_s: float = setting(0.05, 'Max stamp difference between image, camera_info and depth (s)',
+                                 lo=0.0, hi=1.0, read_only=True)
+    gravity_source: str = setting('imu', "Gravity from 'imu' (accelerometer + gyroscope complementary filter) "
+                                  "or 'parameter' (the gravity setting)", choices=('imu', 'parameter'),
+                                  read_only=True)
+    gravity: list = setting([0.0, 1.0, 0.0], 'Gravity ("down") in the camera optical frame when gravity_source '
+                            'is parameter', read_only=True)
+    imu_tau_s: float = setting(1.0, 'Gravity filter time constant (s): the gyroscope carries the estimate '
+                               'between accelerometer corrections', lo=0.01, hi=10.0, read_only=True)
+    imu_max_age_s: float = setting(1.0, 'Drop frames when the last IMU sample is older than this (s)',
+                                   lo=0.01, hi=60.0)
+    imu_wait_s: float = setting(0.05, "Wait up to this long for IMU samples up to a frame's stamp (s)",
+                                lo=0.0, hi=1.0)
+    publish_markers: bool = setting(True, 'Publish rfm/detection_markers (boxes as line lists with score labels)',
+                                    read_only=True)
+    diagnostics_period_s: float = setting(1.0, 'Period of /diagnostics (s)', lo=0.1, hi=60.0, read_only=True)
+    depth_clusters: DepthClustersConfig = section(DepthClustersConfig, 'the depth_clusters backend',
+                                                  exclude=_COMMON)
+    ground_truth: GroundTruthConfig = section(GroundTruthConfig, 'the ground_truth backend', exclude=_COMMON)
+    cutr: CutrConfig = section(CutrConfig, 'the cutr backend', exclude=_COMMON)
+
+    def backend_config(self) -> DetectorConfig:
+        """The selected backend's configuration, with the common settings applied."""
+        return replace(getattr(self, self.backend), **{name: getattr(self, name) for name in _COMMON})
+
+
+@dataclass(frozen=True)
+class MatcherNodeConfig:
+    matcher: str = setting('learned', "Object matcher: 'learned' (LightGlue-style, shipped weights per detector; "
+                           "falls back to 'classical' for detectors without weights) or 'classical' (embedding "
+                           'similarity + size gate, Hungarian)', choices=MATCHERS, read_only=True)
+    matcher_weights: str = setting('', "Learned matcher checkpoint (rfm train-matcher); empty: the shipped "
+                                   "weights for the frames' detector", read_only=True)
+    matching: MatchingConfig = section(MatchingConfig, 'object matching and verification (paper 3.2-3.4)')
+    keyframes: KeyframeConfig = section(KeyframeConfig, 'keyframes, candidates, motion prior, tracking')
+
+
+@dataclass(frozen=True)
+class MapperNodeConfig:
+    map_frame: str = setting('map', 'Frame of the map (gravity-aligned, z up)', read_only=True)
+    publish_tf: bool = setting(True, 'Broadcast map -> camera frame of every localized frame on /tf',
+                               read_only=True)
+    tf_child_frame: str = setting('', "Child frame of that transform; empty: the frames' camera optical frame",
+                                  read_only=True)
+    map_publish_period_s: float = setting(1.0, 'Rebuild and publish the object map at most this often (s)',
+                                          lo=0.05, hi=60.0)
+    map_max_cpu_share: float = setting(0.2, 'Rebuilding the object map (tracks, merging) may take at most this '
+                                       'share of the time: a map that takes 0.3 s to build is published at '
+                                       'most every 1.5 s at 0.2', lo=0.01, hi=1.0)
+    idle_full_solve_s: float = setting(1.0, 'Once no keyframe or edge has arrived for this long after '
+                                       'incremental updates, re-solve all poses at once (the incremental solve '
+                                       're-solves a window of recent keyframes); 0: never', lo=0.0, hi=3600.0)
+    map_path: str = setting('', 'Map file of save_map / load_map requests with an empty path, and of autosave; '
+                            'empty: $ROS_HOME/rfm/map.rfm (~/.ros/rfm/map.rfm)')
+    autosave_every_n_keyframes: int = setting(10, 'Save the map to map_path every n new keyframes: a crash '
+                                              'loses at most this many (0: never)', lo=0, hi=100000)
+    load_map_on_start: bool = setting(False, 'Load map_path at start-up', read_only=True)
+    mode: str = setting('mapping', "Start in 'mapping' or 'localization' (the map is frozen, every frame is "
+                        'relocalized) mode; rfm/set_mode switches', choices=MODES, read_only=True)
+    pose_source: str = setting('', "Posed mode: '' (un-posed: averaging), 'topic' (rfm/external_pose, "
+                               "PoseStamped of the camera in the map frame) or 'tf' (map_frame -> camera frame "
+                               'lookups)', choices=('', 'topic', 'tf'), read_only=True)
+    matcher: str = setting('learned', "Relocalization object matcher: 'learned' or 'classical'",
+                           choices=MATCHERS, read_only=True)
+    matcher_weights: str = setting('', 'Relocalization: learned matcher checkpoint; empty: shipped',
+                                   read_only=True)
+    mapper: MapperConfig = section(MapperConfig, 'the mapper (averaging, tracks, relocalization, bundle '
+                                   'adjustment)', inline=True)
+
+
+@dataclass(frozen=True)
+class RfmConfig:
+    detector: DetectorNodeConfig = section(DetectorNodeConfig, 'rfm_detector_node')
+    matcher: MatcherNodeConfig = section(MatcherNodeConfig, 'rfm_matcher_node')
+    mapper: MapperNodeConfig = section(MapperNodeConfig, 'rfm_mapper_node')
+
+
+NODES = ('detector', 'matcher', 'mapper')
+
+
+def node_settings(node: str) -> list[Setting]:
+    """The ROS parameters of one node of the graph (``detector``, ``matcher``, ``mapper``)."""
+    if node not in NODES:
+        raise ValueError(f'unknown node {node!r}; one of {", ".join(NODES)}')
+    return settings_of(getattr(RfmConfig(), node))
+
+
+_TABLE = re.compile(r'(<!-- parameters: (\w+) -->\n).*?(<!-- end parameters -->)', re.S)
+
+
+def update_parameter_tables(text: str) -> str:
+    """``text`` (the README) with every block between ``<!-- parameters: NODE -->`` and
+    ``<!-- end parameters -->`` replaced by that node's parameter table."""
+    return _TABLE.sub(lambda m: m.group(1) + markdown_table(node_settings(m.group(2))) + m.group(3), text)
