@@ -5,11 +5,12 @@ ENV := ros_ws/env.sh
 LOCAL := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 PYTEST_ARGS ?=
 
-.PHONY: setup test demo bench clean help
+.PHONY: setup test test-fast demo bench clean help
 
 help:
 	@echo "make demo   - set up everything and run rfm on the bundled demo bag (results: rfm_output/demo)"
 	@echo "make test   - set up everything and run the test suite"
+	@echo "make test-fast - the suite without the tests marked slow (whole-graph runs, training; ~1 min)"
 	@echo "make setup  - only create .venv and build the ROS workspace (idempotent)"
 	@echo "make bench  - run the micro-benchmarks in bench/"
 	@echo "make clean  - remove .venv and ros_ws/build|install|log"
@@ -19,6 +20,9 @@ setup:
 
 test: setup
 	@$(LOCAL) $(ENV) python -m pytest tests $(PYTEST_ARGS)
+
+test-fast: setup
+	@$(LOCAL) $(ENV) python -m pytest tests -m "not slow" $(PYTEST_ARGS)
 
 demo: setup
 	@$(LOCAL) $(ENV) rfm run --bag bags/demo --output rfm_output/demo --force

@@ -17,7 +17,7 @@ import numpy as np
 
 from rfm_core.detection.ground_truth import PRESETS
 from rfm_core.geometry import kabsch_4dof, wrap_angle
-from rfm_core.matching.training import labelled_pairs, scene_configs
+from rfm_core.training.matcher import labelled_pairs, scene_configs
 
 
 def main() -> None:

@@ -44,7 +44,7 @@ def scene(args) -> dict:
     import torch  # noqa: PLC0415
 
     from rfm_core.evaluation.pipeline import detections_for  # noqa: PLC0415
-    from rfm_core.matching.training import assign_object_ids  # noqa: PLC0415
+    from rfm_core.training.matcher import assign_object_ids  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     torch.set_num_threads(1)

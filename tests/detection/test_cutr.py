@@ -80,6 +80,7 @@ def test_forward_on_a_512_pixel_image_gives_the_output_contract(models, variant)
         assert stats[0] == pytest.approx(np.mean(np.sort(depth.ravel())[1228:11059]), rel=1e-3)
 
 
+@pytest.mark.slow
 def test_saved_state_dict_reloads_strictly_and_runs_as_a_detector(models, tmp_path):
     path = tmp_path / 'cutr_rgbd_random.pth'
     torch.save({'model': models['rgbd'].state_dict()}, path)

@@ -132,7 +132,8 @@ def test_calibrated_score_ranks_boxes_better_than_the_raw_score(frames):
 
 
 def test_score_model_fit_and_file_checks(tmp_path):
-    from rfm_core.detection.score_model import FEATURES, fit_score_model, load_score_model
+    from rfm_core.detection.score_model import FEATURES, load_score_model
+    from rfm_core.training.depth_score import fit_score_model
 
     rng = np.random.default_rng(0)
     x = rng.normal(size=(2000, len(FEATURES)))

@@ -12,7 +12,7 @@ from rfm_core.matching.learned import (
     load_matcher_net, mutual_matches, save_matcher_net,
 )
 from rfm_core.matching.factory import make_matcher
-from rfm_core.matching.training import (
+from rfm_core.training.matcher import (
     STRUCTURE_ID_BASE, LabelledFrame, TrainConfig, assign_object_ids, label_structure, labelled_pairs,
     match_targets, scene_configs, train_matcher,
 )
@@ -139,6 +139,7 @@ def test_structure_labels_follow_the_true_poses():
     assert b_else >= STRUCTURE_ID_BASE and b_else != a_frag
 
 
+@pytest.mark.slow
 def test_training_learns_to_match_held_out_pairs():
     """A small network trained for a few seconds beats chance by far on unseen scenes."""
     specs = ['ground_truth:rgb']
@@ -163,6 +164,7 @@ def test_training_learns_to_match_held_out_pairs():
     assert after.f1 > 0.6 and after.f1 > before.f1 + 0.4 and after.match_precision > 0.8, (before, after)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('spec', ['depth_clusters', 'ground_truth:rgb'])
 def test_shipped_weights_beat_the_classical_matcher(spec):
     """The #5 acceptance claim on six held-out scenes (full numbers: rfm eval-matching)."""

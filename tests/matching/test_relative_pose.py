@@ -143,7 +143,7 @@ def test_classical_matcher_and_pose_on_simulated_frames():
 
 def test_pair_evaluation_scores_matches_and_poses():
     from rfm_core.evaluation.matching import evaluate_pairs
-    from rfm_core.matching.training import labelled_pairs, scene_configs
+    from rfm_core.training.matcher import labelled_pairs, scene_configs
     pairs = labelled_pairs(scene_configs([2100], frames=12), ['ground_truth:perfect', 'ground_truth:rgb'],
                            noise_seeds=(1,), gaps=(2,), min_shared=3, visible=True)
     perfect = evaluate_pairs(pairs['ground_truth:perfect'], ClassicalMatcher())

@@ -168,6 +168,7 @@ def test_bad_input_is_dropped_and_the_next_good_frame_served(graph, scene):
         for d in diags), timeout=5)
 
 
+@pytest.mark.slow
 def test_ground_truth_backend_republishes_noisy_ground_truth(graph, scene):
     from rfm_core.io.messages import frame_detections_to_msg
     from rfm_msgs.msg import FrameDetections

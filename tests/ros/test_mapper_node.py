@@ -13,7 +13,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 
 from rfm_core.evaluation.pipeline import detections_for  # noqa: E402
 from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: E402
-from rfm_core.io.messages import frame_detections_to_msg, pose_to_matrix, stamp_to_ns, tracked_frame_to_msg  # noqa: E402
+from rfm_core.io.messages import (  # noqa: E402
+    frame_detections_to_msg, pose_stamped_msg, pose_to_matrix, stamp_to_ns, tracked_frame_to_msg,
+)
+from rfm_core.mapping.map_io import load_map, read_map  # noqa: E402
+from rfm_core.mapping.mapper import Mapper  # noqa: E402
 from rfm_core.matching.view_graph import ViewGraphBuilder  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
 
@@ -98,6 +102,7 @@ class _Harness:
         self.executors = None
 
 
+@pytest.mark.slow
 def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
     from rfm_mapper_node.mapper_node import MapperNode
     from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
@@ -150,8 +155,15 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert [stamp_to_ns(c.header.stamp) for c in h.cameras] == sorted(cams)
         err = trajectory_errors(cams, frame_truth)
         assert err['ATE_median'] < 0.05 and err['ARE_median'] < 1.5, err
-        # autosave happened (every 5 keyframes) and is a loadable map
-        assert (tmp_path / 'auto.rfm').is_file()
+        # autosave happened (every 5 keyframes): a valid map of the keyframes so far, posed as published
+        saved = read_map(tmp_path / 'auto.rfm')
+        n_saved = int(saved['header']['keyframes'])
+        assert n_saved >= 5 and n_saved % 5 == 0 and n_saved <= n_kf, saved['header']
+        restored = Mapper()
+        load_map(restored, tmp_path / 'auto.rfm')
+        assert len(restored.keyframes) == n_saved and set(restored.keyframes) <= set(truth)
+        err = trajectory_errors(restored.camera_poses(), truth)
+        assert err['registered'] > 0 and err['ATE_median'] < 0.05, err
 
         # --- services
         saved = h.call(SaveMap, 'rfm/save_map', SaveMap.Request(path=str(tmp_path / 'room.rfm')))
@@ -199,4 +211,43 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
     finally:
         for harness in harnesses:
             harness.close()
+        rclpy.try_shutdown()
+
+
+def test_posed_mapper_node_takes_keyframe_poses_from_the_pose_topic():
+    """Posed mode (pose_source:=topic): each keyframe gets the external pose with its stamp,
+    in the map frame as given (no alignment), and waits until that pose has arrived."""
+    from geometry_msgs.msg import PoseStamped
+    from rfm_mapper_node.mapper_node import MapperNode
+    from rfm_msgs.msg import Keyframe, TrackedFrame
+
+    messages, truth, frames = _graph_messages()
+    rclpy.init()
+    h = None
+    try:
+        mapper = MapperNode(parameter_overrides=[Parameter('pose_source', value='topic'),
+                                                 Parameter('autosave_every_n_keyframes', value=0)])
+        h = _Harness(mapper)
+        pose_pub = h.node.create_publisher(PoseStamped, 'rfm/external_pose',
+                                           QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        assert h.wait(lambda: h.kf_pub.get_subscription_count() > 0 and pose_pub.get_subscription_count() > 0)
+        keyframes = [m for m in messages if isinstance(m, Keyframe)]
+        for msg in keyframes:                   # keyframes first: they wait for their poses
+            h.kf_pub.publish(msg)
+        assert h.wait(lambda: len(mapper.pending_keyframes) == len(keyframes))
+        assert not mapper.mapper.keyframes
+        for frame, _ in frames:
+            pose_pub.publish(pose_stamped_msg(frame.pose_matrix, frame.stamp_ns, 'map'))
+        for msg in messages:
+            if not isinstance(msg, Keyframe):
+                (h.track_pub if isinstance(msg, TrackedFrame) else h.edge_pub).publish(msg)
+        assert h.wait(lambda: len(mapper.mapper.poses) == len(truth) and not mapper.pending_keyframes
+                      and h.poses and len(h.poses[-1].poses) == len(truth)), mapper.counts
+        est = {k: pose_to_matrix(p) for k, p in zip(sorted(truth), h.poses[-1].poses)}
+        err = trajectory_errors(est, truth, align=False)
+        assert err['registered'] == 1.0 and err['ATE_median'] < 1e-3 and err['ARE_median'] < 0.1, err
+        assert h.wait(lambda: h.maps and len(h.maps[-1].objects) >= 5)
+    finally:
+        if h is not None:
+            h.close()
         rclpy.try_shutdown()

@@ -19,6 +19,7 @@ pytestmark = pytest.mark.ros
 
 
 
+@pytest.mark.slow
 def test_keyframes_and_edges_agree_with_ground_truth():
     from rfm_matcher_node.matcher_node import MatcherNode
     from rfm_msgs.msg import FrameDetections, Keyframe, ViewGraphEdge

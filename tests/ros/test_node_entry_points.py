@@ -31,6 +31,7 @@ def stop(proc, timeout=15):
         return proc.communicate()[0] + '\n[killed: did not stop on SIGINT]'
 
 
+@pytest.mark.slow
 def test_nodes_start_join_the_graph_and_stop_on_sigint():
     procs = [subprocess.Popen([executable(pkg, exe)], stdout=subprocess.PIPE,
                               stderr=subprocess.STDOUT, text=True)

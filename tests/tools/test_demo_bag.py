@@ -53,6 +53,7 @@ def _messages(bag):
                 for c, t, raw in reader.messages()]
 
 
+@pytest.mark.slow
 def test_make_demo_regenerates_the_committed_bag(tmp_path):
     """Same topics, stamps, images and depth (exactly) and the same numbers (to the last few
     bits, which differ between CPUs) as the committed bag; the same configuration."""
@@ -93,6 +94,7 @@ def _lost_imu(received) -> str:
     return f'lost IMU samples (indices of {len(recorded)}): {lost[:20]}'
 
 
+@pytest.mark.slow
 @pytest.mark.ros
 @pytest.mark.slow
 def test_demo_bag_plays_at_1x_without_drops():

@@ -37,6 +37,7 @@ def small_bag(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_play_delivers_everything_in_order_with_clock_and_record_replays_identically(small_bag, tmp_path):
     assert RFM, 'rfm is not on PATH: run through ros_ws/env.sh'
     recorded = tmp_path / 'recorded'
@@ -91,6 +92,7 @@ def test_play_delivers_everything_in_order_with_clock_and_record_replays_identic
         assert again.get(topic) == original[topic], f'{topic} differs after record'
 
 
+@pytest.mark.slow
 def test_play_remaps_filters_and_rate(small_bag):
     rclpy.init()
     node = Node('rfm_play_remap_test')

@@ -24,6 +24,7 @@ def short_bag(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize('processes', [False, True], ids=['one-process', 'processes'])
 def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_path, processes):
     out = tmp_path / 'out'
@@ -99,6 +100,7 @@ def user_bag(short_bag, tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.slow
 @pytest.mark.parametrize('compressed', [False, True], ids=['raw', 'jpeg'])
 def test_rfm_run_on_a_bag_without_ground_truth_writes_every_output(short_bag, tmp_path, compressed):
     """A user's bag (no /ground_truth/*, depth a few ms off colour, an unrelated topic, colour
@@ -159,6 +161,7 @@ def test_rfm_run_says_what_a_bag_lacks(short_bag, user_bag, tmp_path):
     assert remaps['rgb/image/compressed'] == '/camera/color/image_raw/compressed'
 
 
+@pytest.mark.slow
 @pytest.mark.slow
 def test_rfm_eval_measures_the_graph_a_user_runs(tmp_path):
     """rfm eval's default path writes each scene as a bag, replays it through rfm run and scores

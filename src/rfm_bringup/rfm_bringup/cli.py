@@ -271,7 +271,7 @@ def cmd_eval_matching(args) -> int:
     from rfm_core.matching.config import MatchingConfig, monocular  # noqa: PLC0415
     from rfm_core.matching.classical import ClassicalMatcher  # noqa: PLC0415
     from rfm_core.matching.learned import LearnedMatcher  # noqa: PLC0415
-    from rfm_core.matching.training import labelled_pairs, scene_configs  # noqa: PLC0415
+    from rfm_core.training.matcher import labelled_pairs, scene_configs  # noqa: PLC0415
 
     seeds = range(args.first_seed, args.first_seed + args.scenes)
     pairs = labelled_pairs(scene_configs(seeds, frames=args.frames), args.inputs,
@@ -293,8 +293,9 @@ def cmd_eval_matching(args) -> int:
 
 def cmd_train_depth_score(args) -> int:
     """Fit depth_clusters' calibrated score on simulated scenes from the training seeds."""
-    from rfm_core.detection.score_model import DEFAULT_SCORE_MODEL, fit_score_model, score_samples  # noqa: PLC0415
-    from rfm_core.matching.training import scene_configs  # noqa: PLC0415
+    from rfm_core.detection.score_model import DEFAULT_SCORE_MODEL  # noqa: PLC0415
+    from rfm_core.training.depth_score import fit_score_model, score_samples  # noqa: PLC0415
+    from rfm_core.training.matcher import scene_configs  # noqa: PLC0415
 
     configs = scene_configs(range(args.first_seed, args.first_seed + args.scenes), frames=args.frames)
     start = time.perf_counter()
@@ -323,7 +324,7 @@ def cmd_train_matcher(args) -> int:
     import torch  # noqa: PLC0415
 
     from rfm_core.matching.learned import MatcherNetConfig, WEIGHTS_DIR, save_matcher_net  # noqa: PLC0415
-    from rfm_core.matching.training import (  # noqa: PLC0415
+    from rfm_core.training.matcher import (  # noqa: PLC0415
         TrainConfig, labelled_pairs, scene_configs, train_matcher)
 
     specs = ([f'ground_truth:{p}' for p in args.presets] if args.backend == 'ground_truth'

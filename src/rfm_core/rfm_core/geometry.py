@@ -37,7 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = [
-    'BOX_DIM', 'CORNER_SIGNS', 'BOX_EDGES', 'Pose4', 'wrap_angle', 'yaw_matrix', 'box_corners',
+    'BOX_DIM', 'CORNER_SIGNS', 'BOX_EDGES', 'Pose4', 'wrap_angle', 'circular_mean', 'yaw_matrix', 'box_corners',
     'bev_corners', 'box_volume', 'boxes_from_oriented', 'oriented_from_boxes',
     'gravity_from_accelerometer', 'gravity_aligned_rotation', 'quaternion_from_matrix',
     'matrix_from_quaternion', 'kabsch_4dof', 'kabsch_4dof_batch', 'ray_covariances',
@@ -63,6 +63,13 @@ _LENGTH_TOL = 1e-9
 def wrap_angle(angle):
     """Wrap angles (rad) to [-pi, pi)."""
     return (np.asarray(angle) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def circular_mean(angles, weights) -> float:
+    """Weighted mean of angles (rad)."""
+    w = np.asarray(weights, dtype=np.float64)
+    a = np.asarray(angles, dtype=np.float64)
+    return float(np.arctan2(np.sum(w * np.sin(a)), np.sum(w * np.cos(a))))
 
 
 def yaw_matrix(yaw):
@@ -288,6 +295,12 @@ class Pose4:
         m[:3, :3] = matrix_from_quaternion(quaternion)
         m[:3, 3] = translation
         return cls.from_matrix(m, atol=atol)
+
+    @classmethod
+    def from_centre(cls, yaw: float, centre) -> 'Pose4':
+        """``T_k_map`` of a frame with heading ``yaw`` whose origin is at ``centre`` in the map
+        (the parametrisation pose averaging solves for): ``t = -Rz(yaw) centre``."""
+        return cls(yaw, -(yaw_matrix(float(wrap_angle(float(yaw)))) @ np.asarray(centre, dtype=np.float64)))
 
     def inverse(self) -> 'Pose4':
         return Pose4(-self.yaw, -(yaw_matrix(-self.yaw) @ self.t))

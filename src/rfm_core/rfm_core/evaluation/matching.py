@@ -2,7 +2,7 @@
 
 Pairs of frames of rendered captures that share >= ``min_shared`` visible objects, with
 detections from a backend whose ground-truth object ids give the true matches (see
-:mod:`rfm_core.matching.training`), are matched and their relative pose estimated and
+:mod:`rfm_core.training.matcher`), are matched and their relative pose estimated and
 verified. Reported: object-match precision and recall (a match is correct when both
 detections belong to the same object; a match of two detections that are both no object,
 such as two views of the same fragment, is not scored: it is no object match, yet it is
@@ -41,7 +41,7 @@ class PairResult:
 
 
 def evaluate_pairs(pairs, matcher, config=None) -> PairResult:
-    """``pairs``: [(LabelledFrame a, LabelledFrame b), ...] (rfm_core.matching.training)."""
+    """``pairs``: [(LabelledFrame a, LabelledFrame b), ...] (rfm_core.training.matcher)."""
     tp = fp = positives = 0
     verified, yaw_err, t_err = 0, [], []
     for fa, fb in pairs:

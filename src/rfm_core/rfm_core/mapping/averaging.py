@@ -34,10 +34,10 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 
-from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.geometry import Pose4, circular_mean, wrap_angle
 from rfm_core.settings import setting
 
-__all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager',
+__all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager', 'agreement',
            'largest_component']
 
 
@@ -108,20 +108,27 @@ def _hypotheses(k, incident, src, dst, yaw, trans, theta, centres):
     return hyp
 
 
+def agreement(yaws, centres, cfg: AveragingConfig) -> np.ndarray:
+    """(n, n) bool: which pose hypotheses (yaws in rad, centres in m) agree within the outlier
+    thresholds of averaging."""
+    th = np.asarray(yaws, float)
+    c = np.asarray(centres, float).reshape(len(th), 3)
+    yaw_ok = np.degrees(np.abs(wrap_angle(th[:, None] - th[None, :]))) <= cfg.max_yaw_residual_deg
+    return yaw_ok & (np.linalg.norm(c[:, None] - c[None, :], axis=-1) <= cfg.max_translation_residual_m)
+
+
 def _vote(hyp, weights, cfg: AveragingConfig):
     """The hypothesis most edge weight agrees with (within the outlier thresholds), refined
     as the weighted mean of its supporters. Returns (yaw, centre, supporting weight)."""
     th = np.array([h[0] for h in hyp])
     c = np.array([h[1] for h in hyp])
     w = np.asarray(weights, float)
-    yaw_ok = np.degrees(np.abs(wrap_angle(th[:, None] - th[None, :]))) <= cfg.max_yaw_residual_deg
-    t_ok = np.linalg.norm(c[:, None] - c[None, :], axis=-1) <= cfg.max_translation_residual_m
-    support = (yaw_ok & t_ok).astype(float) @ w
+    agree = agreement(th, c, cfg)
+    support = agree.astype(float) @ w
     best = int(np.argmax(support))
-    sup = yaw_ok[best] & t_ok[best]
+    sup = agree[best]
     ws = w[sup]
-    mean_th = float(np.arctan2(np.sum(ws * np.sin(th[sup])), np.sum(ws * np.cos(th[sup]))))
-    return mean_th, (ws[:, None] * c[sup]).sum(0) / ws.sum(), float(support[best])
+    return circular_mean(th[sup], ws), (ws[:, None] * c[sup]).sum(0) / ws.sum(), float(support[best])
 
 
 def _propagate(n, src, dst, yaw, trans, weight, root, cfg, theta=None, centres=None, placed=None):
@@ -246,7 +253,7 @@ def _residuals(theta, centres, src, dst, yaw, trans):
 
 
 def _poses(theta, centres):
-    return [Pose4(float(th), -(Pose4(float(th), (0, 0, 0)).rotation @ ctr)) for th, ctr in zip(theta, centres)]
+    return [Pose4.from_centre(float(th), ctr) for th, ctr in zip(theta, centres)]
 
 
 def _pose_params(pose: Pose4):
@@ -445,7 +452,7 @@ class IncrementalAverager:
         out = {}
         for k in np.flatnonzero(self._registered):
             th, c = self._theta[k], self._centres[k]
-            out[self.ids[k]] = Pose4(float(th), -(Pose4(float(th), (0, 0, 0)).rotation @ c))
+            out[self.ids[k]] = Pose4.from_centre(float(th), c)
         return out
 
     def pose(self, keyframe_id: int) -> Pose4 | None:
@@ -453,7 +460,7 @@ class IncrementalAverager:
         if k is None or not self._registered[k]:
             return None
         th, c = self._theta[k], self._centres[k]
-        return Pose4(float(th), -(Pose4(float(th), (0, 0, 0)).rotation @ c))
+        return Pose4.from_centre(float(th), c)
 
     def active_edges(self) -> list:
         """[(source id, target id)] of the edges the current solution keeps (yaw-only

@@ -18,15 +18,15 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.geometry import Pose4, iou_3d_paired, kabsch_4dof
+from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.frame_log import FrameLog
+from rfm_core.mapping.relocalization import Relocalization, RelocalizationConfig, relocalize
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import estimate_relative_pose
 from rfm_core.matching.view_graph import bag_of_objects
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import from_dict, section, setting
@@ -34,16 +34,6 @@ from rfm_core.settings import from_dict, section, setting
 __all__ = ['MapperConfig', 'RelocalizationConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
 
 MODES = ('mapping', 'localization')
-
-
-@dataclass(frozen=True)
-class RelocalizationConfig:
-    candidates: int = setting(10, 'Keyframes tried per relocalization query (most similar by bag of objects)',
-                              lo=1, hi=1000)
-    min_inliers: int = setting(2, 'Query objects the agreeing keyframes must verify; raise it to trade recall '
-                               'for fewer wrong poses', lo=1, hi=100,
-                               paper='2 (one keyframe verified by the relative-pose test)')
-    min_keyframe_inliers: int = setting(2, "A keyframe's vote needs this many inliers", lo=1, hi=100)
 
 
 @dataclass(frozen=True)
@@ -91,20 +81,6 @@ class EdgeRecord:
         rel = edge.relative
         return cls(edge.source_id, edge.target_id, rel.pose, rel.inliers, rel.inlier_scores,
                    np.asarray(rel.corner_inliers, float).reshape(-1, 5), float(np.clip(rel.inlier_ratio, 0, 1)))
-
-
-@dataclass
-class Relocalization:
-    pose: Pose4                              #: T_query_map (4-DoF, the query's aligned frame)
-    keyframe_id: int
-    num_inliers: int
-    inliers: np.ndarray                      #: (K, 2) query index, keyframe index
-    candidates: int                          #: keyframes tried
-    support: int = 0                         #: inliers of all keyframes agreeing on the pose
-    agreeing: int = 1                        #: keyframes agreeing on the pose
-
-    def camera_to_map(self, query: FrameObservations) -> np.ndarray:
-        return camera_to_map(self.pose, query)
 
 
 def camera_to_map(t_k_map: Pose4, obs: FrameObservations) -> np.ndarray:
@@ -300,41 +276,6 @@ class Mapper:
 
     # ------------------------------------------------------------------ relocalization
 
-    def _refine_on_tracks(self, query: FrameObservations, pose: Pose4, verified) -> Pose4:
-        """Refit a relocalized pose on the map's object tracks: each query detection matched
-        (as a verified inlier) to an observation of a track is paired with the track's
-        centre — the median of all its lifted observations, so much less noisy than one
-        keyframe's detection — and the 4-DoF pose is refitted on those centres, weighted
-        by range like the relative-pose refit. Kept only when it still verifies."""
-        cfg = self.config
-        owner = {}
-        for t in self.tracks():
-            for kf, det in t.observations:
-                owner[(int(kf), int(det))] = t
-        votes = {}
-        for k, rel, _ in verified:
-            for iq, ik in rel.inliers:
-                t = owner.get((k, int(ik)))
-                if t is not None:
-                    votes.setdefault(int(iq), []).append(t.track_id)
-        by_id = {t.track_id: t for t in self.tracks()}
-        pairs = []
-        for iq, ids in votes.items():
-            tid = max(set(ids), key=ids.count)
-            pairs.append((iq, by_id[tid]))
-        if len(pairs) < 3:
-            return pose
-        q = query.boxes[[iq for iq, _ in pairs]]
-        target = np.array([np.median(t.boxes[:, :3], axis=0) for _, t in pairs])
-        rng = np.linalg.norm(q[:, :3], axis=1)
-        w = 1.0 / (cfg.matching.refine_sigma_m + cfg.matching.refine_sigma_per_m * rng) ** 2
-        t_map_q = kabsch_4dof(q[:, :3], target, w)
-        moved = t_map_q.transform_boxes(q)
-        reps = np.array([t.box for _, t in pairs])
-        if np.mean(iou_3d_paired(moved, reps) >= cfg.matching.inlier_iou) < cfg.matching.min_inlier_ratio:
-            return pose
-        return t_map_q.inverse()
-
     def relocalize(self, query: FrameObservations) -> Relocalization | None:
         """The paper's procedure, made more robust: match the query against registered
         keyframes (the ``relocalization.candidates`` most similar by bag-of-objects
@@ -345,48 +286,5 @@ class Mapper:
         query objects wins, needs ``relocalization.min_inliers`` of them, is averaged over
         the agreeing keyframes and refitted on the map's tracks. ``keyframe_id`` is the
         agreeing keyframe with the most inliers."""
-        cfg = self.config
-        poses = self.poses
-        if len(query) < 2 or not poses:
-            return None
-        ids = [k for k in poses if self._descriptors.get(k) is not None and len(self.keyframes[k]) >= 2]
-        desc = bag_of_objects(query)
-        if np.any(desc) and ids and all(self._descriptors[k].size == desc.size for k in ids):
-            sims = np.array([self._descriptors[k] @ desc for k in ids])
-            order = np.argsort(-sims)[:cfg.relocalization.candidates]
-            candidates = [ids[i] for i in order]
-        else:
-            candidates = ids[-cfg.relocalization.candidates:]
-        found = []
-        for k in candidates:
-            kf = self.keyframes[k]
-            matches = self.matcher.match(query, kf)
-            rel = estimate_relative_pose(query.boxes, kf.boxes, matches, cfg.matching)
-            if rel is None or len(rel.inliers) < cfg.relocalization.min_keyframe_inliers:
-                continue
-            # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
-            found.append((k, rel, rel.pose.inverse() @ poses[k]))
-        if not found:
-            return None
-        # consensus: each verified keyframe votes for its pose; the pose whose agreeing
-        # keyframes verify the most distinct query objects wins, averaged over them
-        supports = []
-        for _, _, pose in found:
-            agree = [j for j, (_, r2, p2) in enumerate(found)
-                     if np.degrees(pose.angle_to(p2)) <= cfg.averaging.max_yaw_residual_deg
-                     and np.linalg.norm(pose.inverse().t - p2.inverse().t) <= cfg.averaging.max_translation_residual_m]
-            seen = {int(iq) for j in agree for iq in found[j][1].inliers[:, 0]}
-            supports.append((len(seen), agree))
-        total, agree = max(supports, key=lambda s: s[0])
-        if total < cfg.relocalization.min_inliers:
-            return None
-        best = max(agree, key=lambda j: (len(found[j][1].inliers), -found[j][1].mean_error))
-        k, rel, _ = found[best]
-        w = np.array([len(found[j][1].inliers) for j in agree], float)
-        yaws = np.array([found[j][2].yaw for j in agree])
-        centres = np.array([found[j][2].inverse().t for j in agree])
-        yaw = float(np.arctan2(np.sum(w * np.sin(yaws)), np.sum(w * np.cos(yaws))))
-        centre = (w[:, None] * centres).sum(0) / w.sum()
-        pose = Pose4(yaw, -(Pose4(yaw, (0, 0, 0)).rotation @ centre))
-        pose = self._refine_on_tracks(query, pose, [found[j] for j in agree])
-        return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), int(total), len(agree))
+        return relocalize(query, self.keyframes, self.poses, self._descriptors, self.tracks, self.matcher,
+                          self.config.relocalization, self.config.matching, self.config.averaging)

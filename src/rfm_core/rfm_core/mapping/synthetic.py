@@ -22,7 +22,7 @@ def synthetic_view_graph(n: int, seed: int = 0, neighbours: int = 3, loops: floa
     steps = np.stack([np.cos(heading), np.sin(heading), rng.normal(0, 0.05, n)], 1) * step_m
     centres = np.cumsum(steps, 0)
     centres[:, 2] = 1.5 + 0.1 * np.sin(np.arange(n) / 7)
-    truth = {k: Pose4(float(yaw[k]), -(Pose4(float(yaw[k]), (0, 0, 0)).rotation @ centres[k])) for k in range(n)}
+    truth = {k: Pose4.from_centre(float(yaw[k]), centres[k]) for k in range(n)}
     pairs = {(i, j) for i in range(n) for j in range(i + 1, min(n, i + neighbours + 1))}
     for _ in range(int(loops * n)):
         i = int(rng.integers(n))

@@ -1,0 +1,133 @@
+"""Relocalization against a map (paper appendix): where is a frame, given the map's
+registered keyframes and object tracks?
+
+The paper matches the query against candidate keyframes, verifies each relative pose and
+takes the keyframe with the most object inliers. Here every keyframe verified with at least
+``min_keyframe_inliers`` objects votes for its pose; the pose whose agreeing keyframes
+(within pose averaging's outlier thresholds) verify the most distinct query objects wins,
+needs ``min_inliers`` of them, is averaged over the agreeing keyframes, and is refitted on
+the map's object tracks. No ROS here; the mapper (and its node's ``rfm/relocalize``
+service, and localization mode) call :func:`relocalize`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rfm_core.geometry import Pose4, circular_mean, iou_3d_paired, kabsch_4dof
+from rfm_core.mapping.averaging import AveragingConfig, agreement
+from rfm_core.mapping.frame_log import camera_to_map
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.relative_pose import estimate_relative_pose
+from rfm_core.matching.view_graph import bag_of_objects
+from rfm_core.observations import FrameObservations
+from rfm_core.settings import setting
+
+__all__ = ['RelocalizationConfig', 'Relocalization', 'relocalize', 'refine_on_tracks']
+
+
+@dataclass(frozen=True)
+class RelocalizationConfig:
+    candidates: int = setting(10, 'Keyframes tried per relocalization query (most similar by bag of objects)',
+                              lo=1, hi=1000)
+    min_inliers: int = setting(2, 'Query objects the agreeing keyframes must verify; raise it to trade recall '
+                               'for fewer wrong poses', lo=1, hi=100,
+                               paper='2 (one keyframe verified by the relative-pose test)')
+    min_keyframe_inliers: int = setting(2, "A keyframe's vote needs this many inliers", lo=1, hi=100)
+
+
+@dataclass
+class Relocalization:
+    pose: Pose4                              #: T_query_map (4-DoF, the query's aligned frame)
+    keyframe_id: int                         #: the agreeing keyframe with the most inliers
+    num_inliers: int
+    inliers: np.ndarray                      #: (K, 2) query index, keyframe index
+    candidates: int                          #: keyframes tried
+    support: int = 0                         #: inliers of all keyframes agreeing on the pose
+    agreeing: int = 1                        #: keyframes agreeing on the pose
+
+    def camera_to_map(self, query: FrameObservations) -> np.ndarray:
+        """4x4 pose of the query's camera optical frame in the map frame."""
+        return camera_to_map(self.pose, query.gravity_cam)
+
+
+def _candidates(query, keyframes: dict, poses: dict, descriptors: dict, count: int) -> list:
+    """Registered keyframes most similar to the query by bag of objects (the latest ones when
+    descriptors are missing or of another size)."""
+    ids = [k for k in poses if descriptors.get(k) is not None and len(keyframes[k]) >= 2]
+    desc = bag_of_objects(query)
+    if np.any(desc) and ids and all(descriptors[k].size == desc.size for k in ids):
+        sims = np.array([descriptors[k] @ desc for k in ids])
+        return [ids[i] for i in np.argsort(-sims)[:count]]
+    return ids[-count:]
+
+
+def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descriptors: dict, tracks, matcher,
+               config: RelocalizationConfig, matching: MatchingConfig,
+               averaging: AveragingConfig) -> Relocalization | None:
+    """The query's pose in the map, or None. ``keyframes``: id -> FrameObservations;
+    ``poses``: id -> T_k_map of the registered ones; ``descriptors``: id -> bag of objects;
+    ``tracks``: a callable giving the map's object tracks (only built when a pose is found)."""
+    if len(query) < 2 or not poses:
+        return None
+    candidates = _candidates(query, keyframes, poses, descriptors, config.candidates)
+    found = []
+    for k in candidates:
+        rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, matcher.match(query, keyframes[k]), matching)
+        if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
+            continue
+        # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
+        found.append((k, rel, rel.pose.inverse() @ poses[k]))
+    if not found:
+        return None
+    # consensus: each verified keyframe votes for its pose; the pose whose agreeing keyframes
+    # verify the most distinct query objects wins, averaged over them
+    centres = np.array([pose.inverse().t for _, _, pose in found])
+    agree = agreement([pose.yaw for _, _, pose in found], centres, averaging)
+    support = [len({int(iq) for j in np.flatnonzero(row) for iq in found[j][1].inliers[:, 0]}) for row in agree]
+    winner = int(np.argmax(support))
+    if support[winner] < config.min_inliers:
+        return None
+    members = np.flatnonzero(agree[winner])
+    best = max(members, key=lambda j: (len(found[j][1].inliers), -found[j][1].mean_error))
+    k, rel, _ = found[best]
+    w = np.array([len(found[j][1].inliers) for j in members], float)
+    pose = Pose4.from_centre(circular_mean([found[j][2].yaw for j in members], w),
+                             (w[:, None] * centres[members]).sum(0) / w.sum())
+    pose = refine_on_tracks(query, pose, [found[j] for j in members], tracks(), matching)
+    return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), int(support[winner]),
+                          len(members))
+
+
+def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: list, matching: MatchingConfig) -> Pose4:
+    """Refit a relocalized pose on the map's object tracks: each query detection matched (as
+    a verified inlier) to an observation of a track is paired with the track's centre — the
+    median of all its lifted observations, so much less noisy than one keyframe's detection
+    — and the 4-DoF pose is refitted on those centres, weighted by range like the
+    relative-pose refit. Kept only when it still verifies. ``verified``: (keyframe id,
+    relative pose, T_query_map) of the agreeing keyframes."""
+    owner = {}
+    for t in tracks:
+        for kf, det in t.observations:
+            owner[(int(kf), int(det))] = t
+    votes = {}
+    for k, rel, _ in verified:
+        for iq, ik in rel.inliers:
+            t = owner.get((k, int(ik)))
+            if t is not None:
+                votes.setdefault(int(iq), []).append(t.track_id)
+    by_id = {t.track_id: t for t in tracks}
+    pairs = [(iq, by_id[max(set(ids), key=ids.count)]) for iq, ids in votes.items()]
+    if len(pairs) < 3:
+        return pose
+    q = query.boxes[[iq for iq, _ in pairs]]
+    target = np.array([np.median(t.boxes[:, :3], axis=0) for _, t in pairs])
+    rng = np.linalg.norm(q[:, :3], axis=1)
+    w = 1.0 / (matching.refine_sigma_m + matching.refine_sigma_per_m * rng) ** 2
+    t_map_q = kabsch_4dof(q[:, :3], target, w)
+    moved = t_map_q.transform_boxes(q)
+    reps = np.array([t.box for _, t in pairs])
+    if np.mean(iou_3d_paired(moved, reps) >= matching.inlier_iou) < matching.min_inlier_ratio:
+        return pose
+    return t_map_q.inverse()
