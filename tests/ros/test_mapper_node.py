@@ -14,7 +14,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E
 from rfm_core.evaluation.pipeline import detections_for  # noqa: E402
 from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: E402
 from rfm_core.io.messages import (  # noqa: E402
-    frame_detections_to_msg, pose_stamped_msg, pose_to_matrix, stamp_to_ns, tracked_frame_to_msg,
+    edge_msg, frame_detections_to_msg, pose_stamped_msg, pose_to_matrix, stamp_to_ns, tracked_frame_to_msg,
 )
 from rfm_core.mapping.map_io import load_map, read_map  # noqa: E402
 from rfm_core.mapping.mapper import Mapper  # noqa: E402
@@ -27,7 +27,6 @@ pytestmark = pytest.mark.ros
 def _graph_messages():
     """Keyframe, edge and tracked-frame messages of a sim capture, as the matcher node would
     publish them."""
-    from rfm_matcher_node.matcher_node import MatcherNode
     from rfm_msgs.msg import Keyframe
 
     capture = Capture(CaptureConfig(seed=40, frames=50, fps=5))
@@ -42,7 +41,7 @@ def _graph_messages():
         if keyframe is not None:
             det = frame_detections_to_msg(keyframe.observations)
             messages.append(Keyframe(header=det.header, keyframe_id=keyframe.keyframe_id, detections=det))
-            messages += [MatcherNode._edge_msg(e, obs.stamp_ns) for e in edges]
+            messages += [edge_msg(e, obs.stamp_ns) for e in edges]
             truth[keyframe.keyframe_id] = next(f.pose_matrix for f, _ in frames
                                                if f.stamp_ns == keyframe.observations.stamp_ns)
         if track is not None:
@@ -132,13 +131,13 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         n_edges = sum(isinstance(m, ViewGraphEdge) for m in messages)
         n_tracked = sum(isinstance(m, TrackedFrame) for m in messages)
         # ... and once the input has been idle for idle_full_solve_s, all poses re-solved at once
-        done = h.wait(lambda: len(mapper.mapper.keyframes) == n_kf and not mapper.pending_edges
-                      and mapper.counts['edges'] == n_edges and not mapper._dirty
-                      and mapper._full_solve_due is None and mapper.mapper.averager.stats.kind == 'full'
+        done = h.wait(lambda: len(mapper.mapper.keyframes) == n_kf and not mapper.session.pending_edges
+                      and mapper.session.counts['edges'] == n_edges and not mapper.session.dirty
+                      and not mapper.session.full_solve_pending and mapper.mapper.averager.stats.kind == 'full'
                       and h.poses and len(h.poses[-1].poses) == n_kf)
-        assert done, (len(mapper.mapper.keyframes), n_kf, len(mapper.pending_edges),
-                      len(h.poses[-1].poses) if h.poses else None, mapper.counts, mapper.message)
-        assert mapper.counts['dropped'] >= 1
+        assert done, (len(mapper.mapper.keyframes), n_kf, len(mapper.session.pending_edges),
+                      len(h.poses[-1].poses) if h.poses else None, mapper.session.counts, mapper.session.message)
+        assert mapper.session.counts['dropped'] >= 1
         assert h.wait(lambda: h.maps and len(h.maps[-1].objects) >= 5)
         assert h.wait(lambda: mapper.num_objects == len(h.maps[-1].objects))   # what status reports
         # published poses agree with the ground truth
@@ -147,7 +146,7 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         err = trajectory_errors(est, truth)
         assert err['ATE_median'] < 0.03 and err['ARE_median'] < 1.0, err
         # every tracked frame is logged, and a camera pose was published at the frames' rate
-        assert mapper.counts['frames'] == n_tracked == len(frames)
+        assert mapper.session.counts['frames'] == n_tracked == len(frames)
         frame_truth = {f.stamp_ns: f.pose_matrix for f, _ in frames}
         assert trajectory_errors(mapper.mapper.frame_poses(), frame_truth)['registered'] == 1.0
         cams = {stamp_to_ns(c.header.stamp): pose_to_matrix(c.pose) for c in h.cameras}
@@ -234,15 +233,15 @@ def test_posed_mapper_node_takes_keyframe_poses_from_the_pose_topic():
         keyframes = [m for m in messages if isinstance(m, Keyframe)]
         for msg in keyframes:                   # keyframes first: they wait for their poses
             h.kf_pub.publish(msg)
-        assert h.wait(lambda: len(mapper.pending_keyframes) == len(keyframes))
+        assert h.wait(lambda: len(mapper.session.pending_keyframes) == len(keyframes))
         assert not mapper.mapper.keyframes
         for frame, _ in frames:
             pose_pub.publish(pose_stamped_msg(frame.pose_matrix, frame.stamp_ns, 'map'))
         for msg in messages:
             if not isinstance(msg, Keyframe):
                 (h.track_pub if isinstance(msg, TrackedFrame) else h.edge_pub).publish(msg)
-        assert h.wait(lambda: len(mapper.mapper.poses) == len(truth) and not mapper.pending_keyframes
-                      and h.poses and len(h.poses[-1].poses) == len(truth)), mapper.counts
+        assert h.wait(lambda: len(mapper.mapper.poses) == len(truth) and not mapper.session.pending_keyframes
+                      and h.poses and len(h.poses[-1].poses) == len(truth)), mapper.session.counts
         est = {k: pose_to_matrix(p) for k, p in zip(sorted(truth), h.poses[-1].poses)}
         err = trajectory_errors(est, truth, align=False)
         assert err['registered'] == 1.0 and err['ATE_median'] < 1e-3 and err['ARE_median'] < 0.1, err

@@ -14,6 +14,8 @@ pytestmark = pytest.mark.ros
 EXECUTABLES = [('rfm_detector_node', 'detector', 'detector'),
                ('rfm_matcher_node', 'matcher', 'matcher'),
                ('rfm_mapper_node', 'mapper', 'mapper')]
+#: a topic each node publishes once its constructor is done (models loaded, services created)
+READY_TOPIC = {'detector': '/rfm/detections', 'matcher': '/rfm/tracked_frames', 'mapper': '/rfm/status'}
 
 
 def executable(package, name):
@@ -46,11 +48,12 @@ def test_nodes_start_join_the_graph_and_stop_on_sigint():
             rclpy.spin_once(observer, timeout_sec=0.2)
             for p in procs:
                 assert p.poll() is None, p.stdout.read()
-            # A node is fully up once its parameter services (created last) are visible.
+            # A node is fully up once its output topic is advertised (its constructor is done:
+            # a SIGINT while it still imports torch would abort the process, not test the node)
             for name in wanted - ready:
                 if name in observer.get_node_names():
-                    services = observer.get_service_names_and_types_by_node(name, '/')
-                    if any(s.endswith('/get_parameters') for s, _ in services):
+                    topics = observer.get_publisher_names_and_types_by_node(name, '/')
+                    if any(t == READY_TOPIC[name] for t, _ in topics):
                         ready.add(name)
         assert ready == wanted, f'nodes not up: {wanted - ready}'
     finally:

@@ -14,16 +14,14 @@ from __future__ import annotations
 
 import sys
 
-import numpy as np
 import rclpy
-from geometry_msgs.msg import Vector3
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
-from rfm_msgs.msg import CornerMatch, FrameDetections, Keyframe, ObjectMatch, TrackedFrame, ViewGraphEdge
+from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 
 from rfm_core.config import MatcherNodeConfig
-from rfm_core.io.messages import frame_detections_from_msg, frame_detections_to_msg, ns_to_stamp, tracked_frame_to_msg
+from rfm_core.io.messages import edge_msg, frame_detections_from_msg, frame_detections_to_msg, tracked_frame_to_msg
 from rfm_core.io.parameters import declare_config
 from rfm_core.matching.factory import make_matcher
 from rfm_core.matching.view_graph import ViewGraphBuilder
@@ -62,30 +60,10 @@ class MatcherNode(Node):
             self.keyframe_pub.publish(Keyframe(header=detections.header, keyframe_id=keyframe.keyframe_id,
                                                detections=detections))
             for edge in edges:
-                self.edge_pub.publish(self._edge_msg(edge, obs.stamp_ns))
+                self.edge_pub.publish(edge_msg(edge, obs.stamp_ns))
             self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')
         if track is not None:            # after its keyframe, so the mapper knows the keyframe
             self.track_pub.publish(tracked_frame_to_msg(track))
-
-    @staticmethod
-    def _edge_msg(edge, stamp_ns: int) -> ViewGraphEdge:
-        rel = edge.relative
-        msg = ViewGraphEdge()
-        msg.header.stamp = ns_to_stamp(stamp_ns)
-        msg.source_id, msg.target_id = edge.source_id, edge.target_id
-        msg.yaw = float(rel.pose.yaw)
-        t = rel.pose.t
-        msg.translation = Vector3(x=float(t[0]), y=float(t[1]), z=float(t[2]))
-        msg.num_matches = int(rel.num_matches)
-        msg.inliers = [ObjectMatch(source_index=int(s), target_index=int(t_), score=float(sc),
-                                   iou=float(iou))
-                       for (s, t_), sc, iou in zip(rel.inliers, rel.inlier_scores, rel.inlier_ious)]
-        msg.corner_inliers = [CornerMatch(source_index=int(s), source_corner=int(cs),
-                                          target_index=int(t_), target_corner=int(ct), error=float(e))
-                              for s, cs, t_, ct, e in rel.corner_inliers]
-        msg.mean_error = float(rel.mean_error)
-        msg.score = float(np.clip(rel.inlier_ratio, 0.0, 1.0))
-        return msg
 
 
 def main(args=None):

@@ -17,9 +17,10 @@ import numpy as np
 from rfm_core.evaluation.mapping import evaluate_map
 from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4
-from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig
+from rfm_core.mapping.mapper import Mapper, MapperConfig
 from rfm_core.matching.config import monocular
-from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
+from rfm_core.matching.view_graph import KeyframeConfig
+from rfm_core.session import Session
 from rfm_core.sim.capture import Capture, CaptureConfig
 
 __all__ = ['PipelineResult', 'run_capture', 'detections_for', 'relocalize_capture']
@@ -67,9 +68,10 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     mcfg = replace(mcfg, posed=posed or mcfg.posed,
                    bundle_adjustment=bundle_adjustment or mcfg.bundle_adjustment,
                    matching=monocular(mcfg.matching) if detect.monocular else mcfg.matching)
-    graph = ViewGraphBuilder(mcfg.matching, keyframe_config, matcher=matcher)
-    mapper = Mapper(mcfg, matcher=graph.matcher)
-    truth, frame_truth, aligned_truth, times = {}, {}, {}, {'detect': 0.0, 'match': 0.0, 'map': 0.0}
+    truth, frame_truth, aligned_truth, detect_s = {}, {}, {}, 0.0
+    session = Session(mcfg, keyframe_config, matcher=matcher,
+                      pose_lookup=(lambda obs: aligned_truth[obs.stamp_ns]) if posed else None)
+    mapper = session.mapper
     best_visibility = np.zeros(len(capture.room.objects))
     n_frames = 0
     for frame in (frames if frames is not None else capture.frames()):
@@ -80,30 +82,14 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
         obs = detect(frame)
         # the gyroscope's orientation, as the detector node attaches it (here: the true one)
         obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
-        t1 = time.perf_counter()
-        keyframe, edges, track = graph.add(obs)
-        t2 = time.perf_counter()
+        detect_s += time.perf_counter() - t0
         frame_truth[frame.stamp_ns] = frame.pose_matrix
         aligned_truth[frame.stamp_ns] = frame.aligned_from_map()
-        if keyframe is not None:                  # (this frame or, bridging lost tracking, an earlier one)
-            k = keyframe.keyframe_id
-            truth[k] = frame_truth[keyframe.observations.stamp_ns]
-            mapper.add_keyframe(k, keyframe.observations)
-            if posed:
-                mapper.set_keyframe_pose(k, aligned_truth[keyframe.observations.stamp_ns])
-            for e in edges:
-                mapper.add_edge(EdgeRecord.from_edge(e))
-            mapper.update()
-        if track is not None:
-            mapper.add_frame(track)
-        t3 = time.perf_counter()
-        times['detect'] += t1 - t0
-        times['match'] += t2 - t1
-        times['map'] += t3 - t2
-    t0 = time.perf_counter()
-    mapper.update(force_full=not posed)
-    tracks = mapper.tracks()
-    times['map'] += time.perf_counter() - t0
+        step = session.step(obs)
+        if step.keyframe is not None:             # (this frame or, bridging lost tracking, an earlier one)
+            truth[step.keyframe.keyframe_id] = frame_truth[step.keyframe.observations.stamp_ns]
+    tracks = session.finish()
+    times = {'detect': detect_s, **session.seconds}
     # every frame of the capture counts (the paper's registration); keyframes beside it
     estimated = mapper.frame_poses()
     loc = trajectory_errors(estimated, frame_truth, align=False if posed else '4dof')

@@ -15,7 +15,7 @@ import importlib
 import numpy as np
 
 from rfm_core.geometry import (
-    BOX_EDGES, Pose4, boxes_from_oriented, gravity_aligned_rotation, matrix_from_quaternion,
+    BOX_EDGES, Pose4, box_corners, boxes_from_oriented, gravity_aligned_rotation, matrix_from_quaternion,
     oriented_from_boxes, quaternion_from_matrix,
 )
 from rfm_core.observations import CameraIntrinsics, FrameObservations, FrameTrack
@@ -26,7 +26,8 @@ __all__ = [
     'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
-    'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg',
+    'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
+    'transform_to_matrix', 'track_map_msgs',
 ]
 
 _NS = 1_000_000_000
@@ -386,3 +387,69 @@ def tracked_frame_from_msg(msg) -> FrameTrack:
     return FrameTrack(stamp_to_ns(msg.header.stamp), msg.header.frame_id, vector3_to_numpy(msg.gravity),
                       int(msg.keyframe_id), stamp_to_ns(msg.keyframe_stamp), Pose4(float(msg.yaw), t),
                       int(msg.num_inliers), bool(msg.is_keyframe), bool(msg.continuous))
+
+
+def edge_msg(edge, stamp_ns: int, make=ROS):
+    """A view-graph edge (:class:`rfm_core.matching.view_graph.Edge`) -> rfm_msgs/ViewGraphEdge:
+    T_source_target, the inlier object and corner matches, the verification score."""
+    rel = edge.relative
+    return make('rfm_msgs/msg/ViewGraphEdge', header=header(make, stamp_ns, ''),
+                source_id=int(edge.source_id), target_id=int(edge.target_id), yaw=float(rel.pose.yaw),
+                translation=_vector3(make, rel.pose.t), num_matches=int(rel.num_matches),
+                inliers=[make('rfm_msgs/msg/ObjectMatch', source_index=int(s), target_index=int(t), score=float(sc),
+                              iou=float(iou))
+                         for (s, t), sc, iou in zip(rel.inliers, rel.inlier_scores, rel.inlier_ious)],
+                corner_inliers=[make('rfm_msgs/msg/CornerMatch', source_index=int(s), source_corner=int(cs),
+                                     target_index=int(t), target_corner=int(ct), error=float(e))
+                                for s, cs, t, ct, e in rel.corner_inliers],
+                mean_error=float(rel.mean_error), score=edge.score)
+
+
+def edge_record_from_msg(msg):
+    """rfm_msgs/ViewGraphEdge -> :class:`rfm_core.mapping.mapper.EdgeRecord`; ValueError when
+    malformed (a non-finite pose). A score outside [0, 1] is clipped, a non-finite one is 0."""
+    from rfm_core.mapping.mapper import EdgeRecord  # noqa: PLC0415 - io stays importable alone
+
+    t = vector3_to_numpy(msg.translation)
+    if not (np.isfinite(msg.yaw) and np.all(np.isfinite(t))):
+        raise ValueError('edge pose is not finite')
+    inliers = np.array([[m.source_index, m.target_index] for m in msg.inliers], np.int64).reshape(-1, 2)
+    corners = np.array([[c.source_index, c.source_corner, c.target_index, c.target_corner, c.error]
+                        for c in msg.corner_inliers], float).reshape(-1, 5)
+    return EdgeRecord(int(msg.source_id), int(msg.target_id), Pose4(float(msg.yaw), t), inliers,
+                      np.array([m.score for m in msg.inliers], np.float32), corners,
+                      float(np.clip(msg.score, 0.0, 1.0)) if np.isfinite(msg.score) else 0.0)
+
+
+def transform_to_matrix(transform) -> np.ndarray:
+    """geometry_msgs/Transform -> 4x4."""
+    m = np.eye(4)
+    m[:3, :3] = matrix_from_quaternion(_quat(transform.rotation))
+    m[:3, 3] = vector3_to_numpy(transform.translation)
+    return m
+
+
+def track_map_msgs(tracks, stamp_ns: int, frame_id: str, revision: int = 0, make=ROS) -> tuple:
+    """The mapper's object tracks (:class:`rfm_core.mapping.tracks.Track`) as the
+    rfm_msgs/ObjectMap it publishes (class distributions, embeddings, observations) and the
+    MarkerArray drawing them, each track in its own colour, labelled with class, score and
+    number of views."""
+    from rfm_core.mapping.tracks import track_colour  # noqa: PLC0415
+
+    boxes = np.array([t.box for t in tracks]).reshape(-1, 7)
+    msg = object_map_msg(boxes, [t.label for t in tracks], [t.track_id for t in tracks], stamp_ns, frame_id,
+                         scores=[t.score for t in tracks], revision=revision, make=make)
+    for obj, t in zip(msg.objects, tracks):
+        names = sorted(t.class_distribution)
+        obj.class_names = names
+        obj.class_probabilities = [float(t.class_distribution[n]) for n in names]
+        obj.embedding = [float(v) for v in t.embedding]
+        obj.observation_keyframe_ids = [int(k) for k in t.observations[:, 0]]
+        obj.observation_indices = [int(i) for i in t.observations[:, 1]]
+    colours = [tuple(0.3 + 0.7 * c for c in track_colour(t.track_id)) + (1.0,) for t in tracks]   # lightened
+    markers = box_markers_msg(
+        box_corners(boxes).reshape(-1, 8, 3),
+        [f'{t.label or "object"} {t.score:.2f} ({t.num_observations})' for t in tracks],
+        boxes[:, :3] + np.c_[np.zeros((len(boxes), 2)), boxes[:, 5] / 2 + 0.08],
+        colours, stamp_ns, frame_id, ids=[int(t.track_id % 2**31) for t in tracks], make=make)
+    return msg, markers

@@ -13,7 +13,7 @@ import numpy as np
 from rfm_core.geometry import Pose4, gravity_aligned_rotation
 from rfm_core.observations import FrameTrack
 
-__all__ = ['FrameLog']
+__all__ = ['FrameLog', 'camera_to_map', 'pose_from_camera']
 
 _FIELDS = {'stamps': ((), np.int64), 'keyframes': ((), np.int64), 'keyframe_stamps': ((), np.int64),
            'poses': ((4,), np.float64),
@@ -83,3 +83,15 @@ def camera_to_map(t_frame_map: Pose4, gravity_cam) -> np.ndarray:
     out[:3, :3] = m[:3, :3] @ gravity_aligned_rotation(np.asarray(gravity_cam, float))
     out[:3, 3] = m[:3, 3]
     return out
+
+
+def pose_from_camera(camera_to_map_matrix, gravity_cam, atol: float = 0.05) -> Pose4:
+    """The inverse of :func:`camera_to_map`: T_frame_map of a frame whose camera optical frame
+    is at ``camera_to_map_matrix`` (4x4) in the map. ValueError when that orientation and the
+    frame's gravity disagree by more than about ``atol`` rad (a pose from another source
+    whose roll or pitch is not the frame's)."""
+    cam = np.asarray(camera_to_map_matrix, float)
+    r = gravity_aligned_rotation(np.asarray(gravity_cam, float)) @ cam[:3, :3].T
+    t_k_map = np.eye(4)
+    t_k_map[:3, :3], t_k_map[:3, 3] = r, -r @ cam[:3, 3]
+    return Pose4.from_matrix(t_k_map, atol=atol)

@@ -80,7 +80,7 @@ class EdgeRecord:
         """From a view-graph edge (:class:`rfm_core.matching.view_graph.Edge`)."""
         rel = edge.relative
         return cls(edge.source_id, edge.target_id, rel.pose, rel.inliers, rel.inlier_scores,
-                   np.asarray(rel.corner_inliers, float).reshape(-1, 5), float(np.clip(rel.inlier_ratio, 0, 1)))
+                   np.asarray(rel.corner_inliers, float).reshape(-1, 5), edge.score)
 
 
 def camera_to_map(t_k_map: Pose4, obs: FrameObservations) -> np.ndarray:

@@ -105,6 +105,11 @@ class Edge:
     target_id: int
     relative: RelativePose
 
+    @property
+    def score(self) -> float:
+        """Confidence in [0, 1]: the share of matched objects that verified the pose."""
+        return float(np.clip(self.relative.inlier_ratio, 0.0, 1.0))
+
 
 def bag_of_objects(obs: FrameObservations) -> np.ndarray:
     """Retrieval descriptor of a frame: the unit mean of its object embeddings (zeros when

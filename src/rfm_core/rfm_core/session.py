@@ -1,0 +1,360 @@
+"""The pipeline, readable top to bottom, without ROS: what the nodes and ``rfm eval`` run.
+
+Per frame (paper 3.1-3.6)::
+
+    detections --ViewGraphBuilder.add--> keyframe?, its verified edges, the frame's track
+               --MapSession-----------> keyframe + edges into pose averaging (incremental),
+                                         the frame logged and posed against its keyframe
+
+:class:`Session` runs both stages in one process, one :meth:`Session.step` per frame
+(``rfm eval --offline``). The node graph splits them: the matcher node owns the
+:class:`~rfm_core.matching.view_graph.ViewGraphBuilder`, the mapper node a
+:class:`MapSession`, which takes keyframes, edges, tracked frames and external poses in any
+order (an edge waits for its keyframes, a posed keyframe for its pose), solves when asked
+(:meth:`MapSession.tick`: incrementally, and all at once when the input has been idle),
+relocalizes in localization mode, and saves and loads maps. Nodes only convert messages.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from typing import Callable, NamedTuple
+
+import numpy as np
+
+from rfm_core.geometry import Pose4
+from rfm_core.mapping.frame_log import camera_to_map, pose_from_camera
+from rfm_core.mapping.map_io import load_map, save_map
+from rfm_core.mapping.mapper import MODES, EdgeRecord, Mapper, MapperConfig
+from rfm_core.mapping.relocalization import Relocalization
+from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
+from rfm_core.observations import FrameObservations, FrameTrack
+
+__all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses']
+
+PENDING_EDGES = 5000            #: edges waiting for their keyframes (oldest dropped first)
+PENDING_EDGE_AGE_S = 30.0       #: ... for at most this long
+PENDING_KEYFRAMES = 100         #: posed keyframes waiting for their poses
+
+
+class CameraPose(NamedTuple):
+    """A localized frame's camera optical frame in the map."""
+
+    stamp_ns: int
+    frame_id: str
+    matrix: np.ndarray              #: 4x4 camera-to-map
+
+
+class ExternalPoses:
+    """Posed mode's pose source from a topic: camera-to-map poses by stamp; a keyframe takes
+    the one nearest its stamp within ``tolerance_ns``."""
+
+    def __init__(self, capacity: int = 2000, tolerance_ns: int = 5_000_000):
+        self.capacity, self.tolerance_ns = capacity, tolerance_ns
+        self.poses: list = []                 # (stamp_ns, 4x4)
+
+    def add(self, stamp_ns: int, matrix: np.ndarray) -> None:
+        self.poses.append((int(stamp_ns), np.asarray(matrix, float)))
+        del self.poses[:-self.capacity]
+
+    def __call__(self, obs: FrameObservations):
+        best = min(self.poses, key=lambda sp: abs(sp[0] - obs.stamp_ns), default=None)
+        if best is not None and abs(best[0] - obs.stamp_ns) <= self.tolerance_ns:
+            return best[1]
+        return None
+
+
+class MapSession:
+    """The mapper's side of the pipeline (paper 3.5-3.6 and appendix): see the module.
+
+    ``pose_lookup`` (posed mode): a keyframe's pose from outside, given its observations: a
+    Pose4 ``T_k_map``, a 4x4 camera-to-map matrix, or None while there is none yet.
+    ``warn``: where dropped input is reported (the node logs it, throttled).
+    """
+
+    def __init__(self, config: MapperConfig | None = None, matcher=None, pose_lookup=None,
+                 idle_full_solve_s: float = 0.0, warn: Callable[[str], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic):
+        config = config or MapperConfig()
+        if pose_lookup is not None and not config.posed:
+            config = replace(config, posed=True)
+        self.mapper = Mapper(config, matcher=matcher)
+        self.pose_lookup = pose_lookup
+        self.idle_full_solve_s = idle_full_solve_s
+        self.warn = warn or (lambda text: None)
+        self.clock = clock
+        self.counts = dict(keyframes=0, edges=0, frames=0, dropped=0, relocalized=0, relocalize_failed=0)
+        self.message = ''                     # the last error, for status
+        self._clear()
+
+    def _clear(self) -> None:
+        self.pending_edges: list = []         # (arrival time, EdgeRecord) waiting for keyframes
+        self.pending_keyframes: list = []     # posed: (id, observations) waiting for a pose
+        self.dirty = False                    # keyframes or edges not yet solved
+        self.since_save = 0                   # keyframes added since the map was last saved
+        self._full_solve_due = None           # clock time of the idle full re-solve
+        self._latest_track = None             # the newest tracked frame
+        self._last_camera = None              # the last CameraPose handed out
+
+    @property
+    def mode(self) -> str:
+        return self.mapper.mode
+
+    @property
+    def full_solve_pending(self) -> bool:
+        """Whether an idle full re-solve is scheduled (incremental updates since the last)."""
+        return self._full_solve_due is not None
+
+    @mode.setter
+    def mode(self, mode: str) -> None:
+        if mode not in MODES:
+            raise ValueError(f'unknown mode {mode!r}: one of {", ".join(MODES)}')
+        self.mapper.mode = mode
+
+    # ------------------------------------------------------------------ mapping input
+
+    def add_keyframe(self, keyframe_id: int, obs: FrameObservations) -> bool:
+        """A keyframe from the view graph (posed: it waits for its pose). False: ignored
+        (localization mode, or an id already known)."""
+        if self.mode != 'mapping':
+            return False
+        if self.mapper.config.posed:
+            self.pending_keyframes.append((int(keyframe_id), obs))
+            self.attach_external_poses()
+            return True
+        if not self.mapper.add_keyframe(int(keyframe_id), obs):
+            return False
+        self._keyframe_added()
+        return True
+
+    def _keyframe_added(self) -> None:
+        self.counts['keyframes'] += 1
+        self.since_save += 1
+        self.dirty = True
+        self._retry_edges()
+
+    def add_edge(self, edge: EdgeRecord) -> None:
+        """A verified edge; it waits (bounded) while one of its keyframes has not arrived."""
+        if self.mode != 'mapping':
+            return
+        keyframes = self.mapper.keyframes
+        if edge.source not in keyframes or edge.target not in keyframes:
+            self.pending_edges.append((self.clock(), edge))
+            if len(self.pending_edges) > PENDING_EDGES:
+                self.pending_edges.pop(0)
+                self.counts['dropped'] += 1
+            return
+        try:
+            if self.mapper.add_edge(edge):
+                self.counts['edges'] += 1
+                self.dirty = True
+        except ValueError as exc:
+            self.counts['dropped'] += 1
+            self.warn(f'edge dropped: {exc}')
+
+    def _retry_edges(self) -> None:
+        if not self.pending_edges:
+            return
+        pending, self.pending_edges = self.pending_edges, []
+        now = self.clock()
+        for arrived, edge in pending:
+            if edge.source in self.mapper.keyframes and edge.target in self.mapper.keyframes:
+                self.add_edge(edge)
+            elif now - arrived < PENDING_EDGE_AGE_S:
+                self.pending_edges.append((arrived, edge))
+
+    def attach_external_poses(self) -> None:
+        """Posed mode: give waiting keyframes their poses from ``pose_lookup`` (call again
+        when a new pose has arrived)."""
+        still = []
+        for k, obs in self.pending_keyframes:
+            found = self.pose_lookup(obs) if self.pose_lookup is not None else None
+            if found is None:
+                still.append((k, obs))
+                continue
+            try:
+                pose = found if isinstance(found, Pose4) else pose_from_camera(found, obs.gravity_cam)
+            except ValueError:
+                self.warn('external pose disagrees with gravity by > 3 deg; keyframe dropped')
+                continue
+            if self.mapper.add_keyframe(k, obs):
+                self.mapper.set_keyframe_pose(k, pose)
+                self._keyframe_added()
+        self.pending_keyframes = still[-PENDING_KEYFRAMES:]
+        self._retry_edges()
+
+    def add_frame(self, track: FrameTrack) -> CameraPose | None:
+        """A tracked frame (its pose relative to a keyframe): logged; returns its camera pose
+        when it has one and is newer than the last one handed out."""
+        if self.mode != 'mapping':
+            return None
+        if not self.mapper.add_frame(track):
+            self.counts['dropped'] += 1
+            self.warn(f'tracked frame dropped: keyframe {track.keyframe_id} has another stamp '
+                      '(did the matcher restart?)')
+            return None
+        self.counts['frames'] += 1
+        self._latest_track = track
+        return self._latest_camera()
+
+    def _latest_camera(self) -> CameraPose | None:
+        """The newest localized frame's pose if newer than the last handed out (the camera
+        pose stream never goes back in time); without tracked frames, the newest keyframe's."""
+        track = self._latest_track
+        if track is not None:
+            cam = self.mapper.frame_pose(track)
+            pose = CameraPose(track.stamp_ns, track.frame_id, cam) if cam is not None else None
+        else:
+            poses = self.mapper.camera_poses()
+            last = max(poses, default=None)
+            pose = (CameraPose(self.mapper.keyframes[last].stamp_ns, self.mapper.keyframes[last].frame_id,
+                               poses[last]) if last is not None else None)
+        if pose is None or (self._last_camera is not None and pose.stamp_ns <= self._last_camera.stamp_ns):
+            return None
+        self._last_camera = pose
+        return pose
+
+    # ------------------------------------------------------------------ solving
+
+    def update(self, force_full: bool = False):
+        """Fold what arrived into the poses now (the averaging stats; None without changes)."""
+        if not (self.dirty or force_full):
+            return None
+        self.dirty = False
+        self._full_solve_due = None
+        return self.mapper.update(force_full=force_full)
+
+    def tick(self) -> CameraPose | bool | None:
+        """Solve what arrived since the last tick, or all poses at once when the input has
+        been idle for ``idle_full_solve_s`` after incremental updates. False: nothing to do;
+        otherwise the poses changed and the result is the newest frame's new camera pose (or
+        None). Never raises: a failed solve is kept in :attr:`message`."""
+        idle = (not self.dirty and self._full_solve_due is not None and self.clock() >= self._full_solve_due)
+        if not (self.dirty or idle):
+            return False
+        try:
+            stats = self.update(force_full=idle)
+        except Exception as exc:                           # noqa: BLE001 - a solve never kills the node
+            self.message = f'update failed: {exc}'
+            self.warn(self.message)
+            return False
+        if stats is not None and stats.kind == 'local' and self.idle_full_solve_s > 0:
+            self._full_solve_due = self.clock() + self.idle_full_solve_s
+        return self._latest_camera()
+
+    # ------------------------------------------------------------------ localization
+
+    def relocalize(self, obs: FrameObservations) -> tuple[Relocalization | None, str]:
+        """The query's pose in the map, or None and why."""
+        if len(obs) < 2:
+            return None, f'the query has {len(obs)} detections; need >= 2'
+        if not self.mapper.poses:
+            return None, 'the map is empty: nothing to relocalize against'
+        reloc = self.mapper.relocalize(obs)
+        if reloc is None:
+            self.counts['relocalize_failed'] += 1
+            return None, 'no keyframe verified a pose for the query (too few matching objects)'
+        self.counts['relocalized'] += 1
+        return reloc, (f'relocalized against keyframe {reloc.keyframe_id}: {reloc.num_inliers} inliers, '
+                       f'{reloc.agreeing} agreeing keyframes')
+
+    def localize(self, obs: FrameObservations) -> CameraPose | None:
+        """Localization mode: relocalize a frame against the (frozen) map and log it."""
+        if self.mode != 'localization':
+            return None
+        reloc, _ = self.relocalize(obs)
+        if reloc is None:
+            return None
+        k = reloc.keyframe_id
+        self.mapper.frames.add(FrameTrack(obs.stamp_ns, obs.frame_id, obs.gravity_cam, k,
+                                          self.mapper.keyframes[k].stamp_ns,
+                                          self.mapper.poses[k] @ reloc.pose.inverse(), reloc.num_inliers))
+        pose = CameraPose(obs.stamp_ns, obs.frame_id, camera_to_map(reloc.pose, obs.gravity_cam))
+        self._last_camera = pose
+        return pose
+
+    # ------------------------------------------------------------------ the map
+
+    def save(self, path) -> str:
+        """Write the map atomically (OSError / ValueError on failure); the path written."""
+        written = save_map(self.mapper, path)
+        self.since_save = 0
+        return str(written)
+
+    def load(self, path) -> tuple[dict, dict]:
+        """Replace the map by a map file (MapFileError: the current map is unchanged). The
+        mapper takes the configuration the map was built with. Returns the file's header and
+        the settings that differ from before ({dotted name: (file, before)})."""
+        before = self.mapper.config
+        header = load_map(self.mapper, path)
+        mine, theirs = _flat(before.to_dict()), _flat(self.mapper.config.to_dict())
+        changed = {k: (theirs[k], mine.get(k)) for k in sorted(theirs) if theirs[k] != mine.get(k)}
+        self._clear()
+        self.dirty = True
+        return header, changed
+
+    def reset(self) -> None:
+        """An empty map, in the same mode."""
+        mode = self.mode
+        self.mapper.reset()
+        self.mapper.mode = mode
+        self._clear()
+
+
+def _flat(d: dict, prefix: str = '') -> dict:
+    out = {}
+    for k, v in d.items():
+        if isinstance(v, dict):
+            out.update(_flat(v, f'{prefix}{k}.'))
+        else:
+            out[f'{prefix}{k}'] = v
+    return out
+
+
+@dataclass
+class Step:
+    """What one frame did: the keyframe it made (or None), that keyframe's verified edges,
+    the frame's track (None: not localized) and its camera pose in the map."""
+
+    keyframe: object
+    edges: list
+    track: FrameTrack | None
+    camera: CameraPose | None
+
+
+class Session:
+    """Detections in, map out, one :meth:`step` per frame: the matcher's view graph and the
+    mapper's :class:`MapSession` in one process."""
+
+    def __init__(self, config: MapperConfig | None = None, keyframes: KeyframeConfig | None = None,
+                 matcher=None, pose_lookup=None):
+        config = config or MapperConfig()
+        self.graph = ViewGraphBuilder(config.matching, keyframes, matcher=matcher)
+        self.map = MapSession(config, matcher=self.graph.matcher, pose_lookup=pose_lookup)
+        self.seconds = {'match': 0.0, 'map': 0.0}        # time spent per stage
+
+    @property
+    def mapper(self) -> Mapper:
+        return self.map.mapper
+
+    def step(self, obs: FrameObservations) -> Step:
+        start = time.perf_counter()
+        keyframe, edges, track = self.graph.add(obs)      # 3.2-3.4: match, verify, keyframe?
+        matched = time.perf_counter()
+        if keyframe is not None:                          # this frame, or an earlier one bridging lost tracking
+            self.map.add_keyframe(keyframe.keyframe_id, keyframe.observations)
+            for edge in edges:
+                self.map.add_edge(EdgeRecord.from_edge(edge))
+            self.map.update()                             # 3.5: incremental pose averaging
+        camera = self.map.add_frame(track) if track is not None else None
+        self.seconds['match'] += matched - start
+        self.seconds['map'] += time.perf_counter() - matched
+        return Step(keyframe, edges, track, camera)
+
+    def finish(self) -> list:
+        """All poses re-solved at once (un-posed); the map's object tracks (3.6)."""
+        start = time.perf_counter()
+        self.map.update(force_full=not self.mapper.config.posed)
+        tracks = self.mapper.tracks()
+        self.seconds['map'] += time.perf_counter() - start
+        return tracks
