@@ -11,11 +11,13 @@ from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
 
+from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
+
 ARGS = {
-    'color': ('/camera/color/image_raw', 'colour image topic (rgb8 / bgr8 / mono8)'),
-    'camera_info': ('/camera/color/camera_info', 'camera_info of the colour image'),
-    'depth': ('/camera/depth/image_raw', 'depth registered to colour (16UC1 mm or 32FC1 m)'),
-    'imu': ('/imu/data', 'IMU (gravity from the accelerometer, gyro-aided)'),
+    'color': (CAMERA_TOPICS['color'], 'colour image topic (rgb8 / bgr8 / mono8)'),
+    'camera_info': (CAMERA_TOPICS['color_info'], 'camera_info of the colour image'),
+    'depth': (CAMERA_TOPICS['depth'], 'depth registered to colour (16UC1 mm or 32FC1 m)'),
+    'imu': (CAMERA_TOPICS['imu'], 'IMU (gravity from the accelerometer, gyro-aided)'),
     'backend': ('depth_clusters', 'detector: depth_clusters | cutr | ground_truth'),
     'cutr_checkpoint': ('', 'cutr: path to cutr_rgb.pth / cutr_rgbd.pth'),
     'matcher': ('learned', 'object matcher: learned | classical'),
@@ -36,7 +38,7 @@ def generate_launch_description():
              parameters=[{'backend': cfg['backend'], 'cutr.checkpoint': cfg['cutr_checkpoint'], **sim}],
              remappings=[('rgb/image', cfg['color']), ('rgb/camera_info', cfg['camera_info']),
                          ('depth/image', cfg['depth']), ('imu', cfg['imu']),
-                         ('ground_truth/detections', '/ground_truth/detections')]),
+                         ('ground_truth/detections', GROUND_TRUTH_TOPICS['gt_detections'])]),
         Node(package='rfm_matcher_node', executable='matcher', name='matcher', output='screen',
              parameters=[{'matcher': cfg['matcher'], **sim}]),
         Node(package='rfm_mapper_node', executable='mapper', name='mapper', output='screen',

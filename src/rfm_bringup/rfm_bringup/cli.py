@@ -27,6 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
+from rfm_core.io.topics import CAMERA_TOPICS
+
 __all__ = ['main', 'suite_configs']
 
 
@@ -98,12 +100,13 @@ def cmd_sim(args) -> int:
 
 
 def suite_configs(args) -> list:
-    """The scenes of a suite: seeds first_seed.., alternating plain/textured rooms and
-    handheld/sparse captures (every fourth scene sparse, so half of them are plain)."""
+    """The scenes of a suite: seeds first_seed.., rooms and captures as rfm eval's
+    (rfm_core.evaluation.suite.scene_kind)."""
+    from rfm_core.evaluation.suite import scene_kind  # noqa: PLC0415
+
     configs = []
     for i in range(args.count):
-        style = 'plain' if i % 2 == 0 else 'textured'
-        capture = 'sparse' if i % 4 in (1, 2) else 'handheld'
+        style, capture = scene_kind(i)
         configs.append((f'scene_{i:03d}_{style}_{capture}',
                         _config(args, args.first_seed + i, style, capture)))
     return configs
@@ -500,8 +503,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('bag')
     p.add_argument('output', help='PNG file to write')
     p.add_argument('--frames', type=int, default=4, help='frames to show (default 4)')
-    p.add_argument('--color-topic', help=f"default {'/camera/color/image_raw'}")
-    p.add_argument('--depth-topic', help=f"default {'/camera/depth/image_raw'}")
+    p.add_argument('--color-topic', help=f"default {CAMERA_TOPICS['color']}")
+    p.add_argument('--depth-topic', help=f"default {CAMERA_TOPICS['depth']}")
     p.add_argument('--max-depth', type=float, default=6.0, help='depth shown as white (m)')
     p.set_defaults(func=cmd_preview)
 

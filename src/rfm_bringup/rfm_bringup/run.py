@@ -23,12 +23,14 @@ import threading
 import time
 from pathlib import Path
 
+from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
+
 __all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
 
 # The detector's inputs on a RealSense-style driver (and on rfm's sim bags).
-BAG_REMAPS = {'rgb/image': '/camera/color/image_raw', 'rgb/camera_info': '/camera/color/camera_info',
-              'depth/image': '/camera/depth/image_raw', 'imu': '/imu/data',
-              'ground_truth/detections': '/ground_truth/detections'}
+BAG_REMAPS = {'rgb/image': CAMERA_TOPICS['color'], 'rgb/camera_info': CAMERA_TOPICS['color_info'],
+              'depth/image': CAMERA_TOPICS['depth'], 'imu': CAMERA_TOPICS['imu'],
+              'ground_truth/detections': GROUND_TRUTH_TOPICS['gt_detections']}
 # What outputs.mcap records (with --live also the colour images, which a bag already has).
 OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames',
                  '/rfm/keyframe_poses', '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map',

@@ -15,12 +15,12 @@ from rfm_core.evaluation.detection import DetectionEvaluator
 from rfm_core.io.bag import iter_camera_frames
 from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_msg, imu_reading
+from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
 
 __all__ = ['evaluate_bag', 'TOPICS']
 
-TOPICS = dict(color='/camera/color/image_raw', depth='/camera/depth/image_raw',
-              info='/camera/color/camera_info', imu='/imu/data',
-              ground_truth='/ground_truth/detections')
+TOPICS = dict(color=CAMERA_TOPICS['color'], depth=CAMERA_TOPICS['depth'], info=CAMERA_TOPICS['color_info'],
+              imu=CAMERA_TOPICS['imu'], ground_truth=GROUND_TRUTH_TOPICS['gt_detections'])
 
 
 def evaluate_bag(path, detector, evaluator: DetectionEvaluator | None = None, every: int = 1,

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['SETTINGS', 'Setting', 'eval_configs', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
+__all__ = ['SETTINGS', 'Setting', 'scene_kind', 'eval_configs', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
            'run_graph_suite', 'summarize', 'format_tables']
 
 
@@ -79,16 +79,18 @@ def select_settings(keys=None) -> list:
     return [s for s in SETTINGS if not keys or s.name in picked]
 
 
+def scene_kind(i: int) -> tuple[str, str]:
+    """(room style, capture) of a suite's i-th scene: plain / textured rooms alternate, and
+    every other pair of scenes is a sparse capture, so each style gets both captures."""
+    return ('plain' if i % 2 == 0 else 'textured'), ('sparse' if i % 4 in (1, 2) else 'handheld')
+
+
 def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps: float = 10.0):
-    """Mixed scenes: plain / textured rooms, handheld / sparse captures."""
+    """Mixed scenes: plain / textured rooms, handheld / sparse captures (:func:`scene_kind`)."""
     from rfm_core.sim.capture import CaptureConfig  # noqa: PLC0415
 
-    out = []
-    for i in range(count):
-        style = 'plain' if i % 2 == 0 else 'textured'
-        capture = 'sparse' if i % 4 in (1, 2) else 'handheld'
-        out.append(CaptureConfig(seed=first_seed + i, room_style=style, capture=capture, frames=frames, fps=fps))
-    return out
+    return [CaptureConfig(seed=first_seed + i, room_style=style, capture=capture, frames=frames, fps=fps)
+            for i, (style, capture) in enumerate(map(scene_kind, range(count)))]
 
 
 def evaluate_scene(args) -> dict:

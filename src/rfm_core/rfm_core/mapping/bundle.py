@@ -21,7 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from rfm_core.geometry import box_corners, wrap_angle
-from rfm_core.matching.corners import corner_permutation, relabel
+from rfm_core.matching.corners import closest_turn, corner_permutation
 from rfm_core.settings import setting
 
 __all__ = ['BundleConfig', 'refine_tracks']
@@ -76,7 +76,7 @@ def _refine_one(track, keyframes, poses, cfg):
         intr = obs.intrinsics
         r_cam_aligned = obs.rotation_aligned_from_camera.T
         # the quarter turn of the detection closest in yaw to the track's box
-        q = min(range(4), key=lambda t: abs(wrap_angle(relabel(lifted, t)[6] - track.box[6])))
+        q = closest_turn(lifted, track.box[6])
         perm = corner_permutation(q)
         corners_cam = box_corners(obs.boxes[int(det)])[perm] @ r_cam_aligned.T
         ok = corners_cam[:, 2] > cfg.min_depth_m

@@ -12,7 +12,7 @@ import numpy as np
 
 from rfm_core.geometry import wrap_angle
 
-__all__ = ['relabel', 'corner_permutation', 'quarter_turn_candidates']
+__all__ = ['relabel', 'corner_permutation', 'quarter_turn_candidates', 'closest_turn']
 
 
 def corner_permutation(k: int) -> np.ndarray:
@@ -41,3 +41,8 @@ def quarter_turn_candidates(box_a, box_b, tolerance: float) -> list:
         if np.all(err <= tolerance):
             out.append((k, float(wrap_angle(b[6] - box_a[6]))))
     return out
+
+
+def closest_turn(box, yaw: float) -> int:
+    """The quarter turn k of ``box`` whose relabelled yaw is closest to ``yaw``."""
+    return min(range(4), key=lambda k: abs(wrap_angle(relabel(box, k)[6] - yaw)))

@@ -33,7 +33,7 @@ from rfm_core.geometry import (
 )
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.corners import corner_permutation, quarter_turn_candidates, relabel
+from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_candidates
 
 __all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose']
 
@@ -230,7 +230,7 @@ def _corner_inliers(pose: Pose4, a, b, matches, idx, cfg) -> list:
     moved = pose.transform_boxes(a[idx])
     for m, box in zip(idx, moved):
         # the quarter turn of box b that best matches the transferred box's yaw
-        k = min(range(4), key=lambda q: abs(wrap_angle(relabel(b[m], q)[6] - box[6])))
+        k = closest_turn(b[m], box[6])
         perm = corner_permutation(k)
         ca = box_corners(box)
         cb = box_corners(b[m])[perm]

@@ -37,6 +37,7 @@ from rfm_core.geometry import Pose4, gravity_aligned_rotation
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.sim.render import NoiseModel, Renderer, RenderOutput
 from rfm_core.sim.room import STYLES, Room, generate_room
+from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
 from rfm_core.sim.trajectory import CAPTURE_STYLES, Trajectory, imu_samples, make_trajectory
 
 __all__ = ['CaptureConfig', 'SimFrame', 'Capture', 'TOPICS', 'OPTICAL_FRAME', 'START_NS']
@@ -44,17 +45,7 @@ __all__ = ['CaptureConfig', 'SimFrame', 'Capture', 'TOPICS', 'OPTICAL_FRAME', 'S
 OPTICAL_FRAME = 'camera_color_optical_frame'
 BASE_FRAME = 'camera_link'
 START_NS = 1_700_000_000 * 1_000_000_000      # bag time of the first frame
-TOPICS = {
-    'color': '/camera/color/image_raw',
-    'color_info': '/camera/color/camera_info',
-    'depth': '/camera/depth/image_raw',
-    'depth_info': '/camera/depth/camera_info',
-    'imu': '/imu/data',
-    'tf_static': '/tf_static',
-    'gt_pose': '/ground_truth/camera_pose',
-    'gt_objects': '/ground_truth/objects',
-    'gt_detections': '/ground_truth/detections',
-}
+TOPICS = {**CAMERA_TOPICS, **GROUND_TRUTH_TOPICS}
 # camera_link (x forward, y left, z up) -> optical frame (x right, y down, z forward)
 _LINK_FROM_OPTICAL = np.array([[0.0, 0.0, 1.0, 0.0], [-1.0, 0.0, 0.0, 0.0],
                                [0.0, -1.0, 0.0, 0.0], [0.0, 0.0, 0.0, 1.0]])
