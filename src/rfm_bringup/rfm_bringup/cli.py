@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rfm_core.detection import BACKENDS
 from rfm_core.io.topics import CAMERA_TOPICS
 
 __all__ = ['main', 'suite_configs']
@@ -608,7 +609,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--live', action='store_true', help='subscribe to live camera topics until Ctrl-C')
     p.add_argument('--output', help='output folder (default rfm_output/<bag name>)')
     p.add_argument('--force', action='store_true', help='replace an existing output folder')
-    p.add_argument('--backend', default='depth_clusters', choices=('depth_clusters', 'ground_truth', 'cutr'))
+    p.add_argument('--backend', default='depth_clusters', choices=BACKENDS)
     p.add_argument('--preset', default='rgbd', help='ground_truth noise preset (perfect, rgbd, rgb)')
     p.add_argument('--cutr-checkpoint', help='cutr: path to cutr_rgb.pth / cutr_rgbd.pth')
     p.add_argument('--matcher', default='learned', choices=('learned', 'classical'))
