@@ -213,7 +213,7 @@ class _InProcessGraph:
         return {'frames': self.detector.counts['processed'], 'dropped': self.detector.counts['dropped_busy'],
                 'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
                 'registered': len(mp.poses), 'objects': self.mapper.num_objects,
-                'busy': self.mapper.session.dirty or self.detector._pending is not None}
+                'busy': self.mapper.session.dirty or self.detector.worker.busy}
 
     def save(self, path) -> bool:
         written, text = self.mapper._save(str(path))

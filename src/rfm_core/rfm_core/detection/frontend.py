@@ -1,0 +1,183 @@
+"""From camera and IMU messages to detections: what the detector node runs, without ROS.
+
+Frames (colour, camera_info, optionally depth; or simulated ground truth) must arrive in
+stamp order (a jump far back, a looping bag, resets the state); gravity comes from the IMU's
+complementary filter (waiting briefly for the IMU to catch up with a frame, and dropping
+frames without recent IMU data) or a fixed vector; the gyroscope's orientation is attached
+to each frame's detections (the matcher checks relative yaws with it). Messages are read by
+their fields (:mod:`rfm_core.io`), so rclpy and rosbags messages both work.
+
+:class:`LatestWorker` runs the detector on one thread, newest frame first: a frame arriving
+while it is busy replaces the waiting one (and is counted as dropped), so nothing queues
+without bound.
+"""
+from __future__ import annotations
+
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from rfm_core.detection.base import Detector, DetectorInput
+from rfm_core.detection.gravity import GravityFilter
+from rfm_core.io.images import depth_to_meters, image_to_rgb
+from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_msg, imu_reading, stamp_to_ns
+from rfm_core.io.sync import ApproximateTimeSynchronizer
+from rfm_core.observations import FrameObservations
+
+__all__ = ['DetectorFrontend', 'LatestWorker', 'TIME_JUMP_NS']
+
+TIME_JUMP_NS = 2_000_000_000      #: a stamp this much older than the last one: the bag looped
+
+
+class DetectorFrontend:
+    """Synchronised frames in, :class:`FrameObservations` out. ``on_frame(kind, payload)`` is
+    called with each frame to detect (``'images'``: the synchronised messages;
+    ``'ground_truth'``: a FrameDetections message); :meth:`detect` turns it into detections.
+    ``fixed_gravity``: "down" in the camera optical frame, or None to use the IMU."""
+
+    def __init__(self, detector: Detector, on_frame: Callable, fixed_gravity=None, sync_slop_s: float = 0.05,
+                 queue_size: int = 10, every_nth_frame: int = 1, imu_tau_s: float = 1.0, imu_max_age_s: float = 1.0,
+                 imu_wait_s: float = 0.05, warn: Callable[[str], None] | None = None):
+        self.detector = detector
+        self.on_frame = on_frame
+        self.fixed_gravity = None if fixed_gravity is None else np.asarray(fixed_gravity, float)
+        if self.fixed_gravity is not None and not (self.fixed_gravity.shape == (3,)
+                                                   and np.linalg.norm(self.fixed_gravity) > 1e-6):
+            raise ValueError('gravity parameter must be a non-zero 3-vector')
+        self.every_nth, self.imu_max_age_s, self.imu_wait_s = every_nth_frame, imu_max_age_s, imu_wait_s
+        self.warn = warn or (lambda text: None)
+        self.gravity_filter = GravityFilter(tau_s=imu_tau_s)
+        self.counts = dict(received=0, processed=0, published=0, dropped_busy=0, dropped_invalid=0,
+                           dropped_no_gravity=0, dropped_out_of_order=0, skipped_nth=0)
+        # colour, camera_info and depth when needed (ground truth arrives as one message)
+        self.sync = (None if detector.name == 'ground_truth' else
+                     ApproximateTimeSynchronizer(3 if detector.needs_depth else 2, int(sync_slop_s * 1e9), queue_size,
+                                                 self._on_synced))
+        self._last_stamp = None
+        self._synced = 0
+
+    # ------------------------------------------------------------------ inputs
+
+    def _accept_stamp(self, stamp: int, what: str) -> bool:
+        """Frames must arrive in stamp order; a jump far back (a looping bag) resets state."""
+        last = self._last_stamp
+        if last is not None and stamp <= last:
+            if last - stamp <= TIME_JUMP_NS:
+                self.counts['dropped_out_of_order'] += 1
+                self.warn(f'{what} dropped: stamp {stamp} is not newer than the last ({last})')
+                return False
+            self.warn('time jumped backwards (bag loop?): resetting')
+            if self.sync is not None:
+                self.sync.reset()
+            self.gravity_filter = GravityFilter(tau_s=self.gravity_filter.tau_s)
+        self._last_stamp = stamp
+        return True
+
+    def add_image(self, index: int, msg) -> None:
+        """A camera message: 0 colour (Image or CompressedImage), 1 camera_info, 2 depth."""
+        stamp = stamp_to_ns(msg.header.stamp)
+        if index == 0:
+            self.counts['received'] += 1
+            if not self._accept_stamp(stamp, 'image'):
+                return
+        self.sync.add(index, stamp, msg)
+
+    def _on_synced(self, *msgs) -> None:
+        self._synced += 1
+        if (self._synced - 1) % self.every_nth:
+            self.counts['skipped_nth'] += 1
+            return
+        self.on_frame('images', msgs)
+
+    def add_ground_truth(self, msg) -> None:
+        """A simulated frame's ground-truth detections (backend ground_truth)."""
+        self.counts['received'] += 1
+        if self._accept_stamp(stamp_to_ns(msg.header.stamp), 'ground-truth frame'):
+            self.on_frame('ground_truth', msg)
+
+    def add_imu(self, msg) -> None:
+        if not self.gravity_filter.add(*imu_reading(msg)):
+            self.warn('IMU sample dropped: not finite, not near 1 g, or out of order')
+
+    # ------------------------------------------------------------------ detection
+
+    def detect(self, kind: str, payload) -> FrameObservations | None:
+        """Detections of one frame, the gyroscope's orientation attached when the IMU is
+        recent; None when it has no gravity. ValueError for a malformed frame."""
+        if kind == 'ground_truth':
+            obs = self.detector.perturb(frame_detections_from_msg(payload))
+            obs.imu_rotation, obs.imu_epoch = None, 0        # the simulator's; the IMU's is attached
+        else:
+            rgb_msg, info, depth_msg = (tuple(payload) + (None,))[:3]
+            stamp = stamp_to_ns(rgb_msg.header.stamp)
+            gravity = self._gravity(stamp)
+            if gravity is None:
+                return None
+            frame = DetectorInput(stamp, rgb_msg.header.frame_id, camera_info_intrinsics(info), gravity,
+                                  rgb=image_to_rgb(rgb_msg),
+                                  depth=depth_to_meters(depth_msg) if depth_msg is not None else None)
+            obs = self.detector.detect(frame)
+        found = self.gravity_filter.orientation_at(obs.stamp_ns)
+        if found is not None:
+            obs.imu_rotation, obs.imu_epoch = found
+        return obs
+
+    def _gravity(self, stamp: int):
+        if self.fixed_gravity is not None:
+            return self.fixed_gravity / np.linalg.norm(self.fixed_gravity)
+        # IMU and images travel on different topics: give the IMU a moment to catch up.
+        deadline = time.monotonic() + self.imu_wait_s
+        while time.monotonic() < deadline and (self.gravity_filter.last_stamp_ns or 0) < stamp:
+            time.sleep(0.002)
+        if self.gravity_filter.age_s(stamp) > self.imu_max_age_s:
+            self.counts['dropped_no_gravity'] += 1
+            self.warn('frame dropped: no recent IMU data on "imu"; remap the IMU topic, '
+                      'or set gravity_source:=parameter with gravity:=[gx, gy, gz]')
+            return None
+        return self.gravity_filter.gravity()
+
+    def diagnostics(self) -> dict:
+        """Counters for /diagnostics."""
+        return dict(self.counts, dropped_unsynchronised=self.sync.stats.dropped if self.sync is not None else 0)
+
+
+class LatestWorker:
+    """Runs ``work(job)`` on its own thread for the newest job submitted: a job submitted
+    while another waits replaces it (``on_replaced`` is called), so nothing queues."""
+
+    def __init__(self, work: Callable, on_replaced: Callable[[], None], name: str = 'worker'):
+        self.work, self.on_replaced = work, on_replaced
+        self._pending = None
+        self._stop = False
+        self._cv = threading.Condition()
+        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
+        self._thread.start()
+
+    @property
+    def busy(self) -> bool:
+        """Whether a job is waiting."""
+        return self._pending is not None
+
+    def submit(self, *job) -> None:
+        with self._cv:
+            if self._pending is not None:
+                self.on_replaced()                  # newest wins
+            self._pending = job
+            self._cv.notify()
+
+    def stop(self) -> None:
+        with self._cv:
+            self._stop = True
+            self._cv.notify()
+
+    def _run(self) -> None:
+        while True:
+            with self._cv:
+                while self._pending is None and not self._stop:
+                    self._cv.wait()
+                if self._stop:
+                    return
+                job, self._pending = self._pending, None
+            self.work(*job)

@@ -1,0 +1,89 @@
+"""The detector node's front end without ROS: a simulated bag's messages in stamp order,
+gravity from its IMU, frames out of order dropped, a looping bag resets, newest frame wins."""
+import threading
+
+import numpy as np
+import pytest
+
+from rfm_core.detection import make_detector
+from rfm_core.detection.frontend import DetectorFrontend, LatestWorker
+from rfm_core.sim.capture import TOPICS, Capture, CaptureConfig
+
+rosbags = pytest.importorskip('rosbags')
+
+
+@pytest.fixture(scope='module')
+def bag_messages(tmp_path_factory):
+    from rosbags.highlevel import AnyReader
+    path = tmp_path_factory.mktemp('bags') / 'frontend'
+    capture = Capture(CaptureConfig(seed=44, frames=6, fps=5))
+    capture.write_bag(path)
+    with AnyReader([path]) as reader:
+        messages = [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    return messages, {f.stamp_ns: f for f in capture.frames()}
+
+
+def _feed(frontend, messages, imu=True):
+    index = {TOPICS['color']: 0, TOPICS['color_info']: 1, TOPICS['depth']: 2}
+    for topic, msg in messages:
+        if topic in index:
+            frontend.add_image(index[topic], msg)
+        elif topic == TOPICS['imu'] and imu:
+            frontend.add_imu(msg)
+
+
+def test_frames_are_synchronised_and_detected_with_the_imus_gravity(bag_messages):
+    messages, truth = bag_messages
+    frames = []
+    frontend = DetectorFrontend(make_detector('depth_clusters'), lambda *job: frames.append(job), imu_wait_s=0.0)
+    _feed(frontend, messages)
+    assert len(frames) == len(truth) and frontend.counts['received'] == len(truth)
+    for job in frames[-2:]:
+        obs = frontend.detect(*job)
+        true = truth[obs.stamp_ns]
+        down = true.pose_matrix[:3, :3].T @ np.array([0.0, 0.0, -1.0])        # world down in the camera
+        assert np.degrees(np.arccos(np.clip(obs.gravity_cam @ down, -1, 1))) < 2.0
+        assert len(obs) > 0 and obs.imu_rotation is not None and obs.imu_epoch > 0
+    # the same frames again: older than the last, dropped as out of order
+    _feed(frontend, messages)
+    assert len(frames) == len(truth) and frontend.counts['dropped_out_of_order'] == len(truth)
+
+
+def test_without_imu_frames_are_dropped_and_a_fixed_gravity_serves(bag_messages):
+    messages, truth = bag_messages
+    frames = []
+    frontend = DetectorFrontend(make_detector('depth_clusters'), lambda *job: frames.append(job), imu_wait_s=0.0)
+    _feed(frontend, messages, imu=False)
+    assert frontend.detect(*frames[0]) is None and frontend.counts['dropped_no_gravity'] == 1
+    fixed = DetectorFrontend(make_detector('depth_clusters'), lambda *job: None, fixed_gravity=[0.0, 2.0, 0.0])
+    obs = fixed.detect(*frames[0])
+    assert np.allclose(obs.gravity_cam, [0.0, 1.0, 0.0]) and obs.imu_rotation is None
+    with pytest.raises(ValueError, match='non-zero'):
+        DetectorFrontend(make_detector('depth_clusters'), lambda *job: None, fixed_gravity=[0.0, 0.0, 0.0])
+
+
+def test_every_nth_frame_and_a_looping_bag(bag_messages):
+    messages, truth = bag_messages
+    frames = []
+    frontend = DetectorFrontend(make_detector('depth_clusters'), lambda *job: frames.append(job), every_nth_frame=2)
+    _feed(frontend, messages)
+    assert len(frames) == 3 and frontend.counts['skipped_nth'] == 3
+    frontend._last_stamp += 10 ** 10                  # the bag plays again from the start: 10 s back
+    _feed(frontend, messages)
+    assert frontend.counts['dropped_out_of_order'] == 0 and len(frames) == 6
+
+
+def test_the_newest_job_wins_while_the_worker_is_busy():
+    release, done, replaced = threading.Event(), [], []
+    worker = LatestWorker(lambda job: (release.wait(5), done.append(job)), lambda: replaced.append(1))
+    worker.submit('first')                            # taken at once, blocks the worker
+    deadline = threading.Event()
+    while worker.busy and not deadline.wait(0.01):
+        pass
+    for job in ('second', 'third', 'fourth'):
+        worker.submit(job)
+    release.set()
+    while len(done) < 2 and not deadline.wait(0.01):
+        pass
+    worker.stop()
+    assert done == ['first', 'fourth'] and len(replaced) == 2
