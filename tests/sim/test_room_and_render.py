@@ -155,3 +155,84 @@ def test_noise_model_holes_and_error_grow_with_distance():
     far = err[true[~holes] > 4.0]
     assert np.median(near) < 0.01 and np.median(far) > np.median(near)
     assert frame.render.rgb.std() > 10
+
+
+# ---------------------------------------------------------------- furniture made of parts, clutter
+
+def _look_at(eye, target):
+    z = np.asarray(target, float) - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0.0, 0.0, 1.0])
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], 1)          # camera-to-map rotation
+
+
+def _one_object_room(label, size, furniture):
+    from rfm_core.sim.furniture import object_parts
+    from rfm_core.sim.room import Material, Room, RoomObject
+    paint = Material((0.8, 0.8, 0.8))
+    box = np.array([3.0, 2.5, size[2] / 2, *size, 0.0])
+    parts = object_parts(label, size) if furniture == 'parts' else None
+    return Room(size=np.array([6.0, 5.0, 2.8]), walls=(paint,) * 6,
+                objects=[RoomObject(box, label, Material((0.5, 0.3, 0.2)), parts=parts)])
+
+
+def test_a_tables_legs_are_hit_under_its_top_and_the_space_between_them_is_seen_through():
+    from rfm_core.sim.render import Renderer
+    intr = CaptureConfig(width=160, height=120).intrinsics
+    eye = np.array([3.0, 0.6, 0.3])                  # low, looking along +y under the table top
+    depth_rows = {}
+    for furniture in ('boxes', 'parts'):
+        room = _one_object_room('table', (1.2, 0.8, 0.75), furniture)
+        out = Renderer(room, intr, NoiseModel.none()).render(_look_at(eye, [3.0, 2.5, 0.3]), eye)
+        row = out.instance[intr.height // 2]          # the image row at the camera's height
+        depth_rows[furniture] = (row, out.depth_true[intr.height // 2])
+    solid, parts = depth_rows['boxes'], depth_rows['parts']
+    assert np.all(solid[0][70:90] == 1)                 # the solid box fills the view's middle
+    # with parts: the two front legs are hit, the middle of the row sees the far wall
+    hit = np.flatnonzero(parts[0] == 1)
+    assert len(hit) > 2 and hit.min() < 60 and hit.max() > 100
+    middle = slice(72, 88)
+    assert np.all(parts[0][middle] == 0) and np.all(parts[1][middle] > 4.0)        # the wall at y = 5
+    assert np.all(solid[1][middle] < 2.5)
+
+
+def test_parts_keep_the_layout_and_the_amodal_ground_truth():
+    boxes = Capture(CaptureConfig(seed=21, frames=3))
+    parts = Capture(CaptureConfig(seed=21, frames=3, furniture='parts', clutter=True))
+    n = len(boxes.room.objects)
+    # the same furniture in the same places; open shelves may get objects on their boards
+    assert np.array_equal(parts.room.boxes[:n], boxes.room.boxes)
+    extra = parts.room.objects[n:]
+    assert all(o.label in ('books', 'box', 'vase') for o in extra)
+    labels_with_parts = {o.label for o in parts.room.objects if o.parts is not None}
+    assert labels_with_parts and labels_with_parts <= {'table', 'desk', 'chair', 'stool', 'bookshelf', 'sofa',
+                                                       'armchair', 'bed', 'lamp', 'plant'}
+    for obj in parts.room.objects:                     # every part inside its object's box
+        if obj.parts is not None:
+            corners = box_corners(obj.parts)
+            assert np.all(np.abs(corners) <= obj.box[3:6] / 2 + 1e-9), obj.label
+    frame = next(parts.frames())
+    gt = frame.ground_truth
+    assert set(gt.object_ids) <= set(range(1, len(parts.room.objects) + 1))      # clutter is no object
+    # deterministic
+    again = Capture(CaptureConfig(seed=21, frames=3, furniture='parts', clutter=True))
+    assert np.array_equal(next(again.frames()).render.rgb, frame.render.rgb)
+
+
+def test_clutter_is_rendered_but_in_no_ground_truth():
+    from rfm_core.sim.furniture import Clutter
+    from rfm_core.sim.render import Renderer
+    from rfm_core.sim.room import Material
+    room = _one_object_room('cabinet', (0.8, 0.5, 1.0), 'boxes')
+    intr = CaptureConfig(width=160, height=120).intrinsics
+    eye = np.array([3.0, 1.0, 1.5])
+    view = _look_at(eye, [3.0, 5.0, 1.6])               # at the far wall, above the cabinet
+    before = Renderer(room, intr, NoiseModel.none()).render(view, eye)
+    room.clutter = [Clutter([3.0, 4.985, 1.6, 0.8, 0.03, 0.6, np.pi], 'picture', Material((0.9, 0.1, 0.1)))]
+    after = Renderer(room, intr, NoiseModel.none()).render(view, eye)
+    changed = np.abs(after.depth_true - before.depth_true) > 0.01
+    assert changed.sum() > 200                          # the picture stands out of the wall ...
+    assert np.all(after.instance[changed] == 0)         # ... and belongs to no object
+    assert np.array_equal(after.visible_pixels, before.visible_pixels)
+    assert np.any(after.rgb[changed][:, 0] > 2 * after.rgb[changed][:, 1])          # it is red

@@ -52,6 +52,11 @@ def _add_scene_options(p: argparse.ArgumentParser) -> None:
                    help='depth image encoding: 16UC1 in mm (default) or 32FC1 in m')
     p.add_argument('--color-noise', type=float, default=2.0,
                    help='std of colour noise in 8-bit levels (default 2; 0 makes smaller bags)')
+    p.add_argument('--furniture', choices=('boxes', 'parts'), default='boxes',
+                   help='boxes: every object a solid box (default); parts: tables on legs, chairs with '
+                        'backs, open shelves with objects on their boards, sofas, beds, lamps, plants')
+    p.add_argument('--clutter', action='store_true',
+                   help='add rugs, pictures, door frames, radiators and cables (in no ground truth)')
     p.add_argument('--force', action='store_true', help='overwrite existing output')
 
 
@@ -61,7 +66,7 @@ def _config(args, seed, style, capture):
     return CaptureConfig(seed=seed, room_style=style, capture=capture, frames=args.frames,
                          fps=args.fps, width=args.size[0], height=args.size[1],
                          hfov_deg=args.hfov, imu_rate_hz=args.imu_rate,
-                         depth_encoding=args.depth_encoding,
+                         depth_encoding=args.depth_encoding, furniture=args.furniture, clutter=args.clutter,
                          noise=NoiseModel(color_sigma=args.color_noise))
 
 

@@ -36,6 +36,7 @@ from rfm_core.detection.base import DetectorInput
 from rfm_core.geometry import Pose4, gravity_aligned_rotation
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.sim.render import NoiseModel, Renderer, RenderOutput
+from rfm_core.sim.furniture import FURNITURE_STYLES
 from rfm_core.sim.room import STYLES, Room, generate_room
 from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
 from rfm_core.sim.trajectory import CAPTURE_STYLES, Trajectory, imu_samples, make_trajectory
@@ -69,10 +70,14 @@ class CaptureConfig:
     num_objects: tuple = (10, 40)
     noise: NoiseModel = field(default_factory=NoiseModel)
     trajectory_seed: int = -1             #: >= 0: another trajectory through the same room
+    furniture: str = 'boxes'              #: boxes | parts (tables on legs, open shelves, ...: sim.furniture)
+    clutter: bool = False                 #: rugs, pictures, door frames, radiators, cables (no ground truth)
 
     def __post_init__(self):
         if self.room_style not in STYLES:
             raise ValueError(f'room_style must be one of {STYLES}')
+        if self.furniture not in FURNITURE_STYLES:
+            raise ValueError(f'furniture must be one of {FURNITURE_STYLES}')
         if self.capture not in CAPTURE_STYLES:
             raise ValueError(f'capture must be one of {CAPTURE_STYLES}')
         if self.depth_encoding not in ('16UC1', '32FC1'):
@@ -91,8 +96,9 @@ class CaptureConfig:
 
     def to_json(self) -> str:
         d = asdict(self)
-        if d['trajectory_seed'] < 0:          # the default: left out (older bags stay identical)
-            del d['trajectory_seed']
+        for key, default in (('trajectory_seed', -1), ('furniture', 'boxes'), ('clutter', False)):
+            if d[key] == default:             # defaults left out: older bags stay identical
+                del d[key]
         return json.dumps(d, sort_keys=True)
 
 
@@ -137,7 +143,7 @@ class Capture:
         self.config = config
         seeds = np.random.SeedSequence(config.seed).spawn(4)
         self.room: Room = generate_room(int(seeds[0].generate_state(1)[0]), config.room_style,
-                                        config.num_objects)
+                                        config.num_objects, furniture=config.furniture, clutter=config.clutter)
         trajectory_seed = (int(seeds[1].generate_state(1)[0]) if config.trajectory_seed < 0 else
                            int(np.random.SeedSequence([config.seed, config.trajectory_seed]).generate_state(1)[0]))
         self.trajectory: Trajectory = make_trajectory(

@@ -15,6 +15,7 @@ import numpy as np
 
 from rfm_core.geometry import BOX_EDGES, box_corners, convex_hull_area
 from rfm_core.observations import CameraIntrinsics
+from rfm_core.sim.furniture import world_parts
 from rfm_core.sim.room import Material, Room
 
 __all__ = ['RenderOutput', 'Renderer', 'NoiseModel']
@@ -136,12 +137,32 @@ class Renderer:
                                    np.ones_like(u)], -1).astype(np.float32)
         self._boxes = room.boxes
         self._corners = box_corners(self._boxes) if len(self._boxes) else np.zeros((0, 8, 3))
-        # Texture tiles of the 6 room surfaces then the objects, as 8-bit albedo.
-        tiles = [_texture_tile(m) for m in room.walls] + [_texture_tile(o.material)
-                                                            for o in room.objects]
+        # What rays hit: primitives (boxes), each an object's part (or its whole box) or a
+        # piece of clutter (owner -1: in no ground truth), with the texture tile it wears.
+        n = len(room.objects)
+        prims, owner, tile = [], [], []
+        for k, obj in enumerate(room.objects):
+            parts = obj.box[None] if obj.parts is None else world_parts(obj.box, obj.parts)
+            prims += list(parts)
+            owner += [k] * len(parts)
+            tile += [6 + k] * len(parts)
+        for j, piece in enumerate(room.clutter):
+            prims.append(piece.box)
+            owner.append(-1)
+            tile.append(6 + n + j)
+        self._prims = np.array(prims, dtype=np.float64).reshape(-1, 7)
+        self._prim_owner = np.array(owner, dtype=np.int64)
+        self._prim_tile = np.array(tile, dtype=np.int64)
+        self._clutter_corners = (box_corners(self._prims[self._prim_owner < 0]) if room.clutter
+                                 else np.zeros((0, 8, 3)))
+        # Texture tiles of the 6 room surfaces, the objects, then the clutter, as 8-bit albedo.
+        tiles = ([_texture_tile(m) for m in room.walls] + [_texture_tile(o.material) for o in room.objects]
+                 + [_texture_tile(c.material) for c in room.clutter])
         self._tiles = np.stack([np.rint(t * 255).astype(np.uint8) for t, _ in tiles])
         self._tile_scale = np.array([1.0 / res for _, res in tiles], dtype=np.float32)
-        self._box_table = np.concatenate([np.zeros((1, 7)), self._boxes]).astype(np.float32)
+        self._box_table = np.concatenate([np.zeros((1, 7)), self._prims]).astype(np.float32)
+        # pixel labels: 0 room structure, i + 1 primitive i; instance = its owner + 1 (0: none)
+        self._instance_of = np.concatenate([[0], np.where(self._prim_owner >= 0, self._prim_owner + 1, 0)])
 
     # ---------------------------------------------------------------- projection
 
@@ -150,7 +171,7 @@ class Renderer:
         return np.stack([intr.fx * cam[..., 0] / cam[..., 2] + intr.cx,
                          intr.fy * cam[..., 1] / cam[..., 2] + intr.cy], -1)
 
-    def _project_boxes(self, rot_wc: np.ndarray, pos: np.ndarray):
+    def _project_boxes(self, rot_wc: np.ndarray, pos: np.ndarray, corners: np.ndarray | None = None):
         """Per object: amodal projected area (px), clipped amodal 2D box, the pixel
         rectangle (u0, v0, u1, v1) that can contain it (u1 <= u0 when not in the image),
         and whether the projection lies entirely inside the image.
@@ -160,8 +181,9 @@ class Renderer:
         is computed only for truncated boxes: for the others the caller counts pixels.
         """
         intr = self.intrinsics
-        n = len(self._boxes)
-        cam = (self._corners - pos) @ rot_wc                  # (N, 8, 3) camera frame
+        corners = self._corners if corners is None else corners
+        n = len(corners)
+        cam = (corners - pos) @ rot_wc                        # (N, 8, 3) camera frame
         in_front = cam[..., 2] > _NEAR
         area = np.zeros(n)
         lo = np.full((n, 2), np.inf)
@@ -217,19 +239,24 @@ class Renderer:
         # Surface id: 0 wall x=0, 1 wall x=W, 2 wall y=0, 3 wall y=D, 4 floor, 5 ceiling
         positive = np.take_along_axis(rays, exit_axis[..., None], -1)[..., 0] > 0
         surface = 2 * exit_axis + positive
-        instance = np.zeros((h, w), dtype=np.int32)
-        obj_axis = np.zeros((h, w), dtype=np.int8)          # entry axis of the winning object hit
+        prim_id = np.zeros((h, w), dtype=np.int32)          # 0 structure, i + 1 primitive i
+        obj_axis = np.zeros((h, w), dtype=np.int8)          # entry axis of the winning primitive hit
 
         n = len(self._boxes)
         unoccluded = np.zeros(n, dtype=np.int64)
         amodal, boxes_2d, rects, inside = self._project_boxes(rot_wc, pos)
         if not self.cull:
             rects = np.where(rects[:, 2:3] > rects[:, 0:1], [[0, 0, w, h]], rects)
-        for k in range(n):
-            u0, v0, u1, v1 = rects[k]
+        # each object's parts within its amodal box's rectangle, then the clutter in its own
+        clutter_rects = (self._project_boxes(rot_wc, pos, self._clutter_corners)[2]
+                         if len(self._clutter_corners) else np.zeros((0, 4), np.int64))
+        prim_rects = np.concatenate([rects[self._prim_owner[self._prim_owner >= 0]], clutter_rects])
+        seen = None
+        for i, box in enumerate(self._prims):
+            u0, v0, u1, v1 = prim_rects[i]
             if u1 <= u0 or v1 <= v0:
                 continue
-            box = self._boxes[k]
+            k = self._prim_owner[i]
             c, s = np.float32(np.cos(box[6])), np.float32(np.sin(box[6]))
             rel = pos - box[:3]
             ol = np.array([c * rel[0] + s * rel[1], -s * rel[0] + c * rel[1], rel[2]], np.float32)
@@ -240,27 +267,36 @@ class Renderer:
             t_near = np.full(dx.shape, -np.inf, np.float32)
             t_far = np.full(dx.shape, np.inf, np.float32)
             axis = np.zeros(dx.shape, np.int8)
-            for i, di in enumerate((dx, dy, d[..., 2])):     # slab test per axis
+            for j, di in enumerate((dx, dy, d[..., 2])):     # slab test per axis
                 with np.errstate(divide='ignore'):
                     inv_d = 1.0 / di
-                ta, tb = (-half[i] - ol[i]) * inv_d, (half[i] - ol[i]) * inv_d
+                ta, tb = (-half[j] - ol[j]) * inv_d, (half[j] - ol[j]) * inv_d
                 enter, leave = np.minimum(ta, tb), np.maximum(ta, tb)
                 later = enter > t_near
                 t_near = np.where(later, enter, t_near)
-                axis[later] = i
+                axis[later] = j
                 np.minimum(t_far, leave, out=t_far)
             hit = (t_near <= t_far) & (t_near > _NEAR)
-            unoccluded[k] = np.count_nonzero(hit)
+            if k >= 0:                   # the object's silhouette ignoring occlusion: its parts' union
+                first = i == 0 or self._prim_owner[i - 1] != k
+                last = i + 1 == len(self._prims) or self._prim_owner[i + 1] != k
+                if first and last:
+                    unoccluded[k] = np.count_nonzero(hit)
+                else:
+                    seen = hit.copy() if first else seen | hit
+                    if last:
+                        unoccluded[k] = np.count_nonzero(seen)
             closer = hit & (t_near < depth[v0:v1, u0:u1])
             if not np.any(closer):
                 continue
             depth[v0:v1, u0:u1][closer] = t_near[closer]
-            instance[v0:v1, u0:u1][closer] = k + 1
+            prim_id[v0:v1, u0:u1][closer] = i + 1
             obj_axis[v0:v1, u0:u1][closer] = axis[closer]
 
+        instance = self._instance_of[prim_id].astype(np.int32)
         visible = np.bincount(instance.ravel(), minlength=n + 1)[1:].astype(np.int64)
         amodal = np.where(inside, unoccluded, amodal)
-        rgb = self._shade(pos, rays, depth, instance, surface, obj_axis, rects)
+        rgb = self._shade(pos, rays, depth, prim_id, surface, obj_axis, prim_rects)
 
         rng = np.random.default_rng(0) if rng is None else rng
         nm = self.noise
@@ -278,10 +314,10 @@ class Renderer:
         iv = np.floor(v * scale).astype(np.int64) % _TILE
         return self._tiles[tile, iv, iu]
 
-    def _shade(self, pos, rays, depth, instance, surface, obj_axis, rects):
-        """Lambertian shading of albedo textures fixed in object coordinates."""
-        h, w = instance.shape
-        flat_inst = instance.ravel()
+    def _shade(self, pos, rays, depth, prim_id, surface, obj_axis, rects):
+        """Lambertian shading of albedo textures fixed in object (part) coordinates."""
+        h, w = prim_id.shape
+        flat_inst = prim_id.ravel()
         rays_flat = rays.reshape(-1, 3)
         depth_flat = depth.ravel()
         albedo = np.zeros((h * w, 3), dtype=np.uint8)
@@ -300,12 +336,12 @@ class Renderer:
             u, v = (p[:, 1], p[:, 2]) if axis == 0 else (p[:, 0], p[:, 2]) if axis == 1 else (p[:, 0], p[:, 1])
             albedo[idx] = self._albedo_at(sid, u, v)
             normal[idx, axis] = -1.0 if sid % 2 else 1.0      # pointing into the room
-        # Objects: each stays inside its projected rectangle
-        for k, obj in enumerate(self.room.objects):
+        # Primitives (objects' parts, clutter): each stays inside its projected rectangle
+        for k in range(len(self._prims)):
             u0, v0, u1, v1 = rects[k]
             if u1 <= u0 or v1 <= v0:
                 continue
-            vv, uu = np.nonzero(instance[v0:v1, u0:u1] == k + 1)
+            vv, uu = np.nonzero(prim_id[v0:v1, u0:u1] == k + 1)
             if not len(vv):
                 continue
             idx = (vv + v0) * w + (uu + u0)
@@ -321,7 +357,7 @@ class Renderer:
             other2 = np.where(axis == 2, 1, 2)
             u = local[rows, other1] + box[3 + other1] / 2
             v = local[rows, other2] + box[3 + other2] / 2
-            albedo[idx] = self._albedo_at(6 + k, u, v)
+            albedo[idx] = self._albedo_at(self._prim_tile[k], u, v)
             n_local = np.zeros((len(idx), 3), dtype=np.float32)
             n_local[rows, axis] = sign
             normal[idx] = np.stack([c * n_local[:, 0] - s * n_local[:, 1],

@@ -8,11 +8,12 @@ that appearance alone cannot tell them apart. Everything is deterministic for a 
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from rfm_core.geometry import BOX_DIM, bev_corners, iou_3d
+from rfm_core.sim.furniture import FURNITURE_STYLES, add_clutter, fill_shelves, object_parts
 
 __all__ = ['STYLES', 'Material', 'RoomObject', 'Room', 'generate_room']
 
@@ -40,6 +41,7 @@ class RoomObject:
     label: str
     material: Material
     group: int = -1            #: objects with the same group >= 0 are identical copies
+    parts: np.ndarray | None = None   #: (P, 7) parts in the object's frame (None: a solid box)
 
 
 @dataclass
@@ -49,6 +51,7 @@ class Room:
     walls: tuple = ()                     #: 6 Materials: x=0, x=W, y=0, y=D, floor, ceiling
     style: str = 'plain'
     seed: int = 0
+    clutter: list = field(default_factory=list)   #: structure in no ground truth (sim.furniture.Clutter)
 
     @property
     def boxes(self) -> np.ndarray:
@@ -168,14 +171,21 @@ def _wall_pose(rng, room_size, sx, sy):
 
 
 def generate_room(seed: int, style: str = 'plain', num_objects: tuple = (10, 40),
-                  size_range=((4.0, 3.5, 2.5), (8.0, 7.0, 3.0))) -> Room:
+                  size_range=((4.0, 3.5, 2.5), (8.0, 7.0, 3.0)), furniture: str = 'boxes',
+                  clutter: bool = False) -> Room:
     """A furnished room, deterministic for ``seed``.
 
     ``num_objects`` bounds the total count (furniture + small objects): the generator keeps
     adding until it reaches a target drawn in that range or runs out of free space.
+    ``furniture``: 'boxes' (every object a solid box) or 'parts' (tables on legs, chairs with
+    backs, open shelves with objects on their boards, ...: :mod:`rfm_core.sim.furniture`);
+    ``clutter``: rugs, pictures, door frames, radiators and cables that are in no ground
+    truth. Both keep the room's layout: the same seed places the same furniture.
     """
     if style not in STYLES:
         raise ValueError(f'style must be one of {STYLES}, got {style!r}')
+    if furniture not in FURNITURE_STYLES:
+        raise ValueError(f'furniture must be one of {FURNITURE_STYLES}, got {furniture!r}')
     rng = np.random.default_rng(seed)
     size = rng.uniform(size_range[0], size_range[1])
     target = int(rng.integers(num_objects[0], num_objects[1] + 1))
@@ -310,4 +320,24 @@ def generate_room(seed: int, style: str = 'plain', num_objects: tuple = (10, 40)
         add_small_objects()
         if len(room.objects) == before:
             break
+    # the realistic world, from a stream of its own (the layout above stays the seed's)
+    extra = np.random.default_rng([seed, 1717])
+    if furniture == 'parts':
+        room.objects = [replace(o, parts=object_parts(o.label, o.box[3:6])) for o in room.objects]
+        fill_shelves(room, extra, lambda label, box: room.objects.append(
+            RoomObject(box, label, _material(extra, label, style))))
+    if clutter:
+        room.clutter = add_clutter(room, extra, lambda kind: _clutter_material(extra, kind, style))
     return room
+
+
+def _clutter_material(rng, kind: str, style: str) -> Material:
+    """Rugs are fabric, pictures colourful, radiators and door frames painted, cables dark."""
+    if kind == 'rug':
+        return Material(_pick(rng, _FABRICS), 'fabric', 0.03, 0.3 if style == 'textured' else 0.1,
+                        int(rng.integers(2**31)))
+    if kind == 'picture':
+        return Material(_pick(rng, _BRIGHTS), 'checker', 0.08, 0.5, int(rng.integers(2**31)))
+    if kind == 'cable':
+        return Material((0.08, 0.08, 0.08), 'plain', 0.1, 0.0, 0)
+    return Material((0.93, 0.93, 0.92), 'plain', 0.1, 0.0, 0)
