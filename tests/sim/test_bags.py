@@ -119,3 +119,34 @@ def test_bag_reader_pairs_depth_stamped_after_colour(tmp_path):
         depth = f['depth'].header.stamp.sec * 10**9 + f['depth'].header.stamp.nanosec
         assert depth - f['stamp_ns'] == 12_000_000
     assert sum(len(f['imu']) for f in frames) > 0
+
+
+def test_realsense_bags_stamp_depth_after_colour_and_offset_the_imu(tmp_path):
+    """The realsense sensor model: depth stamped 3-10 ms after its colour image, IMU stamps
+    4 ms late, depth one pixel off colour; the stored config reads back."""
+    from rosbags.highlevel import AnyReader
+
+    from rfm_core.io.bag import bag_custom_data
+    from rfm_core.sim.render import NoiseModel
+    config = CaptureConfig(seed=8, frames=6, fps=5, noise=NoiseModel.realsense())
+    Capture(config).write_bag(tmp_path / 'rs')
+    stamps = {TOPICS['color']: [], TOPICS['depth']: [], TOPICS['imu']: []}
+    with AnyReader([tmp_path / 'rs']) as reader:
+        for c, t, raw in reader.messages(connections=[c for c in reader.connections if c.topic in stamps]):
+            msg = reader.deserialize(raw, c.msgtype)
+            assert stamp_to_ns(msg.header.stamp) == t
+            stamps[c.topic].append(t)
+    delay = (np.array(stamps[TOPICS['depth']]) - np.array(stamps[TOPICS['color']])) / 1e6
+    assert len(delay) == 6 and np.all((delay >= 3.0) & (delay <= 10.0)) and np.ptp(delay) > 0.5
+    start = Capture(config).stamp_ns(0.0)
+    assert (np.array(stamps[TOPICS['imu']]) - start).min() == 4_000_000      # the first sample, 4 ms late
+    frame = next(Capture(config).frames())
+    true, noisy = frame.render.depth_true, frame.render.depth
+    errors = {}
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            shifted = np.roll(np.roll(true, dy, 0), dx, 1)
+            errors[dx, dy] = np.nanmedian(np.abs(noisy - shifted)[2:-2, 2:-2])
+    assert min(errors, key=errors.get) != (0, 0)                          # registered a pixel off
+    stored = CaptureConfig(**json.loads(bag_custom_data(tmp_path / 'rs')['rfm.sim.config']))
+    assert stored.noise == config.noise and stored.to_json() == config.to_json()

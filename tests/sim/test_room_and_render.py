@@ -236,3 +236,36 @@ def test_clutter_is_rendered_but_in_no_ground_truth():
     assert np.all(after.instance[changed] == 0)         # ... and belongs to no object
     assert np.array_equal(after.visible_pixels, before.visible_pixels)
     assert np.any(after.rgb[changed][:, 0] > 2 * after.rgb[changed][:, 1])          # it is red
+
+
+def test_realsense_depth_has_projector_shadows_flying_pixels_and_dark_dropouts():
+    from rfm_core.sim.render import Renderer
+    intr = CaptureConfig(width=320, height=240).intrinsics
+    room = _one_object_room('cabinet', (0.6, 0.5, 1.6), 'boxes')       # a tall box 3 m in front of a wall
+    eye = np.array([3.0, 1.0, 0.8])
+    view = _look_at(eye, [3.0, 5.0, 0.8])
+    row = intr.height // 2
+    rng = np.random.default_rng(3)
+    clean = Renderer(room, intr, NoiseModel.none()).render(view, eye)
+    default = Renderer(room, intr, NoiseModel()).render(view, eye, np.random.default_rng(3))
+    stereo = Renderer(room, intr, NoiseModel.realsense()).render(view, eye, rng)
+    cols = np.flatnonzero(clean.instance[row] == 1)
+    left = cols.min()                                   # the box's left edge in this row
+    z_near, z_far = clean.depth_true[row, left], clean.depth_true[row, left - 1]
+    band = intr.fx * 0.025 * (1 / z_near - 1 / z_far)                  # the projector's parallax (px)
+    assert band > 2
+    shadow = slice(left - int(band) + 1, left)
+    rows = slice(row - 10, row + 10)
+    assert np.all(np.isnan(stereo.depth[rows, shadow]))                 # the background beside the edge
+    assert np.mean(np.isnan(default.depth[rows, shadow])) < 0.5         # today's model has no shadow
+    # away from edges the depth noise grows with range^2: about 1 cm at 2 m
+    wall = stereo.depth[rows, 5:left - 8] - clean.depth_true[rows, 5:left - 8]
+    near = stereo.depth[rows, left + 3:cols.max() - 3] - clean.depth_true[rows, left + 3:cols.max() - 3]
+    assert 0.002 < np.nanstd(near) < 0.02 and np.nanstd(wall) > 2 * np.nanstd(near)
+    # depth is lost on a dark surface
+    from rfm_core.sim.room import Material
+    dark = _one_object_room('cabinet', (0.6, 0.5, 1.6), 'boxes')
+    dark.objects[0] = type(dark.objects[0])(dark.objects[0].box, 'cabinet', Material((0.05, 0.05, 0.05)))
+    out = Renderer(dark, intr, NoiseModel.realsense()).render(view, eye, np.random.default_rng(4))
+    on_box = out.instance == 1
+    assert np.mean(np.isnan(out.depth[on_box])) > 0.5 > np.mean(np.isnan(stereo.depth[stereo.instance == 1]))

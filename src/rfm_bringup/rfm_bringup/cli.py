@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 import shutil
 import sys
 import time
@@ -50,8 +51,12 @@ def _add_scene_options(p: argparse.ArgumentParser) -> None:
     p.add_argument('--imu-rate', type=float, default=200.0, help='IMU rate, Hz (default 200)')
     p.add_argument('--depth-encoding', choices=('16UC1', '32FC1'), default='16UC1',
                    help='depth image encoding: 16UC1 in mm (default) or 32FC1 in m')
-    p.add_argument('--color-noise', type=float, default=2.0,
-                   help='std of colour noise in 8-bit levels (default 2; 0 makes smaller bags)')
+    p.add_argument('--color-noise', type=float, default=None,
+                   help="std of colour noise in 8-bit levels (default: the sensor's, 2 or 4; 0 makes smaller bags)")
+    p.add_argument('--sensor', choices=('default', 'realsense'), default='default',
+                   help="default: mild structured-light noise; realsense: an active-stereo camera's artefacts "
+                        '(range^2 noise, projector shadows, flying pixels, depth lost on dark surfaces, depth a '
+                        'pixel off colour and 3-10 ms late, exposure drift, IMU bias and time offset)')
     p.add_argument('--furniture', choices=('boxes', 'parts'), default='boxes',
                    help='boxes: every object a solid box (default); parts: tables on legs, chairs with '
                         'backs, open shelves with objects on their boards, sofas, beds, lamps, plants')
@@ -67,7 +72,15 @@ def _config(args, seed, style, capture):
                          fps=args.fps, width=args.size[0], height=args.size[1],
                          hfov_deg=args.hfov, imu_rate_hz=args.imu_rate,
                          depth_encoding=args.depth_encoding, furniture=args.furniture, clutter=args.clutter,
-                         noise=NoiseModel(color_sigma=args.color_noise))
+                         noise=_noise(NoiseModel, args))
+
+
+def _noise(model, args):
+    """The sensor model of ``rfm sim`` options."""
+    noise = model.realsense() if args.sensor == 'realsense' else model()
+    if args.color_noise is not None:
+        noise = replace(noise, color_sigma=args.color_noise)
+    return noise
 
 
 def _prepare(path: Path, force: bool) -> None:

@@ -96,6 +96,9 @@ class CaptureConfig:
 
     def to_json(self) -> str:
         d = asdict(self)
+        for key in NoiseModel.ARTEFACTS:
+            if d['noise'][key] == asdict(NoiseModel())[key]:
+                del d['noise'][key]
         for key, default in (('trajectory_seed', -1), ('furniture', 'boxes'), ('clutter', False)):
             if d[key] == default:             # defaults left out: older bags stay identical
                 del d[key]
@@ -136,6 +139,16 @@ def aligned_from_map(rotation, position) -> Pose4:
     return Pose4.from_matrix(np.c_[r, -r @ position], atol=1e-6)
 
 
+def _shifted(depth: np.ndarray, shift) -> np.ndarray:
+    """``depth`` moved by (dx, dy) pixels; what moves in from the border is missing."""
+    dx, dy = (int(v) for v in shift)
+    out = np.full_like(depth, np.nan)
+    h, w = depth.shape
+    out[max(dy, 0):h + min(dy, 0), max(dx, 0):w + min(dx, 0)] = depth[max(-dy, 0):h + min(-dy, 0),
+                                                                       max(-dx, 0):w + min(-dx, 0)]
+    return out
+
+
 class Capture:
     """The room, trajectory and renderer of one configuration."""
 
@@ -158,10 +171,21 @@ class Capture:
 
     def frames(self) -> Iterator[SimFrame]:
         rng = np.random.default_rng(self._noise_seed)
+        nm = self.config.noise
+        camera = np.random.default_rng([self._noise_seed, 7])     # the camera's own artefacts
+        r = nm.registration_offset_px
+        offsets = [(dx, dy) for dx in range(-r, r + 1) for dy in range(-r, r + 1) if dx or dy]
+        shift = offsets[camera.integers(len(offsets))] if offsets else (0, 0)
+        log_gain = 0.0
         for i in range(len(self.trajectory)):
             rotation = self.trajectory.rotations[i]
             position = self.trajectory.positions[i]
             out = self.renderer.render(rotation, position, rng)
+            if nm.exposure_drift > 0:                   # auto-exposure wanders, slowly
+                log_gain = 0.9 * log_gain + camera.normal(0.0, nm.exposure_drift)
+                out.rgb = np.clip(np.rint(out.rgb * np.exp(log_gain)), 0, 255).astype(np.uint8)
+            if np.any(shift):                           # depth registered to colour a pixel off
+                out.depth = _shifted(out.depth, shift)
             stamp = self.stamp_ns(self.trajectory.times[i])
             yield SimFrame(i, stamp, rotation, position, out,
                            self.ground_truth_detections(rotation, position, out, stamp))
@@ -194,8 +218,11 @@ class Capture:
         )
 
         cfg = self.config
-        imu = imu_samples(self.trajectory, cfg.imu_rate_hz, seed=self._imu_seed)
-        imu_stamps = [self.stamp_ns(t) for t in imu.times]
+        nm = cfg.noise
+        imu = imu_samples(self.trajectory, cfg.imu_rate_hz, seed=self._imu_seed,
+                          gyro_bias=np.radians(nm.imu_gyro_bias_dps), accel_bias=nm.imu_accel_bias)
+        imu_stamps = [self.stamp_ns(t) + int(round(nm.imu_time_offset_ms * 1e6)) for t in imu.times]
+        delays = np.random.default_rng([self._noise_seed, 8])     # depth stamped after colour
         counts = {topic: 0 for topic in TOPICS.values()}
         with BagWriter(path) as bag:
             make = bag.make
@@ -240,15 +267,19 @@ class Capture:
                 write('color', stamp, numpy_to_image(frame.render.rgb, 'rgb8', image_header, make=make))
                 write('color_info', stamp, camera_info_msg(self.intrinsics, stamp, OPTICAL_FRAME, make))
                 depth = frame.render.depth
+                depth_stamp = stamp
+                if nm.depth_delay_ms[1] > 0:
+                    depth_stamp += int(round(delays.uniform(*nm.depth_delay_ms) * 1e6))
+                depth_header = image_header if depth_stamp == stamp else header(make, depth_stamp, OPTICAL_FRAME)
                 if cfg.depth_encoding == '16UC1':
                     mm = np.where(np.isfinite(depth), np.rint(depth * 1000.0), 0)
                     depth_msg = numpy_to_image(np.clip(mm, 0, 65535).astype(np.uint16), '16UC1',
-                                               image_header, make=make)
+                                               depth_header, make=make)
                 else:
-                    depth_msg = numpy_to_image(depth.astype(np.float32), '32FC1', image_header,
+                    depth_msg = numpy_to_image(depth.astype(np.float32), '32FC1', depth_header,
                                                make=make)
-                write('depth', stamp, depth_msg)
-                write('depth_info', stamp, camera_info_msg(self.intrinsics, stamp, OPTICAL_FRAME, make))
+                write('depth', depth_stamp, depth_msg)
+                write('depth_info', depth_stamp, camera_info_msg(self.intrinsics, depth_stamp, OPTICAL_FRAME, make))
                 write('gt_pose', stamp, pose_stamped_msg(frame.pose_matrix, stamp, 'map', make))
                 write('gt_detections', stamp, frame_detections_to_msg(frame.ground_truth, make))
                 if progress is not None:

@@ -179,13 +179,15 @@ def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
 
 
 def imu_samples(traj: Trajectory, rate_hz: float, seed: int = 0,
-                accel_sigma: float = 0.02, gyro_sigma: float = 0.002) -> ImuSamples:
+                accel_sigma: float = 0.02, gyro_sigma: float = 0.002, gyro_bias: float = 0.0,
+                accel_bias: float = 0.0) -> ImuSamples:
     """IMU readings in the camera optical frame at ``rate_hz`` over the trajectory.
 
     Specific force f = R^T (a - g) with g = (0, 0, -9.80665): at rest it reads +9.81 along
     "up". For smooth trajectories acceleration and angular rate come from central
     differences of the continuous path; for sparse captures the camera is held still at
-    each viewpoint (the reading in between follows the nearest viewpoint).
+    each viewpoint (the reading in between follows the nearest viewpoint). ``gyro_bias``
+    (rad/s) and ``accel_bias`` (m/s^2): constant biases in random directions.
     """
     rng = np.random.default_rng(seed)
     end = traj.times[-1] if len(traj) > 1 else 0.0
@@ -208,4 +210,9 @@ def imu_samples(traj: Trajectory, rate_hz: float, seed: int = 0,
     force = np.einsum('nji,nj->ni', r0, accel_world - g)
     force += rng.normal(0, accel_sigma, force.shape)
     omega = omega + rng.normal(0, gyro_sigma, omega.shape)
+    if gyro_bias > 0 or accel_bias > 0:                 # constant biases, in random directions
+        bias = np.random.default_rng([seed, 3]).normal(size=(2, 3))
+        bias /= np.linalg.norm(bias, axis=1, keepdims=True)
+        force = force + accel_bias * bias[0]
+        omega = omega + gyro_bias * bias[1]
     return ImuSamples(times, force, omega)
