@@ -73,7 +73,7 @@ def main() -> None:
     args = parser.parse_args()
     from rfm_core.evaluation.suite import eval_configs  # noqa: PLC0415
 
-    work = [(c, tuple(args.detectors), args.min_iou) for c in eval_configs(args.scenes, args.first_seed)]
+    work = [(c, tuple(args.detectors), args.min_iou) for c in eval_configs(args.scenes, args.first_seed, world='boxes')]
     with ProcessPoolExecutor(args.jobs) as pool:
         rows = list(pool.map(scene, work))
     print(f'Registered-share ceiling, {len(rows)} scenes from seed {args.first_seed} (min IoU {args.min_iou}):\n')

@@ -269,3 +269,23 @@ def test_realsense_depth_has_projector_shadows_flying_pixels_and_dark_dropouts()
     out = Renderer(dark, intr, NoiseModel.realsense()).render(view, eye, np.random.default_rng(4))
     on_box = out.instance == 1
     assert np.mean(np.isnan(out.depth[on_box])) > 0.5 > np.mean(np.isnan(stereo.depth[stereo.instance == 1]))
+
+
+def test_capture_timing_heights_and_a_robots_level_camera():
+    sparse = Capture(CaptureConfig(seed=3, capture='sparse', frames=12, sparse_gap_s=(2.0, 6.0)))
+    gaps = np.diff(sparse.trajectory.times)
+    assert np.all((gaps >= 2.0) & (gaps <= 6.0)) and np.ptp(gaps) > 1.0           # irregular photos
+    assert np.array_equal(Capture(CaptureConfig(seed=3, capture='sparse', frames=5)).trajectory.times,
+                          np.arange(5.0))                                           # the default: 1 s
+    low = Capture(CaptureConfig(seed=3, frames=20, fps=15, camera_height=(1.0, 1.05)))
+    assert np.all(np.abs(low.trajectory.positions[:, 2] - 1.025) < 0.1)
+    assert np.allclose(np.diff(low.trajectory.times), 1 / 15)
+    robot = Capture(CaptureConfig(seed=3, capture='robot', frames=40, fps=10, furniture='parts'))
+    z = robot.trajectory.positions[:, 2]
+    assert 0.25 <= z.min() and z.max() <= 0.45 and np.ptp(z) < 1e-9                  # low, on a base
+    rot = robot.trajectory.rotations
+    assert np.allclose(rot[:, 2, 0], 0, atol=1e-9) and np.allclose(rot[:, 2, 2], 0, atol=1e-9)  # level
+    headings = np.unwrap(np.arctan2(rot[:, 1, 2], rot[:, 0, 2]))
+    assert np.ptp(headings) > np.radians(20)                                        # it turns
+    frame = next(robot.frames())
+    assert frame.render.depth.shape == (240, 320) and len(frame.ground_truth) > 0

@@ -57,6 +57,10 @@ def _add_scene_options(p: argparse.ArgumentParser) -> None:
                    help="default: mild structured-light noise; realsense: an active-stereo camera's artefacts "
                         '(range^2 noise, projector shadows, flying pixels, depth lost on dark surfaces, depth a '
                         'pixel off colour and 3-10 ms late, exposure drift, IMU bias and time offset)')
+    p.add_argument('--camera-height', type=float, nargs=2, metavar=('MIN', 'MAX'),
+                   help="range of the handheld / robot camera's height, m (default 1.45-1.65 / 0.25-0.45)")
+    p.add_argument('--sparse-gap', type=float, nargs=2, metavar=('MIN', 'MAX'), default=(1.0, 1.0),
+                   help='seconds between sparse views, drawn in this range (default 1 1)')
     p.add_argument('--furniture', choices=('boxes', 'parts'), default='boxes',
                    help='boxes: every object a solid box (default); parts: tables on legs, chairs with '
                         'backs, open shelves with objects on their boards, sofas, beds, lamps, plants')
@@ -72,6 +76,7 @@ def _config(args, seed, style, capture):
                          fps=args.fps, width=args.size[0], height=args.size[1],
                          hfov_deg=args.hfov, imu_rate_hz=args.imu_rate,
                          depth_encoding=args.depth_encoding, furniture=args.furniture, clutter=args.clutter,
+                         camera_height=tuple(args.camera_height or ()), sparse_gap_s=tuple(args.sparse_gap),
                          noise=_noise(NoiseModel, args))
 
 
@@ -388,7 +393,7 @@ def cmd_eval(args) -> int:
     settings = select_settings(args.settings)
     if not settings:
         raise SystemExit(f'rfm eval: no setting matches {args.settings}; settings: {[s.name for s in SETTINGS]}')
-    configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps)
+    configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps, world=args.world)
     start = time.perf_counter()
 
     def progress(i, n, r):
@@ -404,12 +409,13 @@ def cmd_eval(args) -> int:
     else:
         results = run_graph_suite(configs, settings, work=args.work, jobs=args.jobs, progress=progress)
     print(f'\n{"In-process (offline: every frame detected, true gravity)" if args.offline else "Through the node graph (rfm run, real-time replay)"}, '
-          f'{len(configs)} scenes from seed {args.first_seed}, {time.perf_counter() - start:.0f} s')
+          f'{len(configs)} scenes of the {args.world} world from seed {args.first_seed}, {time.perf_counter() - start:.0f} s')
     summaries = {'all': summarize(results, settings)}
-    for capture in ('handheld', 'sparse'):
-        subset = [r for r in results if r['scene'].endswith(capture)]
-        if subset and len(subset) < len(results):
-            summaries[capture] = summarize(subset, settings)
+    for key in ('capture', 'sensor'):                # breakdowns by capture style and sensor model
+        for kind in sorted({r[key] for r in results}):
+            subset = [r for r in results if r[key] == kind]
+            if len(subset) < len(results):
+                summaries[f'{kind} ({key})'] = summarize(subset, settings)
     for name, summary in summaries.items():
         print(f'\n### {name} scenes\n')
         print(format_tables(summary))
@@ -423,7 +429,8 @@ def cmd_eval_reloc(args) -> int:
     """Relocalization against a saved map (paper appendix) over generated rooms."""
     from rfm_core.evaluation.suite import eval_configs, relocalization_scene  # noqa: PLC0415
 
-    configs = [replace_capture(c) for c in eval_configs(args.scenes, args.first_seed, args.frames, args.fps)]
+    configs = [replace_capture(c) for c in eval_configs(args.scenes, args.first_seed, args.frames, args.fps,
+                                                        world='boxes')]
     work = [(c, args.detector, args.query_frames) for c in configs]
     rows = []
     with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
@@ -490,7 +497,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--style', choices=('plain', 'textured'), default='plain',
                    help='plain-painted (default) or textured room')
-    p.add_argument('--capture', choices=('handheld', 'sparse', 'orbit'), default='handheld')
+    p.add_argument('--capture', choices=('handheld', 'sparse', 'orbit', 'robot'), default='handheld',
+                   help='handheld walk, sparse photos, orbit, or robot (a low, level camera on a base)')
     _add_scene_options(p)
     p.set_defaults(func=cmd_sim)
 
@@ -593,8 +601,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--scenes', type=int, default=20)
     p.add_argument('--first-seed', type=int, default=5000,
                    help='first scene seed (default 5000: disjoint from training, tuning and other suites)')
-    p.add_argument('--frames', type=int, default=100)
+    p.add_argument('--frames', type=int, default=100,
+                   help='frames per capture (realistic world: frames / fps seconds at the scene\'s rate; '
+                        'sparse captures frames / 2 photos)')
     p.add_argument('--fps', type=float, default=10.0)
+    p.add_argument('--world', choices=('realistic', 'boxes'), default='realistic',
+                   help='realistic (default): furniture made of parts, clutter, the realsense sensor model on '
+                        'half the scenes, robot cameras, 5-30 Hz, 320x240 and 640x480, 60-90 deg; boxes: the '
+                        'solid-box world of earlier measurements')
     p.add_argument('--settings', nargs='+', help='only these settings: an exact name, or a part of names (e.g. rgbd)')
     p.add_argument('--jobs', type=int, default=1,
                    help='scenes evaluated in parallel (each graph in its own ROS domain)')

@@ -44,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['SETTINGS', 'Setting', 'scene_kind', 'eval_configs', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
+__all__ = ['SETTINGS', 'Setting', 'WORLDS', 'scene_kind', 'eval_configs', 'scene_info', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
            'run_graph_suite', 'summarize', 'format_tables']
 
 
@@ -85,12 +85,57 @@ def scene_kind(i: int) -> tuple[str, str]:
     return ('plain' if i % 2 == 0 else 'textured'), ('sparse' if i % 4 in (1, 2) else 'handheld')
 
 
-def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps: float = 10.0):
-    """Mixed scenes: plain / textured rooms, handheld / sparse captures (:func:`scene_kind`)."""
-    from rfm_core.sim.capture import CaptureConfig  # noqa: PLC0415
+WORLDS = ('realistic', 'boxes')
 
-    return [CaptureConfig(seed=first_seed + i, room_style=style, capture=capture, frames=frames, fps=fps)
-            for i, (style, capture) in enumerate(map(scene_kind, range(count)))]
+
+def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps: float = 10.0,
+                 world: str = 'realistic'):
+    """Mixed scenes: plain / textured rooms, handheld / sparse captures (:func:`scene_kind`).
+
+    ``world='boxes'``: every object a solid box, mild sensor noise, ``frames`` at ``fps``
+    (the suite before the realistic world). ``world='realistic'`` (the default): furniture
+    made of parts and clutter; every other pair of scenes seen through the ``realsense``
+    sensor model; every fourth handheld slot a robot's low, level camera; per scene (drawn
+    from its seed) a frame rate of 5, 15 or 30 Hz for ``frames / fps`` seconds (10 s by
+    default), 640x480 one time in four (else 320x240), a horizontal field of view of
+    60-90 deg, a handheld camera 1.0-1.8 m high; sparse captures are ``frames / 2`` photos
+    1.5-5 s apart.
+    """
+    from rfm_core.sim.capture import CaptureConfig  # noqa: PLC0415
+    from rfm_core.sim.render import NoiseModel  # noqa: PLC0415
+
+    if world not in WORLDS:
+        raise ValueError(f'world must be one of {WORLDS}, got {world!r}')
+    out = []
+    for i, (style, capture) in enumerate(map(scene_kind, range(count))):
+        seed = first_seed + i
+        if world == 'boxes':
+            out.append(CaptureConfig(seed=seed, room_style=style, capture=capture, frames=frames, fps=fps))
+            continue
+        rng = np.random.default_rng([seed, 99])
+        rate = float(rng.choice([5.0, 15.0, 30.0]))
+        width, height = (640, 480) if rng.random() < 0.25 else (320, 240)
+        hfov = float(rng.uniform(60.0, 90.0))
+        eye = float(rng.uniform(1.0, 1.8))
+        if capture == 'handheld' and i % 8 == 4:
+            capture = 'robot'
+        options = dict(seed=seed, room_style=style, capture=capture, width=width, height=height, hfov_deg=hfov,
+                       furniture='parts', clutter=True,
+                       noise=NoiseModel.realsense() if (i // 2) % 2 else NoiseModel())
+        if capture == 'sparse':
+            options.update(frames=max(frames // 2, 2), sparse_gap_s=(1.5, 5.0))
+        else:
+            options.update(frames=max(int(round(frames / fps * rate)), 2), fps=rate,
+                           camera_height=(eye - 0.05, eye + 0.05) if capture == 'handheld' else ())
+        out.append(CaptureConfig(**options))
+    return out
+
+
+def scene_info(config) -> dict:
+    """What kind of scene a configuration is, for the evaluation's breakdowns."""
+    return {'capture': config.capture, 'sensor': 'realsense' if config.noise.projector_baseline_m > 0 else 'default',
+            'furniture': config.furniture, 'fps': config.fps if config.capture != 'sparse' else None,
+            'size': f'{config.width}x{config.height}'}
 
 
 def evaluate_scene(args) -> dict:
@@ -111,7 +156,7 @@ def evaluate_scene(args) -> dict:
                         bundle_adjustment=s.bundle_adjustment, capture=capture, frames=frames)
         out[s.name] = {**r.localization, **r.mapping, 'keyframes': r.keyframes, 'processed': 1.0,
                        'seconds': r.seconds}
-    return {'scene': f'{config.seed}_{config.room_style}_{config.capture}', 'results': out}
+    return {'scene': scene_name(config), **scene_info(config), 'results': out}
 
 
 def _slug(text: str) -> str:
@@ -175,7 +220,7 @@ def evaluate_scene_graph(args) -> dict:
             out[s.name] = {**scene_metrics({}), 'error': f'rfm run exited {proc.returncode}: {" / ".join(tail)}'}
             continue
         out[s.name] = scene_metrics(json.loads((run / 'summary.json').read_text()))
-    return {'scene': scene_name(config), 'results': out}
+    return {'scene': scene_name(config), **scene_info(config), 'results': out}
 
 
 def run_graph_suite(configs, settings=SETTINGS, work=None, jobs: int = 1, progress=None) -> list:
@@ -185,8 +230,8 @@ def run_graph_suite(configs, settings=SETTINGS, work=None, jobs: int = 1, progre
     import tempfile  # noqa: PLC0415
 
     configs = list(configs)
-    longest_first = sorted(range(len(configs)), key=lambda i: -configs[i].frames / (
-        1.0 if configs[i].capture == 'sparse' else configs[i].fps))
+    longest_first = sorted(range(len(configs)), key=lambda i: -configs[i].frames * (
+        np.mean(configs[i].sparse_gap_s) if configs[i].capture == 'sparse' else 1.0 / configs[i].fps))
     order = []
     while longest_first:                 # longest, shortest, next longest, next shortest, ...
         order.append(longest_first.pop(0))

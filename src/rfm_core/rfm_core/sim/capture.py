@@ -70,6 +70,8 @@ class CaptureConfig:
     num_objects: tuple = (10, 40)
     noise: NoiseModel = field(default_factory=NoiseModel)
     trajectory_seed: int = -1             #: >= 0: another trajectory through the same room
+    camera_height: tuple = ()             #: (min, max) m of a handheld / robot camera; (): the style's
+    sparse_gap_s: tuple = (1.0, 1.0)      #: seconds between sparse views (a range: irregular photos)
     furniture: str = 'boxes'              #: boxes | parts (tables on legs, open shelves, ...: sim.furniture)
     clutter: bool = False                 #: rugs, pictures, door frames, radiators, cables (no ground truth)
 
@@ -87,6 +89,8 @@ class CaptureConfig:
         if isinstance(self.noise, dict):
             self.noise = NoiseModel(**self.noise)
         self.num_objects = tuple(self.num_objects)
+        self.camera_height = tuple(float(v) for v in self.camera_height)
+        self.sparse_gap_s = tuple(float(v) for v in self.sparse_gap_s)
 
     @property
     def intrinsics(self) -> CameraIntrinsics:
@@ -99,8 +103,10 @@ class CaptureConfig:
         for key in NoiseModel.ARTEFACTS:
             if d['noise'][key] == asdict(NoiseModel())[key]:
                 del d['noise'][key]
-        for key, default in (('trajectory_seed', -1), ('furniture', 'boxes'), ('clutter', False)):
-            if d[key] == default:             # defaults left out: older bags stay identical
+        for key, default in (('trajectory_seed', -1), ('furniture', 'boxes'), ('clutter', False),
+                             ('camera_height', ()), ('sparse_gap_s', (1.0, 1.0))):
+            value = tuple(d[key]) if isinstance(d[key], list) else d[key]
+            if value == default:              # defaults left out: older bags stay identical
                 del d[key]
         return json.dumps(d, sort_keys=True)
 
@@ -160,7 +166,8 @@ class Capture:
         trajectory_seed = (int(seeds[1].generate_state(1)[0]) if config.trajectory_seed < 0 else
                            int(np.random.SeedSequence([config.seed, config.trajectory_seed]).generate_state(1)[0]))
         self.trajectory: Trajectory = make_trajectory(
-            self.room, config.capture, config.frames, config.fps, seed=trajectory_seed)
+            self.room, config.capture, config.frames, config.fps, seed=trajectory_seed,
+            height=config.camera_height or None, sparse_gap_s=config.sparse_gap_s)
         self.intrinsics = config.intrinsics
         self.renderer = Renderer(self.room, self.intrinsics, config.noise)
         self._noise_seed = int(seeds[2].generate_state(1)[0])

@@ -6,7 +6,9 @@ Styles (paper: CA-1M is handheld video, ScanNet++ DSLR captures are scattered):
   towards a slowly wandering point in the room, with pitch/roll jitter of a hand;
 - ``sparse``: scattered viewpoints (DSLR-like), random positions and viewing directions,
   in random order: not a smooth path;
-- ``orbit``: a circle around the room's center, looking at the center.
+- ``orbit``: a circle around the room's center, looking at the center;
+- ``robot``: a level camera low on a robot base (0.25-0.45 m) driving a smooth loop at
+  about 0.3 m/s, looking along its path with a slow look-around, no pitch or roll.
 
 Poses are camera-to-map: ``rotation`` maps the camera optical frame (x right, y down,
 z forward) to the map frame (z up). Everything is deterministic for a seed.
@@ -23,7 +25,7 @@ from rfm_core.sim.room import Room
 __all__ = ['CAPTURE_STYLES', 'Trajectory', 'ImuSamples', 'make_trajectory', 'imu_samples',
            'look_rotation']
 
-CAPTURE_STYLES = ('handheld', 'sparse', 'orbit')
+CAPTURE_STYLES = ('handheld', 'sparse', 'orbit', 'robot')
 GRAVITY = 9.80665
 
 
@@ -65,7 +67,7 @@ def look_rotation(forward, roll: float = 0.0) -> np.ndarray:
 class _HandheldPath:
     """Continuous handheld motion, so that the IMU can be sampled at any time."""
 
-    def __init__(self, room: Room, rng, speed: float = 0.35):
+    def __init__(self, room: Room, rng, speed: float = 0.35, height=None, level: bool = False):
         w, d = room.size[:2]
         self.center = np.array([w / 2, d / 2])
         self.reach = 0.7 * np.array([w / 2 - 0.3, d / 2 - 0.3])   # look across the room
@@ -81,6 +83,9 @@ class _HandheldPath:
         nrng = np.random.default_rng(self.noise_rng_seed)
         self.wobble = [nrng.uniform(0, 2 * np.pi, 3) for _ in range(8)]
         self.target_offset = nrng.uniform(0.3, 0.7)
+        if height is not None:                    # another height range (from a stream of its own)
+            self.height = np.random.default_rng([self.noise_rng_seed, 1]).uniform(*height)
+        self.level = level                        # a robot's camera: no pitch, roll or bobbing
 
     def _wave(self, i, t, amplitude, freqs=(0.11, 0.23, 0.47)):
         return amplitude * sum(np.sin(2 * np.pi * f * t + p)
@@ -91,8 +96,13 @@ class _HandheldPath:
         a = self.phase + self.direction * self.omega * t
         xy = self.center + self.radii * np.stack([np.cos(a), np.sin(a)], -1) * (
             1 + self._wave(0, t, 0.15))[..., None]
-        z = self.height + self._wave(1, t, 0.05)
+        z = self.height + (0.0 * t if self.level else self._wave(1, t, 0.05))
         position = np.concatenate([xy, z[..., None]], -1)
+        if self.level:                            # along the path, looking around slowly
+            heading = a + self.direction * np.pi / 2 + self._wave(2, t, np.radians(60.0), freqs=(0.05, 0.09, 0.13))
+            forward = np.stack([np.cos(heading), np.sin(heading), np.zeros_like(heading)], -1)
+            rotations = np.stack([look_rotation(f) for f in np.atleast_2d(forward)])
+            return rotations, np.atleast_2d(position)
         # Look across the room: towards a point ahead of and opposite to the walker.
         ahead = a + self.direction * (np.pi * self.target_offset + self._wave(2, t, 0.6))
         target_xy = self.center + self.reach * np.stack([np.cos(ahead), np.sin(ahead)], -1)
@@ -133,11 +143,13 @@ def _free_position(room: Room, rng, margin=0.8):
 
 
 def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
-                    seed: int = 0) -> Trajectory:
+                    seed: int = 0, height=None, sparse_gap_s=(1.0, 1.0)) -> Trajectory:
     """A camera trajectory of ``num_frames`` frames through ``room``.
 
-    Handheld and orbit frames are ``1 / fps`` apart; sparse viewpoints are 1 s apart.
-    Camera positions never fall inside furniture: a handheld path that would is re-drawn.
+    Handheld, orbit and robot frames are ``1 / fps`` apart; sparse viewpoints are
+    ``sparse_gap_s`` (a range: photos taken irregularly) apart. ``height``: a (min, max) range
+    of the handheld or robot camera's height instead of the style's. Camera positions never
+    fall inside furniture: a path that would is re-drawn.
     """
     if style not in CAPTURE_STYLES:
         raise ValueError(f'capture style must be one of {CAPTURE_STYLES}, got {style!r}')
@@ -145,7 +157,9 @@ def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
         raise ValueError('num_frames must be >= 1')
     rng = np.random.default_rng(seed)
     if style == 'sparse':
-        times = np.arange(num_frames, dtype=np.float64)
+        lo, hi = sparse_gap_s
+        times = (np.arange(num_frames, dtype=np.float64) if lo == hi == 1.0 else
+                 np.r_[0.0, np.cumsum(np.random.default_rng([seed, 5]).uniform(lo, hi, num_frames - 1))])
         positions, rotations = [], []
         for _ in range(num_frames):
             p = _free_position(room, rng)
@@ -166,8 +180,10 @@ def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
                           pose_fn=lambda t: pose(t, duration))
     # Keep at least 0.6 m from furniture if some path allows it, else at least 0.15 m.
     candidates = []
+    robot = style == 'robot'
     for _attempt in range(30):
-        path = _HandheldPath(room, rng)
+        path = _HandheldPath(room, rng, speed=0.3 if robot else 0.35,
+                             height=(0.25, 0.45) if robot and height is None else height, level=robot)
         rotations, positions = path.pose(times)
         clearance = next((m for m in (0.6, 0.15) if not any(
             room.contains_camera(p, margin=m) for p in positions)), 0.0)
