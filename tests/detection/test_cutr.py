@@ -110,3 +110,79 @@ def test_missing_or_wrong_checkpoints_fail_with_instructions(tmp_path):
     torch.save({'model': {'level_embed': torch.zeros(1, 256)}}, broken)
     with pytest.raises(ValueError, match='strictly'):
         load_cutr(broken)
+
+
+# ---------------------------------------------------------------- the wrapper (#18 item 4)
+
+def test_depth_reaches_the_rgbd_model_at_a_quarter_of_the_image_resolution(models):
+    """(a) the released RGB-D weights saw depth at 1/4 of the image: registered full-resolution
+    depth is resampled by the median of each 4x4 block's valid pixels before preprocessing."""
+    from rfm_core.detection.cutr import block_median
+    depth = np.full((8, 12), 2.0, np.float32)
+    depth[:4, :4] = [[1, 1, 9, np.nan], [1, 1, 1, 0], [1, 1, 1, 1], [1, 1, 1, 1]]   # outliers, holes
+    depth[4:, 8:] = np.nan                                                           # nothing valid
+    small = block_median(depth, 2, 3)
+    np.testing.assert_array_equal(small, [[1.0, 2.0, 2.0], [2.0, 2.0, 0.0]])
+    seen = []
+    model = models['rgbd']
+    forward = model.forward
+    model.forward = lambda *args, **kwargs: (seen.append((args, kwargs)), forward(*args, **kwargs))[1]
+    try:
+        detector = CutrDetector(CutrConfig(score_threshold=0.0), model=model)
+        intr = CameraIntrinsics(250.0, 250.0, 159.5, 119.5, 320, 240)
+        rng = np.random.default_rng(2)
+        full = rng.uniform(0.5, 4.0, (240, 320)).astype(np.float32)
+        detector.detect(DetectorInput(7, 'cam', intr, [0.0, 1.0, 0.0],
+                                      rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), full))
+    finally:
+        del model.forward
+    (image, k, d, stats), kwargs = seen[0][0][:4], seen[0][1]
+    assert image.shape[-1] == 384 and d.shape[-1] == 96            # S / 4 (padded to 32s), not S
+    assert kwargs['image_size'] == (240, 320)
+    expected = block_median(full, 60, 80)
+    assert stats[0] == pytest.approx(np.sort(expected.ravel())[480:4320].mean(), rel=1e-6)
+
+
+def test_depth_must_align_exactly_and_resizes_keep_it_aligned():
+    """(b) a depth whose size is not exactly 1, 1/2 or 1/4 of the image's is refused; the
+    wrapper resizes images to sides that are multiples of 4, so a quarter is exact."""
+    from rfm_core.detection.cutr import fit_image
+    rgb = np.zeros((240, 322, 3), np.uint8)
+    with pytest.raises(ValueError, match='exactly 1, 1/2 or 1/4'):
+        preprocess(rgb, np.ones((60, 80), np.float32))
+    preprocess(rgb[:, :320], np.ones((60, 80), np.float32))
+    k = np.array([[1000.0, 0, 640], [0, 1000.0, 480], [0, 0, 1]])
+    small, k2, (sy, sx) = fit_image(np.zeros((962, 1283, 3), np.uint8), k, 1024, multiple=4)
+    assert small.shape[0] % 4 == 0 and small.shape[1] % 4 == 0 and max(small.shape[:2]) <= 1024
+    assert k2[0, 0] == pytest.approx(1000 * sx) and k2[1, 2] == pytest.approx(480 * sy)
+
+
+def test_downscaling_antialiases():
+    """(d) above 1024 px the image is resized with bicubic antialiasing, as the official
+    pipeline does: a one-pixel checkerboard becomes grey, not a moire."""
+    from rfm_core.detection.cutr import fit_image
+    board = ((np.indices((1536, 2048)).sum(0) % 2) * 255).astype(np.uint8)
+    small, _, _ = fit_image(np.repeat(board[..., None], 3, -1), np.eye(3), 1024)
+    assert small.shape[:2] == (768, 1024)
+    assert abs(small.mean() - 127.5) < 3 and small.std() < 3
+
+
+def test_both_classes_are_kept_once_per_query_and_image_size_is_required(models):
+    """(c) detections come from both classes' top 100, one box per query; (e) forward without
+    image_size is an error, not padding taken for image."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 256, (240, 320, 3), dtype=np.uint8)
+    image, _, _ = preprocess(rgb)
+    k = np.array([[250.0, 0, 159.5], [0, 250.0, 119.5], [0, 0, 1]])
+    with pytest.raises(TypeError, match='image_size'):
+        models['rgb'](image, k, gravity=[0.0, 1.0, 0.0])
+    with torch.no_grad():
+        out = models['rgb'](image, k, gravity=[0.0, 1.0, 0.0], image_size=(240, 320))
+    classes = out['pred_classes'].numpy()
+    assert set(classes) == {0, 1}                     # random weights: both classes compete
+    detector = CutrDetector(CutrConfig(score_threshold=0.0), model=models['rgb'])
+    obs = detector.detect(DetectorInput(1, 'cam', CameraIntrinsics(250.0, 250.0, 159.5, 119.5, 320, 240),
+                                        [0.0, 1.0, 0.0], rgb))
+    queries = len(np.unique(out['pred_boxes_3d'].numpy().round(9), axis=0))
+    assert len(obs) == queries and len(obs) > int(np.sum(classes == 0))
+    assert len(np.unique(obs.boxes.round(9), axis=0)) == len(obs)

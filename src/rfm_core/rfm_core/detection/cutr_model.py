@@ -402,8 +402,9 @@ def preprocess(rgb: np.ndarray, depth: np.ndarray | None = None):
         return img, None, None
     hd, wd = depth.shape
     ratio = int(round(w / wd))
-    if ratio not in (1, 2, 4):
-        raise ValueError(f'depth width must be 1, 1/2 or 1/4 of the image width (got {wd} vs {w})')
+    if ratio not in (1, 2, 4) or (wd * ratio, hd * ratio) != (w, h):
+        raise ValueError(f'depth must be exactly 1, 1/2 or 1/4 of the image size (got {wd}x{hd} for {w}x{h}): '
+                         'resample it (rfm_core.detection.cutr.block_median)')
     d = np.nan_to_num(np.asarray(depth, dtype=np.float64), nan=0.0)
     valid = np.sort(d[d > 0])
     n = len(valid)
@@ -456,13 +457,12 @@ class CubifyTransformer(nn.Module):
         enc = torch.sin(math.pi * freqs[None, None, :] * ray[:, :, None]).reshape(-1, 255)
         return self.pos_embedding.proj(enc.float())
 
-    def forward(self, image, intrinsics, depth=None, depth_stats=None, gravity=None,
-                image_size=None):
+    def forward(self, image, intrinsics, depth=None, depth_stats=None, gravity=None, *, image_size):
         """Spec 2.2-2.9 for one image. ``image`` (1, 3, S, S) from :func:`preprocess`;
-        ``intrinsics`` 3x3 pixels; ``image_size`` (h, w) before padding. Returns a dict of the
-        spec's outputs (top-100)."""
+        ``intrinsics`` 3x3 pixels; ``image_size`` (h, w) before padding (required: without it
+        the padding would be taken for image). Returns a dict of the spec's outputs (top-100)."""
         s = image.shape[-1]
-        h, w = image_size or (s, s)
+        h, w = image_size
         k = torch.as_tensor(np.asarray(intrinsics), dtype=torch.float64)
         feats = self.backbone(image, depth)                              # (1, 768, hf, wf)
         hf, wf = feats.shape[-2:]
