@@ -50,6 +50,12 @@ if [ -f "$_rfm_ws_dir/install/local_setup.bash" ]; then
   esac
 fi
 
+# Fast DDS with room for camera-sized messages (see ros_ws/fastdds.xml), unless configured
+if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}" ] && [ -z "${FASTDDS_DEFAULT_PROFILES_FILE:-}" ] \
+   && [ "${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}" = rmw_fastrtps_cpp ]; then
+  export FASTRTPS_DEFAULT_PROFILES_FILE="$_rfm_ws_dir/fastdds.xml"
+fi
+
 [ "$_rfm_nounset" = 1 ] && set -u
 unset _rfm_nounset
 
