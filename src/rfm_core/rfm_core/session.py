@@ -100,16 +100,16 @@ class MapSession:
     def mode(self) -> str:
         return self.mapper.mode
 
-    @property
-    def full_solve_pending(self) -> bool:
-        """Whether an idle full re-solve is scheduled (incremental updates since the last)."""
-        return self._full_solve_due is not None
-
     @mode.setter
     def mode(self, mode: str) -> None:
         if mode not in MODES:
             raise ValueError(f'unknown mode {mode!r}: one of {", ".join(MODES)}')
         self.mapper.mode = mode
+
+    @property
+    def full_solve_pending(self) -> bool:
+        """Whether an idle full re-solve is scheduled (incremental updates since the last)."""
+        return self._full_solve_due is not None
 
     # ------------------------------------------------------------------ mapping input
 
