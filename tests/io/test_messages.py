@@ -104,6 +104,13 @@ def test_invalid_messages_raise_clear_errors():
     msg.detections[2].size.x = -1.0
     with pytest.raises(ValueError, match='size'):
         frame_detections_from_msg(msg)
+    # NaN / inf in what the matchers and averaging compute with (it killed the mapper: #19)
+    for field, says in (('embedding', 'embeddings'), ('score', 'scores'), ('box_2d', '2D boxes')):
+        msg = frame_detections_to_msg(make_observations(np.random.default_rng(3)))
+        value = getattr(msg.detections[1], field)
+        setattr(msg.detections[1], field, float('inf') if field == 'score' else [float('nan')] * len(value))
+        with pytest.raises(ValueError, match=f'{says} must be finite'):
+            frame_detections_from_msg(msg)
 
 
 def test_observations_validate_lengths_and_fill_optional_fields():

@@ -180,6 +180,10 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         reloc = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=query))
         assert reloc.success, reloc.message
         assert reloc.num_inliers >= 3
+        for det in query.detections:                                    # NaN embeddings killed the mapper (#19)
+            det.embedding = [float('nan')] * len(det.embedding)
+        poisoned = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=query))
+        assert not poisoned.success and 'embeddings must be finite' in poisoned.message
         bad_mode = h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=7))
         assert not bad_mode.success
         assert h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=1)).success

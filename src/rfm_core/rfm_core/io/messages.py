@@ -278,8 +278,9 @@ def frame_detections_from_msg(msg) -> FrameObservations:
     """rfm_msgs/FrameDetections -> FrameObservations (boxes in the gravity-aligned frame).
 
     Validates the message and raises ValueError saying what is wrong: non-positive
-    intrinsics or image size, zero gravity, non-finite poses, negative sizes, or
-    embeddings of different lengths.
+    intrinsics or image size, zero gravity, non-finite poses, negative sizes, embeddings of
+    different lengths, or non-finite scores, embeddings, corner descriptors or 2D boxes
+    (the matchers' assignment and the averaging would fail on them).
     """
     intrinsics = CameraIntrinsics(float(msg.fx), float(msg.fy), float(msg.cx), float(msg.cy),
                                   int(msg.width), int(msg.height))
@@ -309,16 +310,22 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         if len(corner_lengths) > 1 or next(iter(corner_lengths)) % 8:
             raise ValueError('corner_descriptors must be 8 x D for every detection or empty for all')
         corner = np.array([np.asarray(d.corner_descriptors, np.float32).reshape(8, -1) for d in dets])
+    scores = np.array([d.score for d in dets], dtype=np.float32)
+    boxes_2d = np.array([np.asarray(d.box_2d, np.float32) for d in dets]).reshape(n, 4)
+    for name, values in (('scores', scores), ('embeddings', embeddings), ('2D boxes', boxes_2d),
+                         ('corner descriptors', corner if corner is not None else scores)):
+        if not np.all(np.isfinite(values)):
+            raise ValueError(f'detection {name} must be finite')
     return FrameObservations(
         stamp_ns=stamp_to_ns(msg.header.stamp),
         frame_id=msg.header.frame_id,
         intrinsics=intrinsics,
         gravity_cam=gravity,
         boxes=boxes_from_oriented(centers, rotations, sizes),
-        scores=np.array([d.score for d in dets], dtype=np.float32),
+        scores=scores,
         labels=[d.label for d in dets],
         embeddings=embeddings,
-        boxes_2d=np.array([np.asarray(d.box_2d, np.float32) for d in dets]).reshape(n, 4),
+        boxes_2d=boxes_2d,
         visibility=np.array([d.visibility for d in dets], dtype=np.float32),
         object_ids=np.array([d.object_id for d in dets], dtype=np.int64),
         corner_descriptors=corner,
