@@ -15,18 +15,11 @@ import numpy as np
 from rfm_core.io.png import write_png
 from rfm_core.sim.capture import Capture, CaptureConfig
 from rfm_core.sim.render import NoiseModel, Renderer
+from rfm_core.sim.trajectory import look_rotation
 
 OUT = Path(__file__).resolve().parent / 'world_parts.png'
 OUT_SENSOR = Path(__file__).resolve().parent / 'world_realsense.png'
 LABELS = ('bookshelf', 'table', 'sofa', 'plant')
-
-
-def look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], 1)
 
 
 def grey(depth):
@@ -45,7 +38,8 @@ def main():
         centre, yaw = obj.box[:3], obj.box[6]
         eye = centre + 2.2 * np.array([-np.sin(yaw), np.cos(yaw), 0.0])
         eye = np.r_[np.clip(eye[:2], 0.3, capture.room.size[:2] - 0.3), 1.3]
-        views[label] = {m: r.render(look_at(eye, centre), eye, np.random.default_rng(1)) for m, r in renderers.items()}
+        view = look_rotation(centre - eye)
+        views[label] = {m: r.render(view, eye, np.random.default_rng(1)) for m, r in renderers.items()}
     write_png(OUT, np.concatenate([np.concatenate([v['none'].rgb, grey(v['none'].depth)], 1)
                                    for v in views.values()], 0))
     write_png(OUT_SENSOR, np.concatenate([np.concatenate([v['realsense'].rgb, grey(v['default'].depth),

@@ -6,7 +6,7 @@ from rfm_core.geometry import box_corners, yaw_matrix
 from rfm_core.sim.capture import Capture, CaptureConfig
 from rfm_core.sim.render import NoiseModel
 from rfm_core.sim.room import generate_room
-from rfm_core.sim.trajectory import GRAVITY, imu_samples, make_trajectory
+from rfm_core.sim.trajectory import GRAVITY, imu_samples, look_rotation, make_trajectory
 
 
 @pytest.fixture(scope='module')
@@ -160,11 +160,7 @@ def test_noise_model_holes_and_error_grow_with_distance():
 # ---------------------------------------------------------------- furniture made of parts, clutter
 
 def _look_at(eye, target):
-    z = np.asarray(target, float) - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(z, x), z], 1)          # camera-to-map rotation
+    return look_rotation(np.asarray(target, float) - eye)     # camera-to-map rotation
 
 
 def _one_object_room(label, size, furniture):
