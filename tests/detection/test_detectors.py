@@ -118,8 +118,8 @@ def test_calibrated_score_ranks_boxes_better_than_the_raw_score(frames):
     from rfm_core.detection.depth_clusters import DepthClustersConfig, DepthClustersDetector
 
     raw, calibrated = DetectionEvaluator(), DetectionEvaluator()
-    raw_det = DepthClustersDetector(DepthClustersConfig(score_model=''))
-    cal_det = DepthClustersDetector()
+    raw_det = DepthClustersDetector(DepthClustersConfig(score_model='', box_refiner=''))
+    cal_det = DepthClustersDetector(DepthClustersConfig(box_refiner=''))
     for cap, f in frames:
         a, b = raw_det.detect(inputs(cap, f)), cal_det.detect(inputs(cap, f))
         np.testing.assert_allclose(np.sort(a.boxes, axis=0), np.sort(b.boxes, axis=0))

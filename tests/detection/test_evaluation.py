@@ -63,3 +63,36 @@ def test_predictions_in_another_gravity_frame_are_re_expressed():
     same = FrameObservations(0, 'cam', INTR, [0.02, 1, 0],
                              boxes=boxes_from_oriented(c @ r.T, r @ rot, size), scores=[1.0])
     np.testing.assert_allclose(express_in(same, truth.gravity_cam), truth.boxes, atol=1e-9)
+
+
+def test_map_objects_are_sorted_into_real_duplicate_poor_fit_and_phantom():
+    from rfm_core.evaluation.mapping import evaluate_map
+
+    truth = np.array([[0, 0, 0.5, 1, 1, 1, 0], [3, 0, 0.5, 1, 1, 1, 0]], float)
+    boxes = np.array([[0, 0, 0.5, 1, 1, 1, 0],            # real
+                      [0.05, 0, 0.5, 1, 1, 1, 0],         # the same object again: duplicate
+                      [3.7, 0, 0.5, 1, 1, 1, 0],          # IoU 0.18 with the second: poor fit
+                      [6, 6, 0.5, 1, 1, 1, 0]], float)     # nothing there: phantom
+    m = evaluate_map(boxes, [0.9, 0.8, 0.7, 0.6], truth)
+    assert m['kinds'] == {'real': 1, 'duplicate': 1, 'poor_fit': 1, 'phantom': 1}
+    assert m['objects'] == 4 and m['AR25'] == 0.5
+    assert evaluate_map(boxes[:0], [], truth)['kinds']['phantom'] == 0
+    assert evaluate_map(boxes, [1, 1, 1, 1], truth[:0])['kinds']['phantom'] == 4
+
+
+def test_suite_tables_pool_the_map_object_kinds_over_scenes():
+    from rfm_core.evaluation.suite import SETTINGS, format_tables, scene_metrics, summarize
+
+    def run(kinds, objects):
+        loc = {'ARE_median': 1.0, 'ATE_median': 0.05, 'ARE_rmse': 1.0, 'ATE_rmse': 0.05, 'registered': 1.0}
+        mapping = {'objects': objects, 'ground_truth': 10, 'AP15': 0.6, 'AR15': 0.6, 'AP25': 0.5, 'AR25': 0.5,
+                   'kinds': kinds}
+        return {'accuracy': {'localization': loc, 'mapping': mapping},
+                'frames': 10, 'input_frames': 10}
+    name = SETTINGS[0].name
+    results = [{'results': {name: scene_metrics(run({'real': 6, 'duplicate': 0, 'poor_fit': 2, 'phantom': 2}, 10))}},
+               {'results': {name: scene_metrics(run({'real': 4, 'duplicate': 2, 'poor_fit': 0, 'phantom': 24}, 30))}}]
+    m = summarize(results, SETTINGS[:1])[name]
+    assert m['share_real'] == 10 / 40 and m['share_phantom'] == 26 / 40 and m['share_duplicate'] == 2 / 40
+    assert m['objects_per_object'] == 2.0                 # median of 1.0 and 3.0
+    assert '| 25% | 5% | 5% | 65% |' in format_tables({name: m})

@@ -301,7 +301,7 @@ def cmd_eval_matching(args) -> int:
     from rfm_core.training.matcher import labelled_pairs, scene_configs  # noqa: PLC0415
 
     seeds = range(args.first_seed, args.first_seed + args.scenes)
-    pairs = labelled_pairs(scene_configs(seeds, frames=args.frames), args.inputs,
+    pairs = labelled_pairs(scene_configs(seeds, frames=args.frames, world=args.world), args.inputs,
                            noise_seeds=(args.noise_seed,), gaps=(args.gap,), min_shared=3,
                            visible=True, jobs=args.jobs)
     matchers = {'learned': lambda: LearnedMatcher(weights=args.weights),
@@ -344,6 +344,51 @@ def cmd_train_depth_score(args) -> int:
     return 0
 
 
+def cmd_train_box_refiner(args) -> int:
+    """Train depth_clusters' learned box refiner on simulated scenes of the training seeds."""
+    import torch  # noqa: PLC0415
+
+    from rfm_core.detection.box_refiner import DEFAULT_BOX_REFINER  # noqa: PLC0415
+    from rfm_core.training.box_refiner import (  # noqa: PLC0415
+        checkpoint, refiner_samples, train_box_refiner, training_configs)
+
+    torch.set_num_threads(max(1, args.threads))
+    seeds = range(args.first_seed, args.first_seed + args.scenes)
+    start = time.perf_counter()
+    if args.samples and Path(args.samples).exists():
+        data = dict(np.load(args.samples))
+        print(f'{len(data["objectness"])} samples from {args.samples}')
+    else:
+        items = training_configs(seeds, frames_per_scene=args.frames)
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            parts = []
+            for i, r in enumerate(pool.map(refiner_samples, items, chunksize=4)):
+                if r:
+                    parts.append(r)
+                print(f'\rscenes {i + 1}/{len(items)}', end='', flush=True)
+        print()
+        if not parts:
+            raise SystemExit('rfm train-box-refiner: no candidates in the training scenes')
+        data = {k: np.concatenate([r[k] for r in parts]) for k in parts[0]}
+        if args.samples:
+            np.savez(args.samples, **data)
+    n = len(data['objectness'])
+    print(f'{n} candidates ({100 * data["objectness"].mean():.0f}% objects) from {args.scenes} scenes '
+          f'in {time.perf_counter() - start:.0f} s', flush=True)
+    net, history = train_box_refiner(data, epochs=args.epochs, batch_size=args.batch_size, lr=args.lr,
+                                     width=args.width, seed=args.seed)
+    output = Path(args.output) if args.output else DEFAULT_BOX_REFINER
+    output.parent.mkdir(parents=True, exist_ok=True)
+    command = ('rfm train-box-refiner ' + ' '.join(sys.argv[2:]) if sys.argv[1:2] == ['train-box-refiner']
+               else 'rfm train-box-refiner (API)')
+    torch.save(checkpoint(net, {'command': command, 'scene_seeds': [seeds.start, seeds.stop - 1],
+                                'samples': n, 'epochs': args.epochs, 'final_losses': history[-1],
+                                'torch': str(torch.__version__), 'seconds': round(time.perf_counter() - start)}),
+               output)
+    print(f'wrote {output} ({output.stat().st_size / 1e6:.2f} MB, {time.perf_counter() - start:.0f} s)')
+    return 0
+
+
 def cmd_train_matcher(args) -> int:
     """Train the learned object matcher on sim pairs through a real detector backend."""
     from dataclasses import asdict  # noqa: PLC0415
@@ -358,7 +403,7 @@ def cmd_train_matcher(args) -> int:
              else [args.backend])
     seeds = range(args.first_seed, args.first_seed + args.scenes)
     start = time.perf_counter()
-    pairs = labelled_pairs(scene_configs(seeds, frames=args.frames), specs,
+    pairs = labelled_pairs(scene_configs(seeds, frames=args.frames, world=args.world), specs,
                            noise_seeds=tuple(range(args.noise_draws)), jobs=args.jobs, structure=args.structure,
                            progress=lambda i, n: print(f'\rscenes {i}/{n}', end='', flush=True))
     print()
@@ -375,7 +420,8 @@ def cmd_train_matcher(args) -> int:
     output.parent.mkdir(parents=True, exist_ok=True)
     metadata = {'command': 'rfm train-matcher ' + ' '.join(sys.argv[2:]) if sys.argv[1:2] == ['train-matcher']
                 else 'rfm train-matcher (API)', 'backend': args.backend, 'inputs': specs,
-                'scene_seeds': [seeds.start, seeds.stop - 1], 'pairs': len(data), 'structure': args.structure,
+                'scene_seeds': [seeds.start, seeds.stop - 1], 'world': args.world, 'pairs': len(data),
+                'structure': args.structure,
                 'train': asdict(config),
                 'torch': torch.__version__,
                 'seconds': round(time.perf_counter() - start)}
@@ -405,9 +451,12 @@ def cmd_eval(args) -> int:
               flush=True)
 
     if args.offline:
+        if args.param:
+            raise SystemExit('rfm eval: --param applies to the node graph, not to --offline')
         results = run_suite(configs, settings, jobs=args.jobs, progress=progress)
     else:
-        results = run_graph_suite(configs, settings, work=args.work, jobs=args.jobs, progress=progress)
+        results = run_graph_suite(configs, settings, work=args.work, jobs=args.jobs, progress=progress,
+                                  params=args.param)
     print(f'\n{"In-process (offline: every frame detected, true gravity)" if args.offline else "Through the node graph (rfm run, real-time replay)"}, '
           f'{len(configs)} scenes of the {args.world} world from seed {args.first_seed}, {time.perf_counter() - start:.0f} s')
     summaries = {'all': summarize(results, settings)}
@@ -552,7 +601,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help='object matching and relative-pose accuracy on simulated frame pairs')
     p.add_argument('--inputs', nargs='+', default=['depth_clusters', 'ground_truth:perfect',
                                                    'ground_truth:rgbd', 'ground_truth:rgb'],
-                   help='detector inputs: depth_clusters and/or ground_truth:PRESET')
+                   help='detector inputs: depth_clusters (depth_clusters:heuristic without the box refiner, '
+                        'depth_clusters:refined with its boxes) and/or ground_truth:PRESET')
     p.add_argument('--matchers', nargs='+', default=['learned', 'classical'],
                    choices=('learned', 'classical'))
     p.add_argument('--weights', help='learned matcher checkpoint (default: the shipped one per detector)')
@@ -561,6 +611,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help='first scene seed (default 2000: disjoint from training, tuning and the suite)')
     p.add_argument('--frames', type=int, default=12, help='frames per scene (at 2 Hz)')
     p.add_argument('--gap', type=int, default=2, help='frames between the two of a pair (at 2 Hz)')
+    p.add_argument('--world', choices=('boxes', 'realistic'), default='boxes', help='scenes (see rfm eval)')
     p.add_argument('--noise-seed', type=int, default=2)
     p.add_argument('--jobs', type=int, default=1, help='scenes rendered in parallel')
     p.set_defaults(func=cmd_eval_matching)
@@ -573,6 +624,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--output', help='default: the shipped model in rfm_core/detection/weights')
     p.set_defaults(func=cmd_train_depth_score)
 
+    p = sub.add_parser('train-box-refiner', help="train depth_clusters' learned box refiner on simulated scenes")
+    p.add_argument('--scenes', type=int, default=600)
+    p.add_argument('--first-seed', type=int, default=3000, help='training seeds start here (3000+)')
+    p.add_argument('--frames', type=int, default=12, help='frames per scene, spread over the capture')
+    p.add_argument('--epochs', type=int, default=20)
+    p.add_argument('--batch-size', type=int, default=256)
+    p.add_argument('--lr', type=float, default=2e-3)
+    p.add_argument('--width', type=int, default=128, help='network width')
+    p.add_argument('--seed', type=int, default=0, help='initialisation and shuffling')
+    p.add_argument('--threads', type=int, default=2, help='torch CPU threads')
+    p.add_argument('--jobs', type=int, default=2, help='scenes rendered in parallel')
+    p.add_argument('--samples', help='cache of the rendered samples (.npz): read when it exists, else written')
+    p.add_argument('--output', help='checkpoint to write (default: the shipped weights)')
+    p.set_defaults(func=cmd_train_box_refiner)
+
     p = sub.add_parser('train-matcher',
                        help='train the learned object matcher on sim pairs through a detector backend')
     p.add_argument('--backend', choices=('depth_clusters', 'ground_truth'), default='depth_clusters')
@@ -584,6 +650,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--first-seed', type=int, default=3000,
                    help='first scene seed (default 3000: disjoint from every evaluation)')
     p.add_argument('--frames', type=int, default=24, help='frames per scene (at 2 Hz)')
+    p.add_argument('--world', choices=('boxes', 'realistic'), default='boxes',
+                   help="scenes to train on: boxes (solid furniture) or realistic (rfm eval's default world)")
     p.add_argument('--epochs', type=int, default=12)
     p.add_argument('--batch-size', type=int, default=32)
     p.add_argument('--lr', type=float, default=3e-4)
@@ -615,6 +683,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--offline', action='store_true',
                    help='in-process instead of through the node graph: every frame detected, the simulated '
                         'true gravity (for ablations; not what a user gets)')
+    p.add_argument('--param', nargs='+', metavar='NODE.NAME:=VALUE', default=[],
+                   help="passed to every rfm run (e.g. depth_clusters.box_refiner:='' for the heuristic "
+                        'boxes); not with --offline')
     p.add_argument('--work', help='keep the scene bags and the rfm run outputs here (default: a temporary folder)')
     p.add_argument('--json', help='also write all results to this JSON file')
     p.set_defaults(func=cmd_eval)

@@ -39,9 +39,9 @@ MATCHERS = ('learned', 'classical')
 
 @dataclass(frozen=True)
 class DetectorNodeConfig:
-    backend: str = setting('depth_clusters', 'Detector: depth_clusters (RGB-D, no learning), cutr (Cubify '
-                           'Transformer, needs cutr.checkpoint), ground_truth (simulator ground truth + noise '
-                           'model, for evaluation only)', choices=BACKENDS, read_only=True)
+    backend: str = setting('depth_clusters', 'Detector: depth_clusters (RGB-D clusters + a small learned box '
+                           'refiner), cutr (Cubify Transformer, needs cutr.checkpoint), ground_truth (simulator '
+                           'ground truth + noise model, for evaluation only)', choices=BACKENDS, read_only=True)
     score_threshold: float = same_setting(DetectorConfig, 'score_threshold')
     max_detections: int = same_setting(DetectorConfig, 'max_detections')
     image_transport: str = setting('raw', "Colour image transport: 'raw' (rgb/image, sensor_msgs/Image) or "

@@ -1,4 +1,4 @@
-"""`depth_clusters`: 3D boxes from RGB-D without learning.
+"""`depth_clusters`: 3D boxes from RGB-D: geometric clusters, boxes refined by a small learned model.
 
 1. Back-project the depth image (every ``stride``-th pixel) into the gravity-aligned camera
    frame; estimate normals from neighbouring pixels.
@@ -11,9 +11,14 @@
    from robust percentiles, completed amodally — down to the floor or support it stands
    on (from any height when something nearer hides its bottom), and back to the wall
    behind it (or to its visible width) when its far side cannot be seen.
-5. Score by support (points) and shape, calibrated by a small logistic model
-   (:mod:`rfm_core.detection.score_model`); describe each box by an embedding of its colours
-   (hue/value histograms, mean colour), sorted size and height above the floor.
+5. Score: by default a learned box refiner (:mod:`rfm_core.detection.box_refiner`, a small
+   PointNet trained on simulated rooms) reads each cluster's points and predicts its
+   objectness (the score), the object's full box and a class; fragments predicting the same
+   box are suppressed, and the fitted boxes are published (``refine_boxes``: the predicted
+   ones). With ``box_refiner=''`` the fitted boxes are kept, scored by support (points)
+   and shape and calibrated by a small logistic model (:mod:`rfm_core.detection.score_model`).
+   Each box is described by an embedding of its colours (hue/value histograms, mean
+   colour), sorted size and height above the floor.
 
 Works on any registered RGB-D stream with gravity; it never reads instance ids.
 """
@@ -30,7 +35,7 @@ from rfm_core.geometry import gravity_aligned_rotation
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
-__all__ = ['DepthClustersConfig', 'DepthClustersDetector', 'EMBEDDING_DIM']
+__all__ = ['DepthClustersConfig', 'DepthClustersDetector', 'Candidate', 'Candidates', 'EMBEDDING_DIM']
 
 EMBEDDING_DIM = 24
 
@@ -63,6 +68,14 @@ class DepthClustersConfig(DetectorConfig):
     score_model: str = setting('default', "Calibrated score (rfm_core.detection.score_model): 'default' for the "
                                "shipped model, a JSON path from rfm train-depth-score, or '' for the raw score "
                                '(points x shape x truncation)')
+    box_refiner: str = setting('default', "Learned box refiner (rfm_core.detection.box_refiner): 'default' for "
+                               "the shipped weights, a checkpoint from rfm train-box-refiner, or '' for the "
+                               "heuristic boxes scored by score_model")
+    nms_iou: float = setting(0.3, 'Box refiner: of refined boxes overlapping more than this (3D IoU), keep the '
+                             'best (fragments of one object predict the same box)', lo=0.0, hi=1.0)
+    refine_boxes: bool = setting(False, "Box refiner: publish its predicted full boxes (the best maps: AP25 0.59 "
+                                 "a frame against 0.44, but relative poses between keyframes from them are "
+                                 "noisier) instead of the fitted boxes it scores and suppresses (BENCHMARKS.md)")
     refine_gravity: bool = setting(True, 'Align gravity with the floor plane when visible')
     max_gravity_correction_deg: float = setting(6.0, '... if it is within this of the input gravity (deg)',
                                                 lo=0.0, hi=90.0)
@@ -140,6 +153,30 @@ def percentiles(a: np.ndarray, qs) -> list:
         out.append(below + frac * (above - below) if frac else below.copy())
     return out
 
+@dataclass
+class Candidate:
+    """One cluster of object points and the box fitted to it (gravity-aligned camera frame)."""
+
+    points: np.ndarray            #: (n, 3) m
+    normals: np.ndarray           #: (n, 3) unit, towards the camera
+    pixels: np.ndarray            #: (n, 2) full-resolution (row, column)
+    colours: np.ndarray | None    #: (n, 3) uint8, None without a colour image
+    box: np.ndarray               #: (7,) the fitted, amodally completed box
+    raw_score: float              #: points x shape (before the truncation factor)
+    truncated: bool               #: cut by the image border
+    on_support: bool              #: stands on a support surface (a table top), not the floor
+    bottom_hidden: bool           #: its bottom is hidden by an occluder or the border
+    box_2d: list                  #: [x0, y0, x1, y1] pixels
+
+
+@dataclass
+class Candidates:
+    frame: DetectorInput          #: the input with the floor-refined gravity
+    floor_z: float | None         #: floor height in the gravity-aligned frame, when seen
+    ceiling_z: float | None
+    items: list                   #: [Candidate]
+
+
 class DepthClustersDetector(Detector):
     name = 'depth_clusters'
     needs_depth = True
@@ -149,10 +186,45 @@ class DepthClustersDetector(Detector):
         path = self.config.score_model
         self.score_model = (load_score_model(DEFAULT_SCORE_MODEL if path == 'default' else path)
                             if path else None)
+        self.box_refiner = None
+        if self.config.box_refiner:
+            from rfm_core.detection.box_refiner import BoxRefiner  # noqa: PLC0415  (torch)
+            self.box_refiner = BoxRefiner.load(self.config.box_refiner, nms_iou=self.config.nms_iou)
 
     # ------------------------------------------------------------------ pipeline
 
     def detect(self, frame: DetectorInput) -> FrameObservations:
+        cfg = self.config
+        found = self.candidates(frame)
+        frame, items = found.frame, found.items
+        if self.box_refiner is not None:
+            boxes, scores, labels = self.box_refiner.refine(found)
+            if not cfg.refine_boxes:
+                boxes = np.array([c.box for c in items]).reshape(-1, 7)
+            keep = self.box_refiner.suppress(boxes, scores)
+            items = [items[i] for i in keep]
+            boxes, scores, labels = boxes[keep], scores[keep], [labels[i] for i in keep]
+        else:
+            boxes = np.array([c.box for c in items]).reshape(-1, 7)
+            # boxes cut by the image border are completed from a partial view: less certain
+            raw = np.array([c.raw_score * (cfg.truncated_score_factor if c.truncated else 1.0)
+                            for c in items])
+            labels = [''] * len(items)
+            scores = raw
+            if self.score_model is not None and len(items):
+                # the raw score decides which boxes are kept (score_threshold), the calibrated
+                # one how they rank
+                intr = frame.intrinsics
+                calibrated = self.score_model(box_features(raw, boxes, [c.box_2d for c in items],
+                                                           intr.fx, intr.fy))
+                scores = np.where(raw >= cfg.score_threshold, np.maximum(calibrated, cfg.score_threshold), 0.0)
+        embeds = [self._embedding(c.colours, box, found.floor_z) for c, box in zip(items, boxes)]
+        return finalize(frame, boxes, scores, labels, np.array(embeds).reshape(len(items), EMBEDDING_DIM),
+                        [c.box_2d for c in items], cfg, self.name)
+
+    def candidates(self, frame: DetectorInput) -> 'Candidates':
+        """Steps 1-4: one :class:`Candidate` per cluster with its fitted box and raw score,
+        in the gravity-aligned frame of the (floor-refined) gravity of ``Candidates.frame``."""
         cfg = self.config
         frame.validate(needs_depth=True)
         intr = frame.intrinsics
@@ -180,45 +252,31 @@ class DepthClustersDetector(Detector):
         pts = pts_img[good]
         nrm = normals_img[good]
         pix = np.stack([v[good], u[good]], -1)                  # full-resolution pixel coords
-        empty = finalize(frame, [], [], [], np.zeros((0, EMBEDDING_DIM)), [], cfg, self.name)
         if len(pts) < cfg.min_cluster_points:
-            return empty
+            return Candidates(frame, None, None, [])
 
         structural, floor_z, ceiling_z, walls = self._structure(pts, nrm)
         obj = ~structural
         labels = self._clusters(pts[obj], nrm[obj])
         obj_idx = np.flatnonzero(obj)
-        boxes, scores, embeds, boxes_2d = [], [], [], []
+        items = []
         rgb = frame.rgb
+        margin = 2 * s
         for points, normals, pixels, support_z in self._split_supports(
                 pts[obj], nrm[obj], pix[obj_idx], labels):
             hidden = self._bottom_hidden(pixels, frame.depth, s)
             fit = self._fit_box(points, normals, support_z, floor_z, walls, hidden)
             if fit is None or self._is_structure_remnant(fit[0], normals, ceiling_z):
                 continue
-            box, score = fit
-            # boxes cut by the image border are completed from a partial view: less certain
-            margin = 2 * s
-            if (pixels[:, 0].min() < margin or pixels[:, 1].min() < margin
-                    or pixels[:, 0].max() >= intr.height - margin
-                    or pixels[:, 1].max() >= intr.width - margin):
-                score *= cfg.truncated_score_factor
-            boxes.append(box)
-            scores.append(score)
-            colours = rgb[pixels[:, 0], pixels[:, 1]] if rgb is not None else None
-            embeds.append(self._embedding(colours, box, floor_z))
-            boxes_2d.append([pixels[:, 1].min() - s / 2, pixels[:, 0].min() - s / 2,
-                             pixels[:, 1].max() + s / 2, pixels[:, 0].max() + s / 2])
-        if not boxes:
-            return empty
-        if self.score_model is not None:
-            # the raw score decides which boxes are kept (score_threshold), the calibrated
-            # one how they rank
-            raw = np.asarray(scores)
-            calibrated = self.score_model(box_features(raw, boxes, boxes_2d, intr.fx, intr.fy))
-            scores = np.where(raw >= cfg.score_threshold, np.maximum(calibrated, cfg.score_threshold), 0.0)
-        return finalize(frame, boxes, scores, [''] * len(boxes), np.array(embeds), boxes_2d,
-                        cfg, self.name)
+            truncated = bool(pixels[:, 0].min() < margin or pixels[:, 1].min() < margin
+                             or pixels[:, 0].max() >= intr.height - margin
+                             or pixels[:, 1].max() >= intr.width - margin)
+            items.append(Candidate(
+                points, normals, pixels, rgb[pixels[:, 0], pixels[:, 1]] if rgb is not None else None,
+                fit[0], fit[1], truncated, support_z is not None, hidden,
+                [pixels[:, 1].min() - s / 2, pixels[:, 0].min() - s / 2,
+                 pixels[:, 1].max() + s / 2, pixels[:, 0].max() + s / 2]))
+        return Candidates(frame, floor_z, ceiling_z, items)
 
     # ------------------------------------------------------------------ structure
 

@@ -5,14 +5,44 @@ boxes. Ground-truth objects the capture never saw well (best visibility below
 ``min_visibility``) are ignore regions. Un-posed maps are first expressed in the ground
 truth's frame by the 4-DoF (yaw + translation) alignment of the keyframe camera centres:
 gravity is shared, and the paper aligns by SE(3) without scale.
+
+Besides AP/AR, every map object is put in one of four kinds (:func:`object_kinds`): the
+first box of a real object (matched at IoU 0.25, best score first), a duplicate of an object
+already matched, a poor fit (best IoU 0.1-0.25), or overlapping nothing real (IoU < 0.1):
+phantoms.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from rfm_core.evaluation.detection import THRESHOLDS, average_precision, match_detections
+from rfm_core.geometry import iou_3d
 
-__all__ = ['evaluate_map']
+__all__ = ['evaluate_map', 'object_kinds', 'OBJECT_KINDS']
+
+OBJECT_KINDS = ('real', 'duplicate', 'poor_fit', 'phantom')
+PHANTOM_IOU = 0.1
+
+
+def object_kinds(boxes, scores, gt_boxes, threshold: float = 0.25) -> dict:
+    """How many map boxes are the first box of a real object, a duplicate, a poor fit or a
+    phantom (see the module docstring); every ground-truth object counts, seen or not."""
+    boxes = np.asarray(boxes, float).reshape(-1, 7)
+    gt_boxes = np.asarray(gt_boxes, float).reshape(-1, 7)
+    counts = dict.fromkeys(OBJECT_KINDS, 0)
+    if not len(boxes):
+        return counts
+    if not len(gt_boxes):
+        counts['phantom'] = len(boxes)
+        return counts
+    ious = iou_3d(boxes, gt_boxes)
+    tp, _, _ = match_detections(boxes, scores, gt_boxes, np.zeros(len(gt_boxes), bool), threshold)
+    best = ious.max(1)
+    counts['real'] = int(np.count_nonzero(tp))
+    counts['duplicate'] = int(np.count_nonzero(~tp & (best >= threshold)))
+    counts['poor_fit'] = int(np.count_nonzero((best >= PHANTOM_IOU) & (best < threshold)))
+    counts['phantom'] = int(np.count_nonzero(best < PHANTOM_IOU))
+    return counts
 
 
 def evaluate_map(boxes, scores, gt_boxes, gt_ignore=None, thresholds=THRESHOLDS) -> dict:
@@ -28,4 +58,5 @@ def evaluate_map(boxes, scores, gt_boxes, gt_ignore=None, thresholds=THRESHOLDS)
         key = f'{int(round(t * 100))}'
         out[f'AP{key}'] = average_precision(tp[counted], scores[counted], num_gt)
         out[f'AR{key}'] = matched / num_gt if num_gt else float('nan')
+    out['kinds'] = object_kinds(boxes, scores, gt_boxes)
     return out

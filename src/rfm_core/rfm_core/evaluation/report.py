@@ -217,6 +217,9 @@ def write_report(path, summary: dict) -> Path:
                   '| AP15 | AR15 | AP25 | AR25 | map objects | ground-truth objects |', '|---|---|---|---|---|---|',
                   f'| {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | {m["objects"]} | '
                   f'{m["ground_truth"]} |', '',
+                  *([('Map objects: {real} first boxes of real objects, {duplicate} duplicates, {poor_fit} poor '
+                      'fits (IoU 0.1-0.25), {phantom} overlapping nothing real (IoU < 0.1).').format(**m['kinds']), '']
+                    if m.get('kinds') else []),
                   'Localization aligned by yaw + translation (gravity is shared); a frame counts as localized when '
                   'it has a pose in `trajectory.tum`. Mapping: scene-level AP/AR at 3D IoU 0.15 / 0.25, objects '
                   'never seen >= 20% ignored.', '']

@@ -44,7 +44,9 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['SETTINGS', 'Setting', 'WORLDS', 'scene_kind', 'eval_configs', 'scene_info', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
+from rfm_core.evaluation.mapping import OBJECT_KINDS
+
+__all__ = ['SETTINGS', 'Setting', 'WORLDS', 'scene_kind', 'eval_configs', 'seed_config', 'scene_info', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
            'run_graph_suite', 'summarize', 'format_tables']
 
 
@@ -131,6 +133,13 @@ def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps
     return out
 
 
+def seed_config(seed: int, world: str = 'realistic'):
+    """The configuration a seed gets in a suite that starts at a multiple of 8 (every kind of
+    scene of :func:`eval_configs` occurs in each block of eight): scenes of the suite's
+    distribution for seeds outside it (training)."""
+    return eval_configs(seed % 8 + 1, first_seed=seed - seed % 8, world=world)[-1]
+
+
 def scene_info(config) -> dict:
     """What kind of scene a configuration is, for the evaluation's breakdowns."""
     return {'capture': config.capture, 'sensor': 'realsense' if config.noise.projector_baseline_m > 0 else 'default',
@@ -191,14 +200,17 @@ def scene_metrics(summary: dict) -> dict:
                realtime=summary.get('realtime', nan),
                objects=mapping.get('objects', summary.get('objects', 0)), ground_truth=mapping.get('ground_truth', 0),
                **{k: mapping.get(k, nan) for k in ('AP15', 'AR15', 'AP25', 'AR25')})
+    kinds = mapping.get('kinds') or {}
+    out.update({f'objects_{k}': kinds.get(k, nan) for k in OBJECT_KINDS})
     return out
 
 
 def evaluate_scene_graph(args) -> dict:
     """Every setting on one scene through the node graph: the scene is written as a bag (once,
-    kept in ``work``) and replayed by ``rfm run`` in ROS domain ``domain``; scored from the
-    run's outputs. A run that fails counts as nothing localized and nothing mapped."""
-    config, settings, work, domain = args
+    kept in ``work``) and replayed by ``rfm run`` in ROS domain ``domain`` (with the extra
+    ``--param`` values ``params``); scored from the run's outputs. A run that fails counts as
+    nothing localized and nothing mapped."""
+    config, settings, work, domain, params = args
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     scene = Path(work) / scene_name(config)
@@ -214,6 +226,8 @@ def evaluate_scene_graph(args) -> dict:
     for s in settings:
         run = scene / _slug(s.name)
         cmd = [rfm, 'run', '--bag', str(bag), '--output', str(run), '--force', '--quiet', *run_args(s)]
+        if params:
+            cmd += ['--param', *params]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
         if proc.returncode != 0 or not (run / 'summary.json').is_file():
             tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
@@ -223,7 +237,7 @@ def evaluate_scene_graph(args) -> dict:
     return {'scene': scene_name(config), **scene_info(config), 'results': out}
 
 
-def run_graph_suite(configs, settings=SETTINGS, work=None, jobs: int = 1, progress=None) -> list:
+def run_graph_suite(configs, settings=SETTINGS, work=None, jobs: int = 1, progress=None, params=()) -> list:
     """:func:`evaluate_scene_graph` over the scenes, ``jobs`` at a time (each in its own ROS
     domain). Long captures (sparse views: one frame a second) go first, interleaved with
     short ones, so parallel jobs rarely replay two dense streams at once."""
@@ -248,7 +262,7 @@ def run_graph_suite(configs, settings=SETTINGS, work=None, jobs: int = 1, progre
     def one(i):
         domain = domains.get()
         try:
-            return i, evaluate_scene_graph((configs[i], tuple(settings), work_dir, domain))
+            return i, evaluate_scene_graph((configs[i], tuple(settings), work_dir, domain, tuple(params)))
         finally:
             domains.put(domain)
     try:
@@ -302,6 +316,9 @@ def summarize(results, settings=SETTINGS) -> dict:
             'processed': float(np.mean(col('processed', 1.0))),
             **{k: float(np.nanmean(col(k))) for k in ('AP15', 'AR15', 'AP25', 'AR25')},
             'objects_per_object': float(np.nanmedian(col('objects') / np.maximum(col('ground_truth'), 1))),
+            # shares of all map objects (pooled over scenes) by kind: real / duplicate / poor fit / phantom
+            **{f'share_{k}': float(np.nansum(col(f'objects_{k}')) / max(np.nansum(col('objects')), 1))
+               for k in OBJECT_KINDS},
             'keyframes': float(np.mean(col('keyframes'))),
         }
     return out
@@ -318,11 +335,15 @@ def format_tables(summary: dict) -> str:
                      f'{100 * m["ATE_rmse"]:.1f} | {100 * m["registered"]:.1f}% | '
                      f'{100 * m["keyframe_registered"]:.1f}% | {100 * m["processed"]:.1f}% |')
     lines += ['', 'Mapping (scene-level AP/AR at 3D IoU 0.15 / 0.25, mean over scenes; objects mapped per object '
-              'in the room, median over scenes)', '',
-              '| setting | AP15 | AR15 | AP25 | AR25 | objects / room |', '|---|---|---|---|---|---|']
+              'in the room, median over scenes; what the map objects are, pooled over scenes: the first box '
+              'of a real object (IoU >= 0.25), a duplicate, a poor fit (IoU 0.1-0.25), nothing real '
+              '(IoU < 0.1))', '',
+              '| setting | AP15 | AR15 | AP25 | AR25 | objects / room | real | duplicate | poor fit | nothing real |',
+              '|---|---|---|---|---|---|---|---|---|---|']
     for name, m in summary.items():
         lines.append(f'| {name} | {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | '
-                     f'{m["objects_per_object"]:.1f} |')
+                     f'{m["objects_per_object"]:.1f} | '
+                     + ' | '.join(f'{100 * m.get("share_" + k, float("nan")):.0f}%' for k in OBJECT_KINDS) + ' |')
     failed = {name: m['failed'] for name, m in summary.items() if m.get('failed')}
     if failed:
         lines += ['', f'Runs that failed (counted as nothing localized or mapped): {failed}']

@@ -176,7 +176,10 @@ class Capture:
     def stamp_ns(self, t: float) -> int:
         return START_NS + int(round(t * 1e9))
 
-    def frames(self) -> Iterator[SimFrame]:
+    def frames(self, indices=None) -> Iterator[SimFrame]:
+        """Render every frame in order, or only those at ``indices`` (faster; their sensor
+        noise is then drawn differently from a full pass)."""
+        wanted = None if indices is None else set(int(i) for i in indices)
         rng = np.random.default_rng(self._noise_seed)
         nm = self.config.noise
         camera = np.random.default_rng([self._noise_seed, 7])     # the camera's own artefacts
@@ -185,6 +188,8 @@ class Capture:
         shift = offsets[camera.integers(len(offsets))] if offsets else (0, 0)
         log_gain = 0.0
         for i in range(len(self.trajectory)):
+            if wanted is not None and i not in wanted:
+                continue
             rotation = self.trajectory.rotations[i]
             position = self.trajectory.positions[i]
             out = self.renderer.render(rotation, position, rng)

@@ -126,8 +126,17 @@ def _capture_job(args):
     return labelled_capture(config, specs, noise_seeds, structure)
 
 
-def scene_configs(seeds, frames: int = 24, fps: float = 2.0):
-    """Mixed styles and captures, as the evaluation suites."""
+def scene_configs(seeds, frames: int = 24, fps: float = 2.0, world: str = 'boxes'):
+    """Mixed styles and captures, as the evaluation suites. ``world='realistic'``: the
+    realistic suite's scenes for these seeds (furniture of parts, clutter, both sensor
+    models, robot cameras; :func:`~rfm_core.evaluation.suite.seed_config`), ``frames`` of
+    each at ``fps`` (sparse captures keep their 1.5-5 s between photos)."""
+    if world == 'realistic':
+        from rfm_core.evaluation.suite import seed_config  # noqa: PLC0415
+
+        configs = [seed_config(s, 'realistic') for s in seeds]
+        return [replace(c, frames=frames) if c.capture == 'sparse' else replace(c, frames=frames, fps=fps)
+                for c in configs]
     styles = (('plain', 'handheld'), ('textured', 'sparse'), ('plain', 'sparse'), ('textured', 'handheld'))
     return [CaptureConfig(seed=s, room_style=styles[i % 4][0], capture=styles[i % 4][1],
                           frames=frames, fps=fps) for i, s in enumerate(seeds)]
