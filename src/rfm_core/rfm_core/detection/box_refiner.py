@@ -16,8 +16,9 @@ points in the frame of the fitted box (position, normal, colour) plus a few glob
   ratio, yaw offset within +-45 deg (boxes are symmetric under quarter turns, sizes swap);
 - **a class** out of :data:`CLASSES` (the simulator's object kinds).
 
-Fragments of one object predict the same box, so non-maximum suppression over the refined
-boxes (``nms_iou``) keeps one. Trained by ``rfm train-box-refiner``
+Fragments other than an object's main part score low and fall below the detector's
+threshold; non-maximum suppression over the published boxes (``nms_iou``) removes the
+overlaps that remain (with predicted boxes: fragments that predict the same box). Trained by ``rfm train-box-refiner``
 (:mod:`rfm_core.training.box_refiner`) on simulated scenes of training seeds; weights ship
 in ``weights/box_refiner.pt`` with the command that produced them.
 """

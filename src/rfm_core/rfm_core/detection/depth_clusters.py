@@ -13,9 +13,9 @@
    behind it (or to its visible width) when its far side cannot be seen.
 5. Score: by default a learned box refiner (:mod:`rfm_core.detection.box_refiner`, a small
    PointNet trained on simulated rooms) reads each cluster's points and predicts its
-   objectness (the score), the object's full box and a class; fragments predicting the same
-   box are suppressed, and the fitted boxes are published (``refine_boxes``: the predicted
-   ones). With ``box_refiner=''`` the fitted boxes are kept, scored by support (points)
+   objectness (the score), the object's full box and a class; fragments, clutter and
+   pieces of structure score low and are dropped, overlapping boxes are suppressed, and the
+   fitted boxes are published (``refine_boxes``: the predicted ones). With ``box_refiner=''`` the fitted boxes are kept, scored by support (points)
    and shape and calibrated by a small logistic model (:mod:`rfm_core.detection.score_model`).
    Each box is described by an embedding of its colours (hue/value histograms, mean
    colour), sorted size and height above the floor.
@@ -71,8 +71,8 @@ class DepthClustersConfig(DetectorConfig):
     box_refiner: str = setting('default', "Learned box refiner (rfm_core.detection.box_refiner): 'default' for "
                                "the shipped weights, a checkpoint from rfm train-box-refiner, or '' for the "
                                "heuristic boxes scored by score_model")
-    nms_iou: float = setting(0.3, 'Box refiner: of refined boxes overlapping more than this (3D IoU), keep the '
-                             'best (fragments of one object predict the same box)', lo=0.0, hi=1.0)
+    nms_iou: float = setting(0.3, 'Box refiner: of published boxes overlapping more than this (3D IoU), keep '
+                             'the best scored', lo=0.0, hi=1.0)
     refine_boxes: bool = setting(False, "Box refiner: publish its predicted full boxes (the best maps: AP25 0.59 "
                                  "a frame against 0.44, but relative poses between keyframes from them are "
                                  "noisier) instead of the fitted boxes it scores and suppresses (BENCHMARKS.md)")
