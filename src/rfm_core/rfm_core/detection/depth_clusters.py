@@ -197,15 +197,15 @@ class DepthClustersDetector(Detector):
         cfg = self.config
         found = self.candidates(frame)
         frame, items = found.frame, found.items
+        boxes = np.array([c.box for c in items]).reshape(-1, 7)          # fitted
         if self.box_refiner is not None:
-            boxes, scores, labels = self.box_refiner.refine(found)
-            if not cfg.refine_boxes:
-                boxes = np.array([c.box for c in items]).reshape(-1, 7)
+            refined, scores, labels = self.box_refiner.refine(found)
+            if cfg.refine_boxes:
+                boxes = refined
             keep = self.box_refiner.suppress(boxes, scores)
             items = [items[i] for i in keep]
             boxes, scores, labels = boxes[keep], scores[keep], [labels[i] for i in keep]
         else:
-            boxes = np.array([c.box for c in items]).reshape(-1, 7)
             # boxes cut by the image border are completed from a partial view: less certain
             raw = np.array([c.raw_score * (cfg.truncated_score_factor if c.truncated else 1.0)
                             for c in items])

@@ -22,7 +22,8 @@ from rfm_core.sim.capture import Capture
 
 __all__ = ['training_configs', 'refiner_samples', 'train_box_refiner']
 
-MIN_SHARE = 0.5
+MIN_SHARE = 0.5       #: a positive: its object owns at least this share of the cluster's points
+TARGET_SHARE = 0.3    #: a box target (and class) from the object owning at least this share
 
 
 def training_configs(seeds, frames_per_scene: int = 10, boxes_every: int = 4) -> list:
@@ -45,8 +46,7 @@ def refiner_samples(item) -> dict:
     config, indices = item
     detector = DepthClustersDetector(DepthClustersConfig(box_refiner='', score_model=''))
     capture = Capture(config)
-    out = {k: [] for k in ('points', 'globals', 'objectness', 'target', 'has_target', 'label', 'fitted_iou')}
-    from rfm_core.geometry import iou_3d_paired  # noqa: PLC0415
+    out = {k: [] for k in ('points', 'globals', 'objectness', 'target', 'has_target', 'label')}
     for frame in capture.frames(indices):
         found = detector.candidates(frame.detector_input())
         if not found.items:
@@ -70,13 +70,12 @@ def refiner_samples(item) -> dict:
         pts, glob = candidate_inputs(found)
         for i, c in enumerate(found.items):
             k = major[i]
-            has = k > 0 and k in row and share[i] >= 0.3
+            has = k > 0 and k in row and share[i] >= TARGET_SHARE
             target = encode_target(c.box, truth_boxes[row[k]]) if has else np.zeros(8)
             out['objectness'].append(bool(has and share[i] >= MIN_SHARE and largest[k] == i))
             out['target'].append(target)
             out['has_target'].append(has)
             out['label'].append(CLASSES.index(truth.labels[row[k]]) if has else -1)
-            out['fitted_iou'].append(float(iou_3d_paired(c.box[None], truth_boxes[row[k]][None])[0]) if has else 0.0)
         out['points'].append(pts)
         out['globals'].append(glob)
     if not out['points']:
@@ -84,8 +83,7 @@ def refiner_samples(item) -> dict:
     return {'points': np.concatenate(out['points']).astype(np.float16),
             'globals': np.concatenate(out['globals']),
             'objectness': np.array(out['objectness']), 'target': np.array(out['target'], np.float32),
-            'has_target': np.array(out['has_target']), 'label': np.array(out['label'], np.int64),
-            'fitted_iou': np.array(out['fitted_iou'], np.float32)}
+            'has_target': np.array(out['has_target']), 'label': np.array(out['label'], np.int64)}
 
 
 def _mirror(points, globals_, target):
