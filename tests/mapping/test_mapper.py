@@ -81,13 +81,47 @@ def test_a_track_seen_once_ranks_below_agreeing_views():
     keyframes = {0: _obs([table, lone], [[1.0, 0.0], [0.0, 1.0]]),
                  1: _obs([np.add(table, [0.05, 0, 0, 0, 0, 0, 0])], [[1.0, 0.0]])}
     poses = {k: Pose4(0.0, (0, 0, 0)) for k in keyframes}
-    tracks = sorted(build_tracks(keyframes, poses, [(0, 0, 1, 0)]), key=lambda t: -t.score)
+    tracks = sorted(build_tracks(keyframes, poses, [(0, 0, 1, 0)]), key=lambda t: -t.quality)
     assert [t.num_observations for t in tracks] == [2, 1]
-    assert tracks[1].score == pytest.approx(np.sqrt(0.25 * 0.9), rel=1e-6)
+    assert tracks[1].quality == pytest.approx(np.sqrt(0.25 * 0.9), rel=1e-6)
+
+
+def test_a_box_that_the_other_views_of_its_place_never_saw_is_left_out():
+    """View evidence: ten keyframes look at a chair; one of them also detects a fragment
+    beside it (score 0.9) that the nine others, looking at the same place, never saw: it is
+    left out of the map (kept, ranked last, with ``min_evidence`` 0). A box that only one
+    keyframe could see (turned away from the others) keeps its detection score."""
+    from rfm_core.observations import CameraIntrinsics
+
+    cam = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+
+    def obs(boxes, scores):
+        n = len(boxes)
+        return FrameObservations(0, 'cam', cam, np.array([0, 1.0, 0]), boxes=np.asarray(boxes, float),
+                                 scores=np.asarray(scores, np.float32), labels=['chair'] * n,
+                                 embeddings=np.tile(np.float32([1.0, 0.0]), (n, 1)))
+
+    chair = [2.5, 0.0, 0.0, 0.5, 0.5, 0.8, 0.0]             # straight ahead (gravity-aligned: x forward)
+    fragment = [2.0, 0.6, 0.1, 0.2, 0.2, 0.2, 0.0]
+    keyframes = {k: obs([chair], [0.9]) for k in range(1, 10)}
+    keyframes[0] = obs([chair, fragment], [0.9, 0.9])
+    keyframes[10] = obs([chair], [0.9])                      # turned 90 deg: sees something no one else does
+    poses = {k: Pose4(0.0, (0.0, 0.02 * k, 0.0)) for k in range(10)}
+    poses[10] = Pose4(np.pi / 2, (0.0, 0.0, 0.0))
+    matches = [(0, 0, k, 0) for k in range(1, 10)]
+    tracks = build_tracks(keyframes, poses, matches)
+    assert sorted(t.num_observations for t in tracks) == [1, 10]
+    lone = next(t for t in tracks if t.num_observations == 1)
+    assert lone.expected_views == 1 and lone.evidence == pytest.approx(0.9, rel=1e-5)
+    assert next(t for t in tracks if t.num_observations == 10).evidence > 0.999
+    every = build_tracks(keyframes, poses, matches, TrackConfig(min_evidence=0.0))
+    frag = next(t for t in every if tuple(t.observations[0]) == (0, 1))
+    assert frag.expected_views == 10 and frag.evidence < 0.1
+    assert frag.score == min(t.score for t in every)
 
 
 def test_a_track_is_represented_by_the_view_agreeing_most_with_the_others():
-    """Score = sqrt(mean IoU with the other views x detection score), the best view's box."""
+    """Quality = sqrt(mean IoU with the other views x detection score), the best view's box."""
     from rfm_core.geometry import iou_3d
 
     chair = np.array([2.0, 0.0, 0.4, 0.5, 0.5, 0.8, 0.0])
@@ -101,7 +135,7 @@ def test_a_track_is_represented_by_the_view_agreeing_most_with_the_others():
     quality = np.sqrt((iou.sum(1) - 1.0) / 3 * np.array(scores, np.float32))
     assert int(np.argmax(quality)) != 3
     np.testing.assert_allclose(track.box, views[int(np.argmax(quality))])
-    assert track.score == pytest.approx(quality.max(), rel=1e-6)
+    assert track.quality == pytest.approx(quality.max(), rel=1e-6)
 
 
 def test_map_file_round_trip_and_refusals(mapped, tmp_path):

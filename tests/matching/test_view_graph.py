@@ -179,3 +179,31 @@ def test_a_moment_without_objects_is_bridged_by_the_motion(stream):
         true = a.aligned_from_map() @ b.aligned_from_map().inverse()
         assert np.degrees(e.relative.pose.angle_to(true)) < 0.5          # the gyroscope's yaw
         assert np.linalg.norm(e.relative.pose.t - true.t) < 1.5 * 0.25 + 0.1   # moved at most this
+
+
+def test_motion_edges_never_chain_past_the_last_frame_objects_placed(stream):
+    """Frames that match nothing for longer than ``max_motion_edge_s`` (here 2 s, each frame's
+    detections moved elsewhere) get motion edges only within that time of the last frame
+    whose pose objects verified (or that started a new piece of the graph): a chain of held
+    positions would pin a walk to one spot (as seen on a realsense capture: 13 keyframes in
+    a row, 9 deg / 19 cm off)."""
+    from dataclasses import replace
+    det = make_detector('ground_truth', preset='perfect')
+    graph = ViewGraphBuilder()
+    limit_ns = graph.config.max_motion_edge_s * 1e9
+    last_verified, motion, unlinked = None, 0, []
+    for i, f in enumerate(stream[:20]):
+        obs = _with_gyroscope(f, det.perturb(f.ground_truth))
+        if 8 <= i < 16:
+            boxes = obs.boxes.copy()
+            boxes[:, 0] += 5.0 + 3.0 * i                     # matches no other frame
+            obs = replace(obs, boxes=boxes)
+        step = graph.add(obs)
+        if step.keyframe is not None and step.edges and all(len(e.relative.inliers) == 0 for e in step.edges):
+            motion += 1
+            assert f.stamp_ns - last_verified <= limit_ns
+        elif step.track is not None:             # placed by objects, or the start of a new piece
+            last_verified = f.stamp_ns
+            if step.keyframe is not None and not step.edges:
+                unlinked.append(i)
+    assert motion >= 2 and unlinked[0] == 0 and len(unlinked) > 1 and all(8 <= i < 16 for i in unlinked[1:])

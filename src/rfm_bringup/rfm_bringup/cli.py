@@ -293,7 +293,7 @@ def cmd_eval_detections(args) -> int:
 
 def cmd_eval_matching(args) -> int:
     """Object matching and relative-pose accuracy on simulated frame pairs."""
-    from rfm_core.evaluation.matching import evaluate_pairs  # noqa: PLC0415
+    from rfm_core.evaluation.matching import WIDE_TURN_DEG, evaluate_pairs  # noqa: PLC0415
     from rfm_core.detection import detector_for_spec  # noqa: PLC0415
     from rfm_core.matching.config import MatchingConfig, monocular  # noqa: PLC0415
     from rfm_core.matching.classical import ClassicalMatcher  # noqa: PLC0415
@@ -306,15 +306,18 @@ def cmd_eval_matching(args) -> int:
                            visible=True, jobs=args.jobs)
     matchers = {'learned': lambda: LearnedMatcher(weights=args.weights),
                 'classical': ClassicalMatcher}
-    print('| input | matcher | pairs | match precision | match recall | F1 | verified | '
-          'median yaw (deg) | median translation (cm) |')
-    print('|---|---|---|---|---|---|---|---|---|')
+    print('| input | matcher | refit yaw | pairs | match precision | match recall | F1 | verified | '
+          f'median yaw (deg) | median translation (cm) | verified turned >= {WIDE_TURN_DEG:.0f} deg | '
+          'their median yaw (deg) |')
+    print('|---|---|---|---|---|---|---|---|---|---|---|---|')
     for spec in args.inputs:
-        # an RGB-only detector's poses are verified and refit along the viewing rays, as in rfm eval
-        config = monocular(MatchingConfig()) if detector_for_spec(spec).monocular else None
-        for name in args.matchers:
-            result = evaluate_pairs(pairs[spec], matchers[name](), config)
-            print(f'| {spec} | {name} | {result.row()} |', flush=True)
+        for refine_yaw in args.refine_yaw:
+            # an RGB-only detector's poses are verified and refit along the viewing rays, as in rfm eval
+            config = MatchingConfig(refine_yaw=refine_yaw)
+            config = monocular(config) if detector_for_spec(spec).monocular else config
+            for name in args.matchers:
+                result = evaluate_pairs(pairs[spec], matchers[name](), config)
+                print(f'| {spec} | {name} | {refine_yaw} | {result.row()} |', flush=True)
     return 0
 
 
@@ -613,6 +616,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--gap', type=int, default=2, help='frames between the two of a pair (at 2 Hz)')
     p.add_argument('--world', choices=('boxes', 'realistic'), default='boxes', help='scenes (see rfm eval)')
     p.add_argument('--noise-seed', type=int, default=2)
+    p.add_argument('--refine-yaw', nargs='+', choices=('centres', 'faces'), default=['faces'],
+                   help="the relative pose refit's yaw (matching.refine_yaw), one row each")
     p.add_argument('--jobs', type=int, default=1, help='scenes rendered in parallel')
     p.set_defaults(func=cmd_eval_matching)
 

@@ -7,7 +7,9 @@ verified. Reported: object-match precision and recall (a match is correct when b
 detections belong to the same object; a match of two detections that are both no object,
 such as two views of the same fragment, is not scored: it is no object match, yet it is
 no error either; recall is over the objects detected in both frames) and F1, the fraction
-of pairs verified, and the median yaw (deg) and translation (m) error of verified poses.
+of pairs verified, and the median yaw (deg) and translation (m) error of verified poses,
+also over the verified pairs whose views turned by at least ``WIDE_TURN_DEG`` (partial boxes
+seen from different sides: the edges that can rotate a map).
 """
 from __future__ import annotations
 
@@ -15,9 +17,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rfm_core.geometry import wrap_angle
 from rfm_core.matching.relative_pose import estimate_relative_pose
 
-__all__ = ['PairResult', 'evaluate_pairs']
+__all__ = ['PairResult', 'evaluate_pairs', 'WIDE_TURN_DEG']
+
+#: a pair of views turned by this much (deg) or more counts as wide
+WIDE_TURN_DEG = 60.0
 
 
 @dataclass
@@ -28,6 +34,8 @@ class PairResult:
     verified: float
     median_yaw_deg: float
     median_translation_m: float
+    wide_pairs: int = 0                  #: verified pairs whose views turned >= WIDE_TURN_DEG
+    median_yaw_deg_wide: float = float('nan')
 
     @property
     def f1(self) -> float:
@@ -37,13 +45,13 @@ class PairResult:
     def row(self) -> str:
         return (f'{self.pairs} | {self.match_precision:.3f} | {self.match_recall:.3f} | {self.f1:.3f} | '
                 f'{100 * self.verified:.1f}% | {self.median_yaw_deg:.2f} | '
-                f'{100 * self.median_translation_m:.1f}')
+                f'{100 * self.median_translation_m:.1f} | {self.wide_pairs} | {self.median_yaw_deg_wide:.2f}')
 
 
 def evaluate_pairs(pairs, matcher, config=None) -> PairResult:
     """``pairs``: [(LabelledFrame a, LabelledFrame b), ...] (rfm_core.training.matcher)."""
     tp = fp = positives = 0
-    verified, yaw_err, t_err = 0, [], []
+    verified, yaw_err, t_err, turn = 0, [], [], []
     for fa, fb in pairs:
         o1, o2 = fa.observations, fb.observations
         m = matcher.match(o1, o2)
@@ -60,7 +68,10 @@ def evaluate_pairs(pairs, matcher, config=None) -> PairResult:
         truth = fb.aligned_from_map @ fa.aligned_from_map.inverse()        # T_b_a
         yaw_err.append(np.degrees(rel.pose.angle_to(truth)))
         t_err.append(float(np.linalg.norm(rel.pose.t - truth.t)))
+        turn.append(float(np.degrees(abs(wrap_angle(truth.yaw)))))
+    wide = np.asarray(turn) >= WIDE_TURN_DEG
     return PairResult(len(pairs), tp / max(tp + fp, 1), tp / max(positives, 1),
                       verified / max(len(pairs), 1),
                       float(np.median(yaw_err)) if yaw_err else float('nan'),
-                      float(np.median(t_err)) if t_err else float('nan'))
+                      float(np.median(t_err)) if t_err else float('nan'),
+                      int(wide.sum()), float(np.median(np.asarray(yaw_err)[wide])) if wide.any() else float('nan'))

@@ -61,6 +61,23 @@ class AveragingConfig:
                                      'stream in yaw averaging, in verified objects (yaw only: it neither '
                                      'places nor connects keyframes; 0: boxes alone decide the yaw)',
                                      lo=0.0, hi=1000.0)
+    turn_half_weight_deg: float = setting(0.0, 'An edge between views turned by this much (deg) counts half: '
+                                          'weight x 1 / (1 + (turn / this)^2). Views from different sides '
+                                          'see different faces of an object, and the partial boxes of a depth '
+                                          "detector shift towards the camera that saw them, so such edges' "
+                                          'yaw is biased (0: every turn counts fully)', lo=0.0, hi=360.0)
+
+    max_map_turn_deg: float = setting(0.0, 'A full re-solve may turn each keyframe registered before it by at '
+                                      'most this (deg): one that turns any further is re-run without the new '
+                                      'edges the previous map contradicts, which are rejected for good when '
+                                      'the map then stays (0: no check)',
+                                      lo=0.0, hi=180.0)
+
+    def turn_factor(self, yaw_rad: float) -> float:
+        """Weight factor of an edge whose views turned by ``yaw_rad``."""
+        if self.turn_half_weight_deg <= 0:
+            return 1.0
+        return 1.0 / (1.0 + (np.degrees(abs(wrap_angle(yaw_rad))) / self.turn_half_weight_deg) ** 2)
 
 
 @dataclass
@@ -117,25 +134,31 @@ def agreement(yaws, centres, cfg: AveragingConfig) -> np.ndarray:
     return yaw_ok & (np.linalg.norm(c[:, None] - c[None, :], axis=-1) <= cfg.max_translation_residual_m)
 
 
-def _vote(hyp, weights, cfg: AveragingConfig):
+def _vote(hyp, weights, cfg: AveragingConfig, yaw_hyp=(), yaw_weights=()):
     """The hypothesis most edge weight agrees with (within the outlier thresholds), refined
-    as the weighted mean of its supporters. Returns (yaw, centre, supporting weight)."""
+    as the weighted mean of its supporters. ``yaw_hyp``: yaws measured alone (the
+    gyroscope's edges), which support the hypotheses whose yaw they agree with. Returns
+    (yaw, centre, supporting weight)."""
     th = np.array([h[0] for h in hyp])
     c = np.array([h[1] for h in hyp])
     w = np.asarray(weights, float)
     agree = agreement(th, c, cfg)
     support = agree.astype(float) @ w
+    if len(yaw_hyp):
+        yaw_agree = np.degrees(np.abs(wrap_angle(th[:, None] - np.asarray(yaw_hyp)[None]))) <= cfg.max_yaw_residual_deg
+        support = support + yaw_agree.astype(float) @ np.asarray(yaw_weights, float)
     best = int(np.argmax(support))
     sup = agree[best]
     ws = w[sup]
     return circular_mean(th[sup], ws), (ws[:, None] * c[sup]).sum(0) / ws.sum(), float(support[best])
 
 
-def _propagate(n, src, dst, yaw, trans, weight, root, cfg, theta=None, centres=None, placed=None):
+def _propagate(n, src, dst, yaw, trans, weight, root, cfg, theta=None, centres=None, placed=None, yaw_edges=None):
     """Robust initial poses: grow from the placed nodes (or ``root`` at identity), always
     placing next the node whose edges to placed nodes agree best (agreeing weight minus half
     the disagreeing weight), at the pose they agree on; a node whose edges disagree waits
-    for more placed neighbours. Unreached nodes stay NaN."""
+    for more placed neighbours. ``yaw_edges`` (src, dst, yaw, weight) of the gyroscope vote
+    on yaws too, but place nothing. Unreached nodes stay NaN."""
     import heapq  # noqa: PLC0415
 
     theta = np.full(n, np.nan) if theta is None else theta.copy()
@@ -148,14 +171,25 @@ def _propagate(n, src, dst, yaw, trans, weight, root, cfg, theta=None, centres=N
     for i, (s, t) in enumerate(zip(src, dst)):
         adj[s].append(i)
         adj[t].append(i)
+    ysrc, ydst, yyaw, yweight = yaw_edges if yaw_edges is not None else (np.zeros(0, int),) * 2 + (np.zeros(0),) * 2
+    yadj = [[] for _ in range(n)]
+    for i, (s, t) in enumerate(zip(ysrc, ydst)):
+        yadj[s].append(i)
+        yadj[t].append(i)
     votes, keys = {}, {}
     heap = []
 
     def refresh(v):
         incident = [i for i in adj[v] if placed[dst[i] if src[i] == v else src[i]]]
-        votes[v] = _vote(_hypotheses(v, incident, src, dst, yaw, trans, theta, centres), weight[incident], cfg)
+        gyro = [i for i in yadj[v] if placed[ydst[i] if ysrc[i] == v else ysrc[i]]]
+        # theta_src - theta_dst = yaw
+        gyro_yaws = [wrap_angle(theta[ydst[i]] + yyaw[i]) if ysrc[i] == v else wrap_angle(theta[ysrc[i]] - yyaw[i])
+                     for i in gyro]
+        votes[v] = _vote(_hypotheses(v, incident, src, dst, yaw, trans, theta, centres), weight[incident], cfg,
+                         gyro_yaws, yweight[gyro])
         # agreement counts for a node, disagreement against it (placed last: more evidence)
-        key = votes[v][2] - 0.5 * (float(np.sum(weight[incident])) - votes[v][2])
+        total = float(np.sum(weight[incident])) + float(np.sum(yweight[gyro]))
+        key = votes[v][2] - 0.5 * (total - votes[v][2])
         keys[v] = key
         heapq.heappush(heap, (-key, int(v)))
 
@@ -172,6 +206,10 @@ def _propagate(n, src, dst, yaw, trans, weight, root, cfg, theta=None, centres=N
         for i in adj[v]:
             u = dst[i] if src[i] == v else src[i]
             if not placed[u]:
+                refresh(u)
+        for i in yadj[v]:                   # a placed gyroscope neighbour changes the vote too
+            u = ydst[i] if ysrc[i] == v else ysrc[i]
+            if not placed[u] and u in keys:
                 refresh(u)
     return theta, centres, placed
 
@@ -288,11 +326,11 @@ def average_poses(ids, edges, config: AveragingConfig | None = None) -> Averagin
     return AveragingResult(poses, active & inside, yaw_r, t_r, time.perf_counter() - start)
 
 
-def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None):
+def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, allowed=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
     mask, component mask. ``yaw_only`` edges (the gyroscope's) count in the yaw stage only:
-    they neither place nor connect keyframes."""
-    active = np.ones(len(src), bool)
+    they neither place nor connect keyframes. Only ``allowed`` edges take part (default all)."""
+    active = np.ones(len(src), bool) if allowed is None else np.asarray(allowed, bool).copy()
     full = ~yaw_only if yaw_only is not None else np.ones(len(src), bool)
     theta = np.full(n, np.nan)
     centres = np.full((n, 3), np.nan)
@@ -305,9 +343,14 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
         c = largest_component(np.arange(n), src[active & full], dst[active & full])
         return c, next(k for k in order if c[k])
 
+    def gyro(mask):
+        u = mask & ~full
+        return src[u], dst[u], yaw[u], weight[u]
+
     comp, root = component()
     use = active & full & comp[src] & comp[dst]
-    theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg)
+    theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg,
+                                   yaw_edges=gyro(active & comp[src] & comp[dst]))
     for stage in ('yaw', 'translation'):
         for _ in range(max(cfg.rounds, 1)):
             use = active & comp[src] & comp[dst]
@@ -332,11 +375,14 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
             if new_root != root:            # the anchor left the component: re-initialise it
                 use = active & full & new_comp[src] & new_comp[dst]
                 theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use],
-                                               new_root, cfg)
+                                               new_root, cfg, yaw_edges=gyro(active & new_comp[src] & new_comp[dst]))
             comp, root = new_comp, new_root
     theta = np.where(comp, theta, np.nan)
     centres = np.where(comp[:, None], centres, np.nan)
     return theta, centres, active, comp
+
+
+_EDGE_ARRAYS = ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only', '_blocked')
 
 
 class _EdgeStore:
@@ -351,22 +397,24 @@ class _EdgeStore:
         self._weight = np.zeros(64)
         self._active = np.zeros(64, bool)
         self._yaw_only = np.zeros(64, bool)
+        self._blocked = np.zeros(64, bool)
 
     def append(self, s, t, yaw, trans, weight, yaw_only=False):
         if self.n == len(self._src):
-            for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only'):
+            for name in _EDGE_ARRAYS:
                 old = getattr(self, name)
                 setattr(self, name, np.concatenate([old, np.zeros_like(old)]))
         i = self.n
         self._src[i], self._dst[i], self._yaw[i] = s, t, yaw
         self._trans[i], self._weight[i], self._active[i] = trans, weight, True
         self._yaw_only[i] = yaw_only
+        self._blocked[i] = False
         self.n += 1
 
     def keep(self, mask):
         """Drop the edges where ``mask`` is False."""
         idx = np.flatnonzero(mask)
-        for name in ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only'):
+        for name in _EDGE_ARRAYS:
             arr = getattr(self, name)
             arr[:len(idx)] = arr[idx]
         self.n = len(idx)
@@ -378,6 +426,7 @@ class _EdgeStore:
     weight = property(lambda self: self._weight[:self.n])
     active = property(lambda self: self._active[:self.n])
     yaw_only = property(lambda self: self._yaw_only[:self.n])
+    blocked = property(lambda self: self._blocked[:self.n])      #: rejected for good (max_map_turn_deg)
 
     def __len__(self):
         return self.n
@@ -409,6 +458,8 @@ class IncrementalAverager:
         self._since_full = 0
         self._needs_full = False
         self._loop_votes = 0
+        self._settled_edges = 0              # edges before this index took part in a full solve
+        self.turns_refused = 0               # full solves re-run without new edges (max_map_turn_deg)
         self.stats = UpdateStats()
 
     # ------------------------------------------------------------------ input
@@ -442,6 +493,7 @@ class IncrementalAverager:
         k = self._index.get(keyframe_id)
         if k is not None:
             self.edges.keep((self.edges.src != k) & (self.edges.dst != k))
+            self._settled_edges = len(self.edges)
             self._needs_full = True
 
     # ------------------------------------------------------------------ output
@@ -527,23 +579,56 @@ class IncrementalAverager:
         linked[src] = linked[dst] = True
         return np.count_nonzero(linked & ~self._registered) > np.count_nonzero(self._registered)
 
-    def _full(self):
+    def _solve(self, allowed):
+        """A full solve over the ``allowed`` edges, in the previous gauge."""
         src, dst, yaw, trans, weight = self._arrays()
-        n = len(self.ids)
         # anchor: the earliest registered keyframe keeps the map frame stable
         order = np.r_[np.flatnonzero(self._registered), np.flatnonzero(~self._registered)]
-        theta, centres, active, comp = _solve_all(n, src, dst, yaw, trans, weight, self.config, order,
-                                                  self.edges.yaw_only)
+        theta, centres, active, comp = _solve_all(len(self.ids), src, dst, yaw, trans, weight, self.config, order,
+                                                  self.edges.yaw_only, allowed)
         if np.any(self._registered & comp):
             # keep the previous gauge: express the new solution relative to the anchor's old pose
             anchor = next(k for k in order if comp[k])
             if self._registered[anchor]:
                 theta, centres = _regauge(theta, centres, anchor, self._theta[anchor], self._centres[anchor])
-        self.edges.active[:] = active
+        return theta, centres, active, comp
+
+    def _turn(self, theta, comp) -> tuple[float, int]:
+        """(largest yaw change in deg, count) of the keyframes registered before and in ``comp``."""
+        common = self._registered & comp
+        if not np.any(common):
+            return 0.0, 0
+        return float(np.degrees(np.max(np.abs(wrap_angle(theta[common] - self._theta[common]))))), int(common.sum())
+
+    def _full(self):
+        allowed = ~self.edges.blocked
+        theta, centres, active, comp = self._solve(allowed)
+        limit = self.config.max_map_turn_deg
+        if limit > 0:
+            # the suspects: edges that arrived since the last full solve between keyframes registered
+            # then, which that map contradicts (outlier residuals)
+            src, dst, yaw, trans, _ = self._arrays()
+            fresh = allowed & ~self.edges.yaw_only & (np.arange(len(self.edges)) >= self._settled_edges)
+            fresh &= self._registered[src] & self._registered[dst]
+            if np.any(fresh):
+                old_theta = np.where(self._registered, self._theta, 0.0)
+                old_centres = np.where(self._registered[:, None], self._centres, 0.0)
+                yr, tr = _residuals(old_theta, old_centres, src, dst, yaw, trans)
+                fresh &= (yr > self.config.max_yaw_residual_deg) | (tr > self.config.max_translation_residual_m)
+            turn, count = self._turn(theta, comp)
+            if turn > limit and np.any(fresh):
+                retry = self._solve(allowed & ~fresh)
+                retry_turn, retry_count = self._turn(retry[0], retry[3])
+                if retry_turn <= limit and retry_count >= count:
+                    theta, centres, active, comp = retry
+                    self.edges.blocked[fresh] = True
+                    self.turns_refused += 1
+        self.edges.active[:] = active & ~self.edges.blocked
         self._theta, self._centres, self._registered = theta, centres, comp
         self._since_full = 0
         self._needs_full = False
         self._loop_votes = 0
+        self._settled_edges = len(self.edges)
 
     def _local(self) -> bool:
         """Register the new keyframes from their edges and re-solve a window around them.
@@ -559,8 +644,10 @@ class IncrementalAverager:
         # (edges with an unregistered end: a chain of new keyframes is placed link by link)
         use = active & full & ~(registered[src] & registered[dst])
         if np.any(registered) and np.any(use):
+            gyro = active & ~full & ~(registered[src] & registered[dst])
             theta, centres, registered = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use],
-                                                    None, cfg, theta, centres, registered)
+                                                    None, cfg, theta, centres, registered,
+                                                    yaw_edges=(src[gyro], dst[gyro], yaw[gyro], weight[gyro]))
         # window: the latest registered keyframes (by arrival) plus the new ones
         reg_idx = np.flatnonzero(registered)
         free = np.zeros(n, bool)

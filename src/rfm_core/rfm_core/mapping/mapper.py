@@ -152,7 +152,8 @@ class Mapper:
         self.edges[key] = edge
         self._edges_to.setdefault(edge.target, []).append(key)
         if not self.config.posed:
-            self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight)
+            self.averager.add_edge(edge.source, edge.target, edge.pose,
+                                   edge.weight * self.config.averaging.turn_factor(edge.pose.yaw))
         self._tracks = None
         return True
 

@@ -31,6 +31,10 @@ class MatchingConfig:
     refine_sigma_m: float = setting(0.02, "Refit weights: a detection's error at the camera (m) ...",
                                     lo=0.001, hi=1.0)
     refine_sigma_per_m: float = setting(0.01, '... growing by this per metre of range', lo=0.0, hi=1.0)
+    refine_yaw: str = setting('faces', "The refit's yaw: 'centres' (from the spread of the inlier boxes' "
+                              "centres) or 'faces' (the boxes' own orientations, robustly averaged: partial "
+                              'boxes, whose centres shift towards the camera that saw them, cannot turn it)',
+                              choices=('centres', 'faces'))
     range_error: float = setting(0.0, "Relative error of the detector's distances along the viewing ray: 0 "
                                  'for a depth sensor; an RGB-only detector (cutr RGB, ground_truth rgb) '
                                  'misjudges distance, ~0.03: verification then lets a box slide along its '

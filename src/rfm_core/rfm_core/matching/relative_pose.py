@@ -154,10 +154,11 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
     depth-only detector have biased centres; the IoU criterion notices). Under along-ray
     errors that refit only starts :func:`_refit_along_rays`, which is kept whenever it
     verifies."""
-    src, dst, weights = [], [], []
+    src, dst, weights, used = [], [], [], []
     for m in np.flatnonzero(inlier):
         pick = _best_turn(turns[m], pose.yaw)
         if pick is not None:
+            used.append(m)
             src.append(corners_a[m])
             dst.append(corners_b[m][corner_permutation(pick[0])])
             rng = 0.5 * (np.linalg.norm(a[m, :3]) + np.linalg.norm(b[m, :3]))
@@ -175,6 +176,8 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
         refit = kabsch_4dof(src.reshape(-1, 3), dst.reshape(-1, 3), np.repeat(weights, 8))
     if cfg.along_rays:
         refit = _refit_along_rays(refit, a[:, :3], b[:, :3], cfg)
+    elif cfg.refine_yaw == 'faces':
+        refit = _face_yaw(refit, a[used], b[used], weights)
     refit_ious = _overlap(refit.transform_boxes(a), b, cfg)
     if np.mean(refit_ious >= cfg.inlier_iou) < cfg.min_inlier_ratio:
         return pose, ious, error
@@ -182,6 +185,21 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
             and np.mean(1.0 - refit_ious) > error + cfg.refine_max_error_increase):
         return pose, ious, error
     return refit, refit_ious, float(np.mean(1.0 - refit_ious))
+
+
+def _face_yaw(pose: Pose4, a, b, weights, scale_deg: float = 3.0) -> Pose4:
+    """``pose`` with its yaw from the matched boxes' orientations (each pair's yaw
+    difference taken modulo a quarter turn about ``pose``'s yaw, Cauchy-weighted at
+    ``scale_deg``) and its translation refitted on the box centres under that yaw."""
+    d = wrap_angle(b[:, 6] - a[:, 6] - pose.yaw)
+    d = (d + np.pi / 4) % (np.pi / 2) - np.pi / 4             # a quarter turn is the same box
+    delta = 0.0
+    for _ in range(5):
+        w = weights / (1.0 + ((d - delta) / np.radians(scale_deg)) ** 2)
+        delta = float(np.sum(w * d) / np.sum(w))
+    yaw = float(wrap_angle(pose.yaw + delta))
+    t = np.sum(w[:, None] * (b[:, :3] - a[:, :3] @ yaw_matrix(yaw).T), axis=0) / np.sum(w)
+    return Pose4(yaw, t)
 
 
 def _overlap(moved, b, cfg) -> np.ndarray:

@@ -68,7 +68,7 @@ class KeyframeConfig:
     motion_slack_m: float = setting(0.3, 'Motion prior: motion allowed on top of speed x time (m)',
                                     lo=0.0, hi=10.0)
     max_motion_edge_s: float = setting(1.0, 'A keyframe that verified nothing, at most this long after the '
-                                       "last tracked frame, is placed by the gyroscope's yaw and the held "
+                                       "last frame objects placed, is placed by the gyroscope's yaw and the held "
                                        'position (no object matches, least averaging weight; 0: never)',
                                        lo=0.0, hi=60.0)
     track_gate_m: float = setting(0.3, "Tracking: a box matches the keyframe's box predicted nearest within "
@@ -138,6 +138,11 @@ class _Tracking:
     stamp_ns: int
     observations: FrameObservations | None = None   #: that frame (None: it is the keyframe)
     relative: RelativePose | None = None            #: its verified pose to the keyframe
+    verified_ns: int | None = None    #: stamp of the last frame placed by objects (None: this one)
+
+    @property
+    def last_verified_ns(self) -> int:
+        return self.stamp_ns if self.verified_ns is None else self.verified_ns
 
 
 @dataclass
@@ -174,6 +179,7 @@ class ViewGraphBuilder:
         self._last_stamp = None           # of the previous frame (any frame: the stream's timing)
         self._segment = -1
         self._tracking: _Tracking | None = None
+        self._motion_placed: set = set()  # keyframes placed by a motion edge alone
 
     def _relative(self, source: FrameObservations, target: FrameObservations,
                   matches=None, stream: bool = False) -> RelativePose | None:
@@ -350,7 +356,8 @@ class ViewGraphBuilder:
         self.stats.tracking_s += time.perf_counter() - start
         if last_rel is not None and (self._too_soon(obs) or not self._is_keyframe(obs, last_rel)):
             last = self.keyframes[-1]
-            self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel)
+            self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel,
+                                       verified_ns=self._verified_through(last.keyframe_id))
             self.stats.tracked += 1
             return GraphStep(None, [], FrameTrack(
                 obs.stamp_ns, obs.frame_id, obs.gravity_cam, last.keyframe_id, last.observations.stamp_ns, last_rel.pose,
@@ -376,19 +383,30 @@ class ViewGraphBuilder:
         # the previous frame becomes a keyframe, linked by its tracked pose
         step = self._new_keyframe(prev.observations, prev.relative, True)
         keyframe = step.keyframe
-        self._tracking = _Tracking(keyframe.keyframe_id, rel.pose, obs.stamp_ns, obs, rel)
+        self._tracking = _Tracking(keyframe.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
+                                   verified_ns=self._verified_through(keyframe.keyframe_id))
         self.stats.bridged += 1
         return GraphStep(keyframe, step.edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, keyframe.observations.stamp_ns,
             rel.pose, len(rel.inliers), is_keyframe=False, continuous=True))
 
+    def _verified_through(self, keyframe_id: int) -> int | None:
+        """``verified_ns`` of a frame localized against ``keyframe_id``: objects place it
+        relative to that keyframe, but a keyframe placed by a motion edge alone is no better
+        placed than the last frame objects placed before it (None: the frame itself)."""
+        if keyframe_id in self._motion_placed and self._tracking is not None:
+            return self._tracking.last_verified_ns
+        return None
+
     def _motion_edge(self, obs: FrameObservations) -> RelativePose | None:
         """Where the camera went while tracking was lost for a moment: the last keyframe to
         this frame as the gyroscope's yaw and the last tracked frame's position predict it
-        (at most ``max_motion_edge_s`` after that frame). It has no object matches and the
-        least weight in the averaging: it only places a stretch that nothing else links."""
+        (at most ``max_motion_edge_s`` after the last frame that objects placed: motion edges
+        never chain longer). It has no object matches and the least weight in the averaging:
+        it only places a stretch that nothing else links."""
         predicted = self._predicted_pose(obs)
-        if predicted is None or obs.stamp_ns - self._tracking.stamp_ns > self.config.max_motion_edge_s * 1e9:
+        # measured from the last frame objects placed: motion edges never chain past it
+        if predicted is None or obs.stamp_ns - self._tracking.last_verified_ns > self.config.max_motion_edge_s * 1e9:
             return None
         self.stats.motion_edges += 1
         return RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
@@ -420,10 +438,13 @@ class ViewGraphBuilder:
             if rel is not None and ((same and i >= recent_from)
                                     or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
+        verified_ns = None
         if not edges and stream and self.keyframes:
             motion = self._motion_edge(obs)
             if motion is not None:
                 edges.append(Edge(self.keyframes[-1].keyframe_id, keyframe.keyframe_id, motion))
+                verified_ns = self._tracking.last_verified_ns
+                self._motion_placed.add(keyframe.keyframe_id)
         n = len(self.keyframes)
         if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe
             self._desc_buffer = np.zeros((64, len(descriptor)))
@@ -435,7 +456,8 @@ class ViewGraphBuilder:
         self.stats.tracked += 1
         self.stats.edges += len(edges)
         self.stats.keyframe_s += time.perf_counter() - start
-        self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns, None)
+        self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns, None,
+                                   verified_ns=verified_ns)
         return GraphStep(keyframe, edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, obs.stamp_ns,
             Pose4(0.0, (0.0, 0.0, 0.0)), 0, is_keyframe=True, continuous=stream))
