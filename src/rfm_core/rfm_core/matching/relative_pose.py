@@ -8,7 +8,8 @@ least ``min_inlier_ratio`` of all matches are; the accepted sample with the lowe
 matching error (1 - IoU3D over all matches) wins. Corners of inlier matches that land within
 ``corner_inlier_m`` of their counterparts are kept for bundle adjustment. Beyond the paper,
 the winning pose is refitted on all its inlier matches, weighted by their distance from the
-camera (``refine``), and kept when it still verifies and explains the matches as well.
+camera (``refine``; its yaw from the boxes' orientations, ``refine_yaw``), and kept when it
+still verifies and explains the matches as well.
 
 For a detector that judges distance from RGB alone (``range_error`` > 0), whose
 errors run along the viewing rays, two things change: before its IoU is measured, a
@@ -147,11 +148,13 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
 def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
     """Local optimisation (not in the paper): refit the pose on all inlier matches, each
     weighted by the inverse variance of a detection at its distance (sigma = refine_sigma_m
-    + refine_sigma_per_m x range): box centres when there are three or more inliers (their
-    spread fixes the yaw better than noisy box orientations), else the corners (each with
-    the quarter turn that agrees with the sample's yaw). Kept when it still verifies and
-    its mean box error grows by at most ``refine_max_error_increase`` (partial boxes of a
-    depth-only detector have biased centres; the IoU criterion notices). Under along-ray
+    + refine_sigma_per_m x range): box centres when there are three or more inliers, else the
+    corners (each with the quarter turn that agrees with the sample's yaw); with
+    ``refine_yaw`` 'faces' (the default) the yaw then comes from the boxes' orientations
+    (:func:`_face_yaw`: partial boxes' centres shift towards the camera that saw them, by a
+    different amount per object, and their spread turns the pose). Kept when it still
+    verifies and its mean box error grows by at most ``refine_max_error_increase`` (partial
+    boxes of a depth-only detector have biased centres; the IoU criterion notices). Under along-ray
     errors that refit only starts :func:`_refit_along_rays`, which is kept whenever it
     verifies."""
     src, dst, weights, used = [], [], [], []
