@@ -567,6 +567,7 @@ class IncrementalAverager:
         self._since_full = 0
         self._needs_full = False
         self._loop_votes = 0
+        self._settled_edges = len(self.edges)    # the restored edges are the previous map's
 
     def _outgrown(self) -> bool:
         """Whether the keyframes outside the registered component (with edges among

@@ -438,12 +438,10 @@ class ViewGraphBuilder:
             if rel is not None and ((same and i >= recent_from)
                                     or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
-        verified_ns = None
         if not edges and stream and self.keyframes:
             motion = self._motion_edge(obs)
             if motion is not None:
                 edges.append(Edge(self.keyframes[-1].keyframe_id, keyframe.keyframe_id, motion))
-                verified_ns = self._tracking.last_verified_ns
                 self._motion_placed.add(keyframe.keyframe_id)
         n = len(self.keyframes)
         if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe
@@ -457,7 +455,7 @@ class ViewGraphBuilder:
         self.stats.edges += len(edges)
         self.stats.keyframe_s += time.perf_counter() - start
         self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns, None,
-                                   verified_ns=verified_ns)
+                                   verified_ns=self._verified_through(keyframe.keyframe_id))
         return GraphStep(keyframe, edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, obs.stamp_ns,
             Pose4(0.0, (0.0, 0.0, 0.0)), 0, is_keyframe=True, continuous=stream))
