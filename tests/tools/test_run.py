@@ -198,7 +198,7 @@ def test_eval_settings_by_exact_name_or_part_of_names():
 
 @pytest.mark.slow
 def test_camera_sized_messages_all_reach_the_detector(tmp_path):
-    """640x480 colour and depth (0.9 + 0.6 MB a frame) pass the middleware intact: with Fast
+    """640x480 colour and depth (0.9 + 0.6 MB a frame) all reach the detector: with Fast
     DDS's default 512 kB shared-memory segment 20-34 of 50 such frames arrived; ros_ws/env.sh
     gives it room (ros_ws/fastdds.xml)."""
     bag = tmp_path / 'vga'
@@ -208,4 +208,7 @@ def test_camera_sized_messages_all_reach_the_detector(tmp_path):
                            '--rate', '3', '--settle', '2'], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     summary = json.loads((out / 'summary.json').read_text())
-    assert summary['input_frames'] == 12 and summary['frames'] == 12, summary
+    # every frame arrives; one the detector is still busy for when the next comes is counted
+    # as dropped (a 2-core machine can take longer than the 0.33 s between VGA frames)
+    assert summary['input_frames'] == 12 and summary['received'] == 12, summary
+    assert summary['frames'] + summary['dropped'] == 12 and summary['frames'] >= 8, summary

@@ -210,7 +210,8 @@ class _InProcessGraph:
 
     def progress(self) -> dict:
         mp = self.mapper.mapper
-        return {'frames': self.detector.counts['processed'], 'dropped': self.detector.counts['dropped_busy'],
+        return {'received': self.detector.counts['received'], 'frames': self.detector.counts['processed'],
+                'dropped': self.detector.counts['dropped_busy'],
                 'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
                 'registered': len(mp.poses), 'objects': self.mapper.num_objects,
                 'busy': self.mapper.session.dirty or self.detector.worker.busy}
@@ -451,7 +452,7 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
                     accuracy['alignment'] if accuracy else None, title=title)
     summary = {'input': str(bag) if bag else 'live camera', 'date': datetime.datetime.now().isoformat(timespec='seconds'),
                'backend': params['detector']['backend'], 'matcher': params['matcher']['matcher'], 'posed': posed,
-               'input_frames': input_frames, 'frames': progress.get('frames', 0),
+               'input_frames': input_frames, 'received': progress.get('received'), 'frames': progress.get('frames', 0),
                'detections': progress.get('detections', 0), 'dropped': progress.get('dropped', 0),
                'localized': len(mapper.frame_poses()), 'keyframes': len(mapper.keyframes),
                'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),
