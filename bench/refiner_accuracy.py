@@ -6,8 +6,10 @@ parts, clutter, both sensor models), the simulator's true gravity; per-frame AP/
 
     ros_ws/env.sh python bench/refiner_accuracy.py [--first-seed 5000] [--scenes 20] [--frames 8]
 
-Variants: ``heuristic`` (box_refiner='': fitted boxes, calibrated score), ``default`` (the
-refiner scores and suppresses, fitted boxes published), ``refined`` (its predicted boxes).
+Variants: ``heuristic`` (box_refiner='': fitted boxes, calibrated score), ``fitted`` (the
+refiner scores and suppresses, fitted boxes only), ``default`` (the same detections with the
+refiner's predicted full boxes attached: they are what is scored), ``refined`` (its
+predicted boxes published instead of the fitted ones, suppressed among themselves).
 """
 import argparse
 import time
@@ -20,7 +22,8 @@ from rfm_core.evaluation.detection import DetectionEvaluator
 from rfm_core.evaluation.suite import WORLDS, eval_configs
 from rfm_core.sim.capture import Capture
 
-VARIANTS = {'heuristic': {'box_refiner': ''}, 'default': {}, 'refined': {'refine_boxes': True}}
+VARIANTS = {'heuristic': {'box_refiner': ''}, 'fitted': {'predicted_boxes': 'off'}, 'default': {},
+            'refined': {'predicted_boxes': 'all'}}
 
 
 def main():

@@ -29,6 +29,7 @@ def make_observations(rng, n=4, gravity=(0.1, 0.95, -0.2)):
         visibility=rng.uniform(0, 1, n),
         object_ids=np.arange(n) + 10,
         corner_descriptors=rng.normal(size=(n, 8, 3)),
+        full_boxes=np.c_[rng.uniform(-2, 2, (n, 3)), rng.uniform(0.2, 2, (n, 3)), rng.uniform(-3, 3, n)],
         backend='ground_truth',
     )
 
@@ -57,7 +58,7 @@ def test_frame_detections_round_trip_preserves_everything():
     assert back.intrinsics == obs.intrinsics
     np.testing.assert_allclose(back.gravity_cam, obs.gravity_cam, atol=1e-12)
     # boxes may come back with the equivalent yaw; compare corners as sets
-    for a, b in zip(back.boxes, obs.boxes):
+    for a, b in zip(np.r_[back.boxes, back.full_boxes], np.r_[obs.boxes, obs.full_boxes]):
         ca, cb = box_corners(a), box_corners(b)
         np.testing.assert_allclose(ca[np.lexsort(ca.T)], cb[np.lexsort(cb.T)], atol=1e-6)
     np.testing.assert_allclose(back.scores, obs.scores, rtol=1e-6)
@@ -66,6 +67,23 @@ def test_frame_detections_round_trip_preserves_everything():
     np.testing.assert_allclose(back.corner_descriptors, obs.corner_descriptors, rtol=1e-6)
     np.testing.assert_allclose(back.boxes_2d, obs.boxes_2d, rtol=1e-6)
     np.testing.assert_array_equal(back.object_ids, obs.object_ids)
+
+
+def test_full_boxes_are_optional_but_all_or_none():
+    """Detections without full boxes (every backend but depth_clusters' refiner, and messages
+    of older rfm versions) read as boxes that are their own full boxes; a message giving them
+    for some detections only is refused."""
+    from dataclasses import replace
+    obs = replace(make_observations(np.random.default_rng(4)), full_boxes=None)
+    back = frame_detections_from_msg(frame_detections_to_msg(obs))
+    assert back.full_boxes is None and back.map_boxes is back.boxes
+    msg = frame_detections_to_msg(make_observations(np.random.default_rng(4)))
+    assert len(msg.detections[0].full_pose) == len(msg.detections[0].full_size) == 1
+    msg.detections[2].full_pose, msg.detections[2].full_size = [], []
+    with pytest.raises(ValueError, match='full_pose'):
+        frame_detections_from_msg(msg)
+    with pytest.raises(ValueError, match='full_boxes'):
+        replace(obs, full_boxes=np.zeros((3, 7)))
 
 
 def test_boxes_are_published_in_the_camera_optical_frame():

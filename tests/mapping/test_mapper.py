@@ -178,6 +178,35 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     assert fresh.poses.keys() == good.keys()            # refused loads left the map alone
 
 
+def test_the_map_is_built_from_full_boxes_and_saves_them(mapped, tmp_path):
+    """Keyframes whose detections carry full boxes (depth_clusters' refiner) build their
+    tracks from those; the boxes behind relative poses stay the fitted ones; a map file keeps
+    both."""
+    from dataclasses import replace
+    fresh = Mapper()
+    load_map(fresh, save_map(mapped.mapper, tmp_path / 'a.rfm'))
+    before = {t.track_id: t.box for t in fresh.tracks()}
+    grown = {}
+    for k, f in fresh.keyframes.items():                 # every full box 0.2 m taller
+        full = f.boxes.copy()
+        full[:, 5] += 0.2
+        grown[k] = replace(f, full_boxes=full)
+    fresh.keyframes.update(grown)
+    fresh._tracks = None
+    path = save_map(fresh, tmp_path / 'b.rfm')
+    again = Mapper()
+    load_map(again, path)
+    for k, f in again.keyframes.items():
+        np.testing.assert_allclose(f.boxes, mapped.mapper.keyframes[k].boxes)
+        np.testing.assert_allclose(f.full_boxes, grown[k].full_boxes)
+    tracks = again.tracks()
+    assert {t.track_id for t in tracks} == before.keys() and len(tracks) > 5
+    for t in tracks:                                    # lifted from the full boxes (heights: yaw-free)
+        full = [grown[int(k)].full_boxes[int(i), 5] for k, i in t.observations]
+        np.testing.assert_allclose(t.boxes[:, 5], full, atol=1e-9)
+        assert any(np.allclose(t.box, b) for b in t.boxes)
+
+
 def test_map_file_carries_the_configuration_and_every_frame(mapped, tmp_path):
     """A map file restores the full-rate trajectory and the configuration the map was built
     with: a mapper loading it rebuilds the same tracks even if it was made with other

@@ -81,6 +81,11 @@ class FrameObservations:
     visibility: np.ndarray = field(default_factory=lambda: _empty_f32(0))
     object_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     corner_descriptors: np.ndarray | None = None   #: (N, 8, D) or None
+    #: (N, 7) the detector's estimate of each object's full box where it differs from
+    #: ``boxes`` (depth_clusters' box refiner: ``boxes`` fit the visible points and repeat
+    #: from view to view, for relative poses; these complete the object, for the map); None:
+    #: ``boxes`` are the full boxes
+    full_boxes: np.ndarray | None = None
     backend: str = ''
     imu_rotation: np.ndarray | None = None   #: (3, 3) camera -> the gyroscope's drifting frame
     imu_epoch: int = 0                       #: 0: none; rotations compare within one epoch
@@ -131,6 +136,17 @@ class FrameObservations:
             if cd.ndim != 3 or cd.shape[:2] != (n, 8):
                 raise ValueError(f'corner_descriptors must be (N, 8, D), got {cd.shape}')
             self.corner_descriptors = cd
+        if self.full_boxes is not None:
+            fb = np.asarray(self.full_boxes, dtype=np.float64)
+            if fb.shape != (n, BOX_DIM) or not np.all(np.isfinite(fb)) or np.any(fb[:, 3:6] < 0):
+                raise ValueError(f'full_boxes must be finite ({n}, {BOX_DIM}) boxes with non-negative sizes, '
+                                 f'got shape {fb.shape}')
+            self.full_boxes = fb
+
+    @property
+    def map_boxes(self) -> np.ndarray:
+        """(N, 7) the boxes the map is built from: ``full_boxes`` where given, else ``boxes``."""
+        return self.boxes if self.full_boxes is None else self.full_boxes
 
     def __len__(self) -> int:
         return len(self.boxes)

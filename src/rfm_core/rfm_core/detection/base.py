@@ -64,8 +64,9 @@ class Detector:
 
 
 def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, config: DetectorConfig,
-             backend: str, visibility=None, object_ids=None) -> FrameObservations:
-    """Threshold by score, keep the best ``max_detections``, package as FrameObservations."""
+             backend: str, visibility=None, object_ids=None, full_boxes=None) -> FrameObservations:
+    """Threshold by score, keep the best ``max_detections``, package as FrameObservations
+    (``full_boxes``: see :attr:`FrameObservations.full_boxes`)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     scores = np.asarray(scores, dtype=np.float32).reshape(-1)
     keep = np.flatnonzero(scores >= config.score_threshold)
@@ -82,4 +83,5 @@ def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, 
                     else np.full(len(keep), -1.0, np.float32)),
         object_ids=(np.asarray(object_ids, np.int64)[keep] if object_ids is not None
                     else np.full(len(keep), -1, np.int64)),
+        full_boxes=np.asarray(full_boxes, np.float64).reshape(-1, 7)[keep] if full_boxes is not None else None,
         backend=backend)

@@ -15,8 +15,9 @@
    PointNet trained on simulated rooms) reads each cluster's points and predicts its
    objectness (the score), the object's full box and a class; fragments, clutter and
    pieces of structure score low and are dropped, overlapping boxes are suppressed, and the
-   fitted boxes are published (``refine_boxes``: the predicted ones). With ``box_refiner=''`` the fitted boxes are kept, scored by support (points)
-   and shape and calibrated by a small logistic model (:mod:`rfm_core.detection.score_model`).
+   fitted boxes are published for relative poses with the predicted ones attached as each
+   detection's full box for the map (``predicted_boxes``). With ``box_refiner=''`` the
+   fitted boxes are kept, scored by support (points) and shape and calibrated by a small logistic model (:mod:`rfm_core.detection.score_model`).
    Each box is described by an embedding of its colours (hue/value histograms, mean
    colour), sorted size and height above the floor.
 
@@ -73,9 +74,11 @@ class DepthClustersConfig(DetectorConfig):
                                "heuristic boxes scored by score_model")
     nms_iou: float = setting(0.3, 'Box refiner: of published boxes overlapping more than this (3D IoU), keep '
                              'the best scored', lo=0.0, hi=1.0)
-    refine_boxes: bool = setting(False, "Box refiner: publish its predicted full boxes (the best maps: AP25 0.59 "
-                                 "a frame against 0.44, but relative poses between keyframes from them are "
-                                 "noisier) instead of the fitted boxes it scores and suppresses (BENCHMARKS.md)")
+    predicted_boxes: str = setting('map', "Box refiner: where its predicted full boxes go. 'map': attached to "
+                                   "each detection as its full box, the map's objects are built from them while "
+                                   "relative poses use the fitted boxes (which repeat from view to view); 'all': "
+                                   "published instead of the fitted boxes (relative poses from them are noisier); "
+                                   "'off': fitted boxes only (BENCHMARKS.md)", choices=('map', 'all', 'off'))
     refine_gravity: bool = setting(True, 'Align gravity with the floor plane when visible')
     max_gravity_correction_deg: float = setting(6.0, '... if it is within this of the input gravity (deg)',
                                                 lo=0.0, hi=90.0)
@@ -198,13 +201,16 @@ class DepthClustersDetector(Detector):
         found = self.candidates(frame)
         frame, items = found.frame, found.items
         boxes = np.array([c.box for c in items]).reshape(-1, 7)          # fitted
+        full = None
         if self.box_refiner is not None:
             refined, scores, labels = self.box_refiner.refine(found)
-            if cfg.refine_boxes:
+            if cfg.predicted_boxes == 'all':
                 boxes = refined
             keep = self.box_refiner.suppress(boxes, scores)
             items = [items[i] for i in keep]
             boxes, scores, labels = boxes[keep], scores[keep], [labels[i] for i in keep]
+            if cfg.predicted_boxes == 'map':
+                full = refined[keep]
         else:
             # boxes cut by the image border are completed from a partial view: less certain
             raw = np.array([c.raw_score * (cfg.truncated_score_factor if c.truncated else 1.0)
@@ -220,7 +226,7 @@ class DepthClustersDetector(Detector):
                 scores = np.where(raw >= cfg.score_threshold, np.maximum(calibrated, cfg.score_threshold), 0.0)
         embeds = [self._embedding(c.colours, box, found.floor_z) for c, box in zip(items, boxes)]
         return finalize(frame, boxes, scores, labels, np.array(embeds).reshape(len(items), EMBEDDING_DIM),
-                        [c.box_2d for c in items], cfg, self.name)
+                        [c.box_2d for c in items], cfg, self.name, full_boxes=full)
 
     def candidates(self, frame: DetectorInput) -> 'Candidates':
         """Steps 1-4: one :class:`Candidate` per cluster with its fitted box and raw score,

@@ -68,12 +68,13 @@ def match_detections(pred_boxes, pred_scores, gt_boxes, gt_ignore, threshold):
 
 
 def express_in(obs: FrameObservations, gravity_cam) -> np.ndarray:
-    """Boxes of ``obs`` re-expressed in the gravity-aligned frame of another gravity
-    estimate of the same camera (any residual tilt is projected away)."""
+    """The full boxes of ``obs`` (:attr:`FrameObservations.map_boxes`) re-expressed in the
+    gravity-aligned frame of another gravity estimate of the same camera (any residual tilt
+    is projected away)."""
     if np.allclose(obs.gravity_cam, np.asarray(gravity_cam) / np.linalg.norm(gravity_cam), atol=1e-9):
-        return obs.boxes
+        return obs.map_boxes
     r = gravity_aligned_rotation(gravity_cam) @ obs.rotation_aligned_from_camera.T
-    centers, rotations, sizes = oriented_from_boxes(obs.boxes)
+    centers, rotations, sizes = oriented_from_boxes(obs.map_boxes)
     return boxes_from_oriented(centers @ r.T, r @ rotations, sizes)
 
 

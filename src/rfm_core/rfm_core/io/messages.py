@@ -288,16 +288,15 @@ def frame_detections_from_msg(msg) -> FrameObservations:
     obs_rotation = gravity_aligned_rotation(gravity)
     dets = list(msg.detections)
     n = len(dets)
-    centers = np.zeros((n, 3))
-    rotations = np.zeros((n, 3, 3))
-    sizes = np.zeros((n, 3))
-    for i, det in enumerate(dets):
-        m = pose_to_matrix(det.pose)
-        centers[i] = obs_rotation @ m[:3, 3]
-        rotations[i] = obs_rotation @ m[:3, :3]
-        sizes[i] = vector3_to_numpy(det.size)
-    if not np.all(np.isfinite(sizes)) or np.any(sizes < 0):
-        raise ValueError('detection sizes must be finite and non-negative')
+    boxes = _aligned_boxes(obs_rotation, [d.pose for d in dets], [d.size for d in dets])
+    # full boxes (none in messages of older rfm versions): for every detection or for none
+    full = [(getattr(d, 'full_pose', ()), getattr(d, 'full_size', ())) for d in dets]
+    counts = {(len(p), len(s)) for p, s in full}
+    if n and counts != {(0, 0)}:
+        if counts != {(1, 1)}:
+            raise ValueError('full_pose / full_size must hold one element for every detection or none for all')
+    full_boxes = (_aligned_boxes(obs_rotation, [p[0] for p, _ in full], [s[0] for _, s in full])
+                  if n and counts == {(1, 1)} else None)
     dims = {len(d.embedding) for d in dets}
     if len(dims) > 1:
         raise ValueError(f'detections have embeddings of different lengths {sorted(dims)}')
@@ -321,7 +320,7 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         frame_id=msg.header.frame_id,
         intrinsics=intrinsics,
         gravity_cam=gravity,
-        boxes=boxes_from_oriented(centers, rotations, sizes),
+        boxes=boxes,
         scores=scores,
         labels=[d.label for d in dets],
         embeddings=embeddings,
@@ -329,9 +328,25 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         visibility=np.array([d.visibility for d in dets], dtype=np.float32),
         object_ids=np.array([d.object_id for d in dets], dtype=np.int64),
         corner_descriptors=corner,
+        full_boxes=full_boxes,
         backend=msg.backend,
         **_imu_fields(msg),
     )
+
+
+def _aligned_boxes(obs_rotation, poses, sizes) -> np.ndarray:
+    """(N, 7) gravity-aligned boxes of Pose / Vector3 messages in the camera optical frame;
+    ValueError for non-finite or negative sizes."""
+    n = len(poses)
+    centers, rotations, extents = np.zeros((n, 3)), np.zeros((n, 3, 3)), np.zeros((n, 3))
+    for i, (pose, size) in enumerate(zip(poses, sizes)):
+        m = pose_to_matrix(pose)
+        centers[i] = obs_rotation @ m[:3, 3]
+        rotations[i] = obs_rotation @ m[:3, :3]
+        extents[i] = vector3_to_numpy(size)
+    if not np.all(np.isfinite(extents)) or np.any(extents < 0):
+        raise ValueError('detection sizes must be finite and non-negative')
+    return boxes_from_oriented(centers, rotations, extents)
 
 
 def _imu_fields(msg) -> dict:
@@ -349,16 +364,26 @@ def _imu_fields(msg) -> dict:
 def frame_detections_to_msg(obs: FrameObservations, make=ROS):
     """FrameObservations -> rfm_msgs/FrameDetections (box poses in the camera optical frame)."""
     camera_from_aligned = obs.rotation_aligned_from_camera.T
-    centers, rotations, sizes = oriented_from_boxes(obs.boxes)
+
+    def in_camera(boxes):                       # (pose, size) messages in the optical frame
+        centers, rotations, sizes = oriented_from_boxes(boxes)
+        out = []
+        for c, r, s in zip(centers, rotations, sizes):
+            m = np.eye(4)
+            m[:3, :3] = camera_from_aligned @ r
+            m[:3, 3] = camera_from_aligned @ c
+            out.append((_pose(make, m), _vector3(make, s)))
+        return out
+
+    fitted = in_camera(obs.boxes)
+    full = in_camera(obs.full_boxes) if obs.full_boxes is not None else None
     detections = []
     for i in range(len(obs)):
-        m = np.eye(4)
-        m[:3, :3] = camera_from_aligned @ rotations[i]
-        m[:3, 3] = camera_from_aligned @ centers[i]
         corner = (obs.corner_descriptors[i] if obs.corner_descriptors is not None else [])
         detections.append(make(
             'rfm_msgs/msg/ObjectDetection', index=i, object_id=int(obs.object_ids[i]),
-            pose=_pose(make, m), size=_vector3(make, sizes[i]), score=float(obs.scores[i]),
+            pose=fitted[i][0], size=fitted[i][1], score=float(obs.scores[i]),
+            full_pose=[full[i][0]] if full else [], full_size=[full[i][1]] if full else [],
             label=obs.labels[i], embedding=make.float32_array(obs.embeddings[i]),
             corner_descriptors=make.float32_array(corner),
             box_2d=np.asarray(obs.boxes_2d[i], dtype=np.float32),

@@ -78,7 +78,7 @@ def _refine_one(track, keyframes, poses, cfg):
         # the quarter turn of the detection closest in yaw to the track's box
         q = closest_turn(lifted, track.box[6])
         perm = corner_permutation(q)
-        corners_cam = box_corners(obs.boxes[int(det)])[perm] @ r_cam_aligned.T
+        corners_cam = box_corners(obs.map_boxes[int(det)])[perm] @ r_cam_aligned.T
         ok = corners_cam[:, 2] > cfg.min_depth_m
         if np.count_nonzero(ok) < 4:
             continue

@@ -61,6 +61,9 @@ def _keyframe_arrays(mapper: Mapper) -> dict:
         'det_scores': cat(lambda f: f.scores, (), np.float32),
         'det_embeddings': cat(lambda f: f.embeddings if dim else np.zeros((len(f), 0)), (dim,), np.float32),
         'det_boxes_2d': cat(lambda f: f.boxes_2d, (4,), np.float32),
+        # the map's boxes (FrameObservations.full_boxes) of the keyframes that have them
+        'kf_full': np.array([f.full_boxes is not None for f in frames], bool),
+        'det_full_boxes': cat(lambda f: f.map_boxes, (7,), np.float64),
     }, {'kf_frame_ids': [f.frame_id for f in frames],
         'kf_backends': [f.backend for f in frames],
         'det_labels': [lab for f in frames for lab in (f.labels if len(f.labels) == len(f) else [''] * len(f))]}
@@ -173,6 +176,10 @@ def read_map(path) -> dict:
              'non-finite frame poses'),
             (np.all(np.linalg.norm(data['frame_gravity'], axis=1) > 0.5), 'frame gravity is not a unit vector'),
         ]
+    if 'kf_full' in data or 'det_full_boxes' in data:       # none in maps of older rfm versions
+        full = data.get('det_full_boxes', np.zeros(0))
+        checks += [(data.get('kf_full', np.zeros(0)).shape == (n_kf,) and full.shape == (n_det, 7)
+                    and np.all(np.isfinite(full)), 'full box arrays')]
     for ok, what in checks:
         if not ok:
             raise MapFileError(f'{path}: inconsistent map file ({what})')
@@ -193,7 +200,8 @@ def read_map(path) -> dict:
                 stamp_ns=int(data['kf_stamps'][i]), frame_id=header['kf_frame_ids'][i], intrinsics=intr,
                 gravity_cam=data['kf_gravity'][i], boxes=data['det_boxes'][a:b], scores=data['det_scores'][a:b],
                 labels=list(labels[a:b]), embeddings=data['det_embeddings'][a:b],
-                boxes_2d=data['det_boxes_2d'][a:b], backend=header.get('kf_backends', [''] * n_kf)[i])
+                boxes_2d=data['det_boxes_2d'][a:b], backend=header.get('kf_backends', [''] * n_kf)[i],
+                full_boxes=data['det_full_boxes'][a:b] if 'kf_full' in data and data['kf_full'][i] else None)
         except ValueError as exc:
             raise MapFileError(f'{path}: keyframe {int(k)}: {exc}') from None
     edges = []

@@ -95,18 +95,21 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
     w = np.array([len(found[j][1].inliers) for j in members], float)
     pose = Pose4.from_centre(circular_mean([found[j][2].yaw for j in members], w),
                              (w[:, None] * centres[members]).sum(0) / w.sum())
-    pose = refine_on_tracks(query, pose, [found[j] for j in members], tracks(), matching)
+    pose = refine_on_tracks(query, pose, [found[j] for j in members], tracks(), matching, keyframes, poses)
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), int(support[winner]),
                           len(members))
 
 
-def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: list, matching: MatchingConfig) -> Pose4:
+def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: list, matching: MatchingConfig,
+                     keyframes: dict, poses: dict) -> Pose4:
     """Refit a relocalized pose on the map's object tracks: each query detection matched (as
     a verified inlier) to an observation of a track is paired with the track's centre — the
-    median of all its lifted observations, so much less noisy than one keyframe's detection
-    — and the 4-DoF pose is refitted on those centres, weighted by range like the
-    relative-pose refit. Kept only when it still verifies. ``verified``: (keyframe id,
-    relative pose, T_query_map) of the agreeing keyframes."""
+    median of all its observations lifted into the map, so much less noisy than one
+    keyframe's detection — and the 4-DoF pose is refitted on those centres, weighted by range
+    like the relative-pose refit. Centres come from the boxes relative poses use
+    (``FrameObservations.boxes``: fitted ones where the detector also gives full boxes); the
+    refit is kept only when the query's full boxes still verify against the tracks' boxes.
+    ``verified``: (keyframe id, relative pose, T_query_map) of the agreeing keyframes."""
     owner = {}
     for t in tracks:
         for kf, det in t.observations:
@@ -121,12 +124,19 @@ def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: li
     pairs = [(iq, by_id[max(set(ids), key=ids.count)]) for iq, ids in votes.items()]
     if len(pairs) < 3:
         return pose
-    q = query.boxes[[iq for iq, _ in pairs]]
-    target = np.array([np.median(t.boxes[:, :3], axis=0) for _, t in pairs])
+    idx = [iq for iq, _ in pairs]
+    q = query.boxes[idx]
+
+    def centre(track):
+        lifted = [poses[int(k)].inverse().transform_points(keyframes[int(k)].boxes[int(d), :3][None])[0]
+                  for k, d in track.observations if int(k) in poses and int(k) in keyframes]
+        return np.median(lifted, axis=0)
+
+    target = np.array([centre(t) for _, t in pairs])
     rng = np.linalg.norm(q[:, :3], axis=1)
     w = 1.0 / (matching.refine_sigma_m + matching.refine_sigma_per_m * rng) ** 2
     t_map_q = kabsch_4dof(q[:, :3], target, w)
-    moved = t_map_q.transform_boxes(q)
+    moved = t_map_q.transform_boxes(query.map_boxes[idx])
     reps = np.array([t.box for _, t in pairs])
     if np.mean(iou_3d_paired(moved, reps) >= matching.inlier_iou) < matching.min_inlier_ratio:
         return pose

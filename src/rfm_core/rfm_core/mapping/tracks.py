@@ -151,7 +151,7 @@ def build_tracks(keyframes: dict, poses: dict, matches, config: TrackConfig | No
         f = keyframes[k]
         sl = slice(offset[k], offset[k] + len(f))
         obs[sl, 0], obs[sl, 1] = k, np.arange(len(f))
-        boxes[sl] = poses[k].inverse().transform_boxes(f.boxes)
+        boxes[sl] = poses[k].inverse().transform_boxes(f.map_boxes)
         scores[sl] = f.scores
         labels[sl] = list(f.labels) if len(f.labels) == len(f) else [''] * len(f)
         if dim:
