@@ -86,6 +86,23 @@ def test_full_boxes_are_optional_but_all_or_none():
         replace(obs, full_boxes=np.zeros((3, 7)))
 
 
+def test_oversized_messages_are_refused_before_any_work():
+    """10k detections blocked the matcher and mapper for minutes (#19 row 7); huge
+    embeddings likewise."""
+    from rfm_core.io.messages import MAX_DESCRIPTOR_DIM, MAX_DETECTIONS
+    rng = np.random.default_rng(5)
+    msg = frame_detections_to_msg(make_observations(rng, n=MAX_DETECTIONS + 1))
+    with pytest.raises(ValueError, match=f'at most {MAX_DETECTIONS}'):
+        frame_detections_from_msg(msg)
+    assert len(frame_detections_from_msg(frame_detections_to_msg(make_observations(rng, n=MAX_DETECTIONS)))) \
+        == MAX_DETECTIONS
+    msg = frame_detections_to_msg(make_observations(rng, n=3))
+    for det in msg.detections:
+        det.embedding = np.ones(MAX_DESCRIPTOR_DIM + 1, np.float32)
+    with pytest.raises(ValueError, match='longer than'):
+        frame_detections_from_msg(msg)
+
+
 def test_boxes_are_published_in_the_camera_optical_frame():
     obs = make_observations(np.random.default_rng(2), n=1, gravity=(0.0, 1.0, 0.0))
     obs.boxes[0] = [3.0, 0.5, -0.2, 1.0, 2.0, 0.5, 0.0]  # 3 m ahead, 0.5 m left, 0.2 m down

@@ -207,3 +207,26 @@ def test_motion_edges_never_chain_past_the_last_frame_objects_placed(stream):
             if step.keyframe is not None and not step.edges:
                 unlinked.append(i)
     assert motion >= 2 and unlinked[0] == 0 and len(unlinked) > 1 and all(8 <= i < 16 for i in unlinked[1:])
+
+
+def test_a_frame_with_embeddings_of_another_length_is_refused_and_changes_nothing(stream):
+    """One graph holds one detector's embeddings: a frame whose embeddings differ in length
+    (the message allows any, or none) is refused with a reason; before, it replaced the
+    retrieval index (after 64 keyframes: IndexError, and the matcher died; #19)."""
+    from dataclasses import replace
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    graph = ViewGraphBuilder()
+    for frame in stream[:20]:
+        graph.add(det.perturb(frame.ground_truth))
+    dim, n = graph.embedding_dim, len(graph.keyframes)
+    assert dim and n >= 2
+    index = graph._desc_buffer.copy()
+    obs = det.perturb(stream[20].ground_truth)
+    for other in (np.zeros((len(obs), 0), np.float32), np.ones((len(obs), dim + 3), np.float32)):
+        with pytest.raises(ValueError, match='embeddings'):
+            graph.add(replace(obs, embeddings=other))
+    np.testing.assert_array_equal(graph._desc_buffer, index)
+    assert len(graph.keyframes) == n and graph.embedding_dim == dim
+    for frame in stream[20:]:                                # the stream goes on as before
+        graph.add(det.perturb(frame.ground_truth))
+    assert len(graph.keyframes) > n

@@ -172,6 +172,13 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         (tmp_path / 'corrupt.rfm').write_bytes(b'\x00' * 100)
         corrupt = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=str(tmp_path / 'corrupt.rfm')))
         assert not corrupt.success and 'unchanged' in corrupt.message
+        import json                                                     # arrays fine, revision not a number:
+        arrays = dict(np.load(tmp_path / 'room.rfm'))                   # the mapper died after reset (#19)
+        header = json.loads(bytes(arrays['header']).decode())
+        arrays['header'] = np.frombuffer(json.dumps(dict(header, revision='x')).encode(), np.uint8)
+        np.savez(tmp_path / 'crafted.npz', **arrays)
+        crafted = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=str(tmp_path / 'crafted.npz')))
+        assert not crafted.success and 'revision' in crafted.message and 'unchanged' in crafted.message
         assert len(mapper.mapper.keyframes) == n_kf                     # untouched
         empty = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=FrameDetections()))
         assert not empty.success and empty.message
@@ -210,6 +217,18 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert [i for i, _ in tracks_after] == [i for i, _ in tracks_before]
         np.testing.assert_allclose([b for _, b in tracks_after], [b for _, b in tracks_before], atol=1e-9)
         assert h2.wait(lambda: h2.maps and len(h2.maps[-1].objects) == len(tracks_before))
+        # a matcher started afresh numbers its keyframes from 0 again: new keyframes of the
+        # loaded map, never confused with its keyframes 0, 1, ... (#19)
+        loaded = {k: f.stamp_ns for k, f in fresh.mapper.keyframes.items()}
+        assert h2.wait(lambda: h2.kf_pub.get_subscription_count() > 0 and h2.edge_pub.get_subscription_count() > 0)
+        restart = [m for m in messages if not isinstance(m, TrackedFrame)][:8]
+        for msg in restart:
+            (h2.kf_pub if isinstance(msg, Keyframe) else h2.edge_pub).publish(msg)
+        n_new = sum(isinstance(m, Keyframe) for m in restart)
+        assert h2.wait(lambda: len(fresh.mapper.keyframes) == len(loaded) + n_new)
+        assert all(fresh.mapper.keyframes[k].stamp_ns == s for k, s in loaded.items())
+        assert h2.wait(lambda: fresh.session.counts['edges'] >= 1)
+        assert all(s not in loaded or t not in loaded for s, t in list(fresh.mapper.edges)[-fresh.session.counts['edges']:])
         h2.close()
     finally:
         for harness in harnesses:

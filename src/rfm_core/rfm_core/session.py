@@ -35,6 +35,7 @@ __all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses']
 PENDING_EDGES = 5000            #: edges waiting for their keyframes (oldest dropped first)
 PENDING_EDGE_AGE_S = 30.0       #: ... for at most this long
 PENDING_KEYFRAMES = 100         #: posed keyframes waiting for their poses
+MAX_KEYFRAME_ID = 2 ** 40       #: larger incoming ids get the next free map id (track ids stay in 64 bits)
 
 
 class CameraPose(NamedTuple):
@@ -70,6 +71,14 @@ class MapSession:
     ``pose_lookup`` (posed mode): a keyframe's pose from outside, given its observations: a
     Pose4 ``T_k_map``, a 4x4 camera-to-map matrix, or None while there is none yet.
     ``warn``: where dropped input is reported (the node logs it, throttled).
+
+    Keyframe ids: the view graph numbers its keyframes from 0 again when it restarts, and a
+    map loaded from a file already holds ids. Each incoming keyframe gets a map id (its own
+    while that is new and larger than every id in the map, else the next free one); edges and
+    tracked frames are translated through the current view-graph session's table. A new
+    session is recognised by an id that does not increase, or one reused with another stamp:
+    the table and the edges still waiting for keyframes are dropped, so nothing from a
+    restarted matcher ever attaches to the keyframes of an earlier one.
     """
 
     def __init__(self, config: MapperConfig | None = None, matcher=None, pose_lookup=None,
@@ -95,6 +104,9 @@ class MapSession:
         self._full_solve_due = None           # clock time of the idle full re-solve
         self._latest_track = None             # the newest tracked frame
         self._last_camera = None              # the last CameraPose handed out
+        self._incoming: dict = {}             # the view graph session's keyframe ids -> map ids
+        self._incoming_last = None            # its newest keyframe id
+        self._max_id = max(self.mapper.keyframes, default=-1)   # the largest map id given out
 
     @property
     def mode(self) -> str:
@@ -115,17 +127,46 @@ class MapSession:
 
     def add_keyframe(self, keyframe_id: int, obs: FrameObservations) -> bool:
         """A keyframe from the view graph (posed: it waits for its pose). False: ignored
-        (localization mode, or an id already known)."""
+        (localization mode, or a keyframe already received)."""
         if self.mode != 'mapping':
             return False
+        map_id = self._new_map_id(int(keyframe_id), obs.stamp_ns)
+        if map_id is None:
+            return False
         if self.mapper.config.posed:
-            self.pending_keyframes.append((int(keyframe_id), obs))
+            self.pending_keyframes.append((map_id, obs))
             self.attach_external_poses()
             return True
-        if not self.mapper.add_keyframe(int(keyframe_id), obs):
+        if not self.mapper.add_keyframe(map_id, obs):
             return False
         self._keyframe_added()
         return True
+
+    def _new_map_id(self, incoming: int, stamp_ns: int) -> int | None:
+        """The map id of a new keyframe from the view graph; None for one received before."""
+        known = self._incoming.get(incoming)
+        if known is not None:
+            obs = self.mapper.keyframes.get(known) or dict(self.pending_keyframes).get(known)
+            if obs is not None and obs.stamp_ns == stamp_ns:
+                return None                                   # the same keyframe again
+        if known is not None or (self._incoming_last is not None and incoming < self._incoming_last):
+            if self._incoming:
+                self.warn(f'keyframe id {incoming} after {self._incoming_last}: the view graph restarted; '
+                          f'its keyframes continue as new map ids from {self._max_id + 1}')
+            self._incoming.clear()
+            self.pending_edges.clear()
+        map_id = incoming if self._max_id < incoming < MAX_KEYFRAME_ID else self._max_id + 1
+        self._incoming[incoming] = map_id
+        self._incoming_last = incoming
+        self._max_id = max(self._max_id, map_id)
+        return map_id
+
+    def _translate_edge(self, edge: EdgeRecord) -> EdgeRecord | None:
+        """The edge between map ids; None while one of its keyframes has not arrived."""
+        source, target = self._incoming.get(edge.source), self._incoming.get(edge.target)
+        if source is None or target is None:
+            return None
+        return replace(edge, source=source, target=target)
 
     def _keyframe_added(self) -> None:
         self.counts['keyframes'] += 1
@@ -138,14 +179,15 @@ class MapSession:
         if self.mode != 'mapping':
             return
         keyframes = self.mapper.keyframes
-        if edge.source not in keyframes or edge.target not in keyframes:
+        mapped = self._translate_edge(edge)
+        if mapped is None or mapped.source not in keyframes or mapped.target not in keyframes:
             self.pending_edges.append((self.clock(), edge))
             if len(self.pending_edges) > PENDING_EDGES:
                 self.pending_edges.pop(0)
                 self.counts['dropped'] += 1
             return
         try:
-            if self.mapper.add_edge(edge):
+            if self.mapper.add_edge(mapped):
                 self.counts['edges'] += 1
                 self.dirty = True
         except ValueError as exc:
@@ -158,7 +200,8 @@ class MapSession:
         pending, self.pending_edges = self.pending_edges, []
         now = self.clock()
         for arrived, edge in pending:
-            if edge.source in self.mapper.keyframes and edge.target in self.mapper.keyframes:
+            mapped = self._translate_edge(edge)
+            if mapped is not None and mapped.source in self.mapper.keyframes and mapped.target in self.mapper.keyframes:
                 self.add_edge(edge)
             elif now - arrived < PENDING_EDGE_AGE_S:
                 self.pending_edges.append((arrived, edge))
@@ -188,9 +231,10 @@ class MapSession:
         when it has one and is newer than the last one handed out."""
         if self.mode != 'mapping':
             return None
-        if not self.mapper.add_frame(track):
+        map_id = self._incoming.get(track.keyframe_id)
+        if map_id is None or not self.mapper.add_frame(replace(track, keyframe_id=map_id)):
             self.counts['dropped'] += 1
-            self.warn(f'tracked frame dropped: keyframe {track.keyframe_id} has another stamp '
+            self.warn(f'tracked frame dropped: its keyframe {track.keyframe_id} is not in the map with that stamp '
                       '(did the matcher restart?)')
             return None
         self.counts['frames'] += 1

@@ -73,13 +73,14 @@ class MapperNode(Node):
         reliable = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.create_subscription(Keyframe, 'rfm/keyframes', self._on_keyframe, reliable)
-        self.create_subscription(ViewGraphEdge, 'rfm/view_graph/edges', self._on_edge, reliable)
-        self.create_subscription(TrackedFrame, 'rfm/tracked_frames', self._on_tracked_frame, reliable)
-        self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
+        guard = self._guarded
+        self.create_subscription(Keyframe, 'rfm/keyframes', guard(self._on_keyframe), reliable)
+        self.create_subscription(ViewGraphEdge, 'rfm/view_graph/edges', guard(self._on_edge), reliable)
+        self.create_subscription(TrackedFrame, 'rfm/tracked_frames', guard(self._on_tracked_frame), reliable)
+        self.create_subscription(FrameDetections, 'rfm/detections', guard(self._on_detections),
                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
         if self.pose_source == 'topic':
-            self.create_subscription(PoseStamped, 'rfm/external_pose', self._on_external_pose, reliable)
+            self.create_subscription(PoseStamped, 'rfm/external_pose', guard(self._on_external_pose), reliable)
         self.tf_buffer = None
         if self.pose_source == 'tf':
             try:
@@ -102,11 +103,11 @@ class MapperNode(Node):
             else:
                 from tf2_msgs.msg import TFMessage  # noqa: PLC0415
                 self._tf_raw = self.create_publisher(TFMessage, '/tf', 10)
-        self.create_service(Relocalize, 'rfm/relocalize', self._srv_relocalize)
-        self.create_service(SaveMap, 'rfm/save_map', self._srv_save)
-        self.create_service(LoadMap, 'rfm/load_map', self._srv_load)
-        self.create_service(Trigger, 'rfm/reset', self._srv_reset)
-        self.create_service(SetMode, 'rfm/set_mode', self._srv_set_mode)
+        self.create_service(Relocalize, 'rfm/relocalize', guard(self._srv_relocalize))
+        self.create_service(SaveMap, 'rfm/save_map', guard(self._srv_save))
+        self.create_service(LoadMap, 'rfm/load_map', guard(self._srv_load))
+        self.create_service(Trigger, 'rfm/reset', guard(self._srv_reset))
+        self.create_service(SetMode, 'rfm/set_mode', guard(self._srv_set_mode))
         # wall-clock timers: with use_sim_time a finished bag stops /clock, and the map must
         # still be brought up to date
         steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -126,6 +127,22 @@ class MapperNode(Node):
 
     def _warn(self, text: str) -> None:
         self.get_logger().warning(text, throttle_duration_sec=5.0)
+
+    def _guarded(self, callback):
+        """``callback`` made safe: an unexpected error is logged (throttled) and the message
+        dropped, or the service answers success=false with the error; the node lives on."""
+        def run(*args):
+            try:
+                return callback(*args)
+            except Exception as exc:  # noqa: BLE001 - no input may kill the mapper
+                self.session.counts['dropped'] += 1
+                self.session.message = f'{callback.__name__.lstrip("_")}: unexpected error {exc!r}'
+                self.get_logger().error(self.session.message, throttle_duration_sec=5.0)
+                if len(args) == 2:                            # a service: (request, response)
+                    args[1].success, args[1].message = False, f'internal error: {exc!r}'
+                    return args[1]
+                return None
+        return run
 
     def _dropped(self, what: str, exc: Exception) -> None:
         self.session.counts['dropped'] += 1

@@ -51,10 +51,13 @@ class MatcherNode(Node):
     def _on_detections(self, msg: FrameDetections) -> None:
         try:
             obs = frame_detections_from_msg(msg)
+            keyframe, edges, track = self.graph.add(obs)
         except ValueError as exc:
             self.get_logger().warning(f'detections dropped: {exc}', throttle_duration_sec=5.0)
             return
-        keyframe, edges, track = self.graph.add(obs)
+        except Exception as exc:  # noqa: BLE001 - a frame never kills the matcher
+            self.get_logger().error(f'detections dropped, unexpected error: {exc!r}', throttle_duration_sec=5.0)
+            return
         if keyframe is not None:                  # this frame or, bridging lost tracking, the previous one
             detections = msg if keyframe.observations is obs else frame_detections_to_msg(keyframe.observations)
             self.keyframe_pub.publish(Keyframe(header=detections.header, keyframe_id=keyframe.keyframe_id,

@@ -30,6 +30,9 @@ __all__ = [
     'transform_to_matrix', 'track_map_msgs',
 ]
 
+MAX_DETECTIONS = 1000       #: detections read from one frame message (the detectors' max_detections bound)
+MAX_DESCRIPTOR_DIM = 4096   #: values in one embedding, or per corner descriptor (CuTR: 256)
+
 _NS = 1_000_000_000
 
 
@@ -288,6 +291,8 @@ def frame_detections_from_msg(msg) -> FrameObservations:
     obs_rotation = gravity_aligned_rotation(gravity)
     dets = list(msg.detections)
     n = len(dets)
+    if n > MAX_DETECTIONS:                       # bounded work per message downstream
+        raise ValueError(f'{n} detections in one frame; at most {MAX_DETECTIONS} are read')
     boxes = _aligned_boxes(obs_rotation, [d.pose for d in dets], [d.size for d in dets])
     # full boxes (none in messages of older rfm versions): for every detection or for none
     full = [(getattr(d, 'full_pose', ()), getattr(d, 'full_size', ())) for d in dets]
@@ -301,6 +306,8 @@ def frame_detections_from_msg(msg) -> FrameObservations:
     if len(dims) > 1:
         raise ValueError(f'detections have embeddings of different lengths {sorted(dims)}')
     dim = dims.pop() if dims else 0
+    if dim > MAX_DESCRIPTOR_DIM or any(len(d.corner_descriptors) > 8 * MAX_DESCRIPTOR_DIM for d in dets):
+        raise ValueError(f'embeddings or corner descriptors longer than {MAX_DESCRIPTOR_DIM} values')
     embeddings = (np.array([np.asarray(d.embedding, dtype=np.float32) for d in dets])
                   if n and dim else np.zeros((n, 0), np.float32))
     corner = None

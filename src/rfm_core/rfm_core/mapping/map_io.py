@@ -117,16 +117,45 @@ def save_map(mapper: Mapper, path) -> Path:
     return path
 
 
+#: arrays that hold ids, counts or indices
+_INTEGER_ARRAYS = ('kf_ids', 'kf_counts', 'kf_stamps', 'edge_ids', 'edge_inlier_counts', 'edge_inliers',
+                   'edge_corner_counts', 'pose_ids')
+
+
+def _load_arrays(path: Path) -> dict:
+    """The archive's arrays; MapFileError for anything unreadable, and before reading for
+    an array that declares more data than its archive member holds (a small crafted file
+    must not make the loader allocate terabytes)."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            for info in archive.infolist():
+                with archive.open(info) as member:
+                    version = np.lib.format.read_magic(member)
+                    read = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                            else np.lib.format.read_array_header_2_0)
+                    shape, _, dtype = read(member)
+                if dtype.hasobject or int(np.prod(shape, dtype=object)) * dtype.itemsize > info.file_size:
+                    raise MapFileError(f'{path}: array {info.filename} declares more data than the file holds')
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, MemoryError) as exc:
+        raise MapFileError(f'{path} is not a readable rfm map file ({type(exc).__name__}: {exc})') from None
+
+
 def read_map(path) -> dict:
-    """Read and validate a map file; returns {'header', 'keyframes', 'edges', 'poses'}."""
+    """Read and validate a map file; returns {'header', 'keyframes', 'edges', 'poses', ...};
+    MapFileError saying why for any file that is not a consistent map."""
     path = Path(path).expanduser()
     if not path.is_file():
         raise MapFileError(f'no map file at {path}')
+    data = _load_arrays(path)
     try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
-        raise MapFileError(f'{path} is not a readable rfm map file ({exc})') from None
+        return _parse_map(path, data)
+    except (ValueError, TypeError, IndexError, KeyError, OverflowError, AttributeError) as exc:
+        raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
+
+
+def _parse_map(path: Path, data: dict) -> dict:
     if 'header' not in data:
         raise MapFileError(f'{path} is not an rfm map file (no header)')
     try:
@@ -144,6 +173,12 @@ def read_map(path) -> dict:
     missing = [k for k in need if k not in data]
     if missing:
         raise MapFileError(f'{path}: missing arrays {missing}')
+    wrong = [k for k in _INTEGER_ARRAYS if data[k].dtype.kind not in 'iu']
+    if wrong:
+        raise MapFileError(f'{path}: arrays {wrong} must hold integers')
+    for key in ('keyframes', 'revision'):
+        if not isinstance(header.get(key, 0), int) or isinstance(header.get(key, 0), bool):
+            raise MapFileError(f'{path}: header field {key!r} must be an integer, got {header.get(key)!r}')
     n_kf, n_det, n_edge = len(data['kf_ids']), int(data['kf_counts'].sum()), len(data['edge_ids'])
     checks = [
         (len(data['kf_counts']) == n_kf and len(data['kf_stamps']) == n_kf, 'keyframe arrays differ in length'),
@@ -153,8 +188,13 @@ def read_map(path) -> dict:
         (len(data['det_embeddings']) == n_det and data['det_boxes_2d'].shape == (n_det, 4), 'detection arrays'),
         (len(header.get('det_labels', [])) == n_det, 'detection labels'),
         (len(header.get('kf_frame_ids', [])) == n_kf, 'keyframe frame ids'),
+        (data['kf_ids'].ndim == 1 and data['edge_ids'].shape == (n_edge, 2), 'id arrays'),
         (data['edge_poses'].shape == (n_edge, 4) and len(data['edge_scores']) == n_edge
-         and len(data['edge_active']) == n_edge, 'edge arrays'),
+         and len(data['edge_active']) == n_edge and len(data['edge_inlier_counts']) == n_edge
+         and len(data['edge_corner_counts']) == n_edge, 'edge arrays'),
+        (data['edge_inliers'].ndim == 2 and data['edge_inliers'].shape[1] == 2
+         and data['edge_corners'].ndim == 2 and data['edge_corners'].shape[1] == 5, 'edge match arrays'),
+        (np.all(data['edge_inlier_counts'] >= 0) and np.all(data['edge_corner_counts'] >= 0), 'negative counts'),
         (int(data['edge_inlier_counts'].sum()) == len(data['edge_inliers']), 'edge inlier counts'),
         (len(data['edge_inlier_scores']) == len(data['edge_inliers']), 'edge inlier scores'),
         (int(data['edge_corner_counts'].sum()) == len(data['edge_corners']), 'edge corner counts'),
@@ -228,21 +268,23 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
     configuration (the one that built the map), when the file has one. Returns the file
     header."""
     content = read_map(path)
-    mode = mapper.mode
-    if use_config and content['config'] is not None:
-        mapper.config = content['config']
-    mapper.reset()
-    for k in sorted(content['keyframes']):
-        mapper.add_keyframe(k, content['keyframes'][k])
-    for e in content['edges']:
-        mapper.add_edge(e)
-    if mapper.config.posed:
-        for k, p in content['poses'].items():
-            mapper.set_keyframe_pose(k, p)
-    else:
-        mapper.averager.restore(content['poses'], content['active_edges'])
-    if content['frames']:
-        mapper.frames.restore(content['frames'])
-    mapper.revision = int(content['header'].get('revision', 0)) + 1
-    mapper.mode = mode
+    config = content['config'] if use_config and content['config'] is not None else mapper.config
+    fresh = Mapper(config, matcher=mapper.matcher)          # built aside, swapped in on success
+    try:
+        for k in sorted(content['keyframes']):
+            fresh.add_keyframe(k, content['keyframes'][k])
+        for e in content['edges']:
+            fresh.add_edge(e)
+        if fresh.config.posed:
+            for k, p in content['poses'].items():
+                fresh.set_keyframe_pose(k, p)
+        else:
+            fresh.averager.restore(content['poses'], content['active_edges'])
+        if content['frames']:
+            fresh.frames.restore(content['frames'])
+    except (ValueError, TypeError, IndexError, KeyError) as exc:
+        raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
+    fresh.revision = content['header'].get('revision', 0) + 1
+    fresh.mode = mapper.mode
+    mapper.__dict__.update(fresh.__dict__)
     return content['header']

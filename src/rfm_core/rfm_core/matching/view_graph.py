@@ -341,9 +341,20 @@ class ViewGraphBuilder:
             self._tracking = None
         return stream
 
+    @property
+    def embedding_dim(self) -> int | None:
+        """The length of the embeddings this graph holds (set by its first keyframe)."""
+        return self._desc_buffer.shape[1] if self.keyframes else None
+
     def add(self, obs: FrameObservations) -> GraphStep:
         """Process one frame: returns the keyframe it became (or None), that keyframe's
-        edges, and the frame's pose relative to a keyframe (or None)."""
+        edges, and the frame's pose relative to a keyframe (or None). ValueError for
+        detections whose embeddings differ in length from the graph's (one detector backend
+        per graph: they cannot be matched or retrieved)."""
+        dim = self.embedding_dim
+        if dim is not None and len(obs) and max(obs.embeddings.shape[1], 1) != dim:
+            raise ValueError(f'detections with {obs.embeddings.shape[1]}-value embeddings; this view graph holds '
+                             f'{dim}-value ones (one detector backend per graph)')
         self.stats.frames += 1
         stream = self._continues_stream(obs.stamp_ns)
         if len(obs) < self.config.min_detections:
@@ -444,7 +455,7 @@ class ViewGraphBuilder:
                 edges.append(Edge(self.keyframes[-1].keyframe_id, keyframe.keyframe_id, motion))
                 self._motion_placed.add(keyframe.keyframe_id)
         n = len(self.keyframes)
-        if self._desc_buffer.shape[1] != len(descriptor):          # first keyframe
+        if n == 0:                                                 # first keyframe: sets the length
             self._desc_buffer = np.zeros((64, len(descriptor)))
         elif n == len(self._desc_buffer):
             self._desc_buffer = np.vstack([self._desc_buffer, np.zeros_like(self._desc_buffer)])

@@ -1,0 +1,93 @@
+"""MapSession: keyframe ids from a view graph that restarts, or that meets a loaded map (#19)."""
+import numpy as np
+import pytest
+
+from rfm_core.evaluation.pipeline import detections_for
+from rfm_core.mapping.map_io import load_map, save_map
+from rfm_core.mapping.mapper import EdgeRecord, Mapper
+from rfm_core.matching.view_graph import ViewGraphBuilder
+from rfm_core.session import MAX_KEYFRAME_ID, MapSession
+from rfm_core.sim.capture import Capture, CaptureConfig
+
+
+@pytest.fixture(scope='module')
+def observations():
+    capture = Capture(CaptureConfig(seed=40, frames=50, fps=5))
+    detect = detections_for('ground_truth:rgbd', 3)
+    out = []
+    for frame in capture.frames():
+        obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
+        out.append(obs)
+    return out
+
+
+def _feed(session: MapSession, frames, expected: set) -> int:
+    """The frames through a new view graph (a matcher started afresh) into ``session``;
+    ``expected`` collects its edges as pairs of keyframe stamps. Returns its keyframe count."""
+    graph = ViewGraphBuilder(session.mapper.config.matching)
+    stamps = {}
+    for obs in frames:
+        keyframe, edges, track = graph.add(obs)
+        if keyframe is not None:
+            stamps[keyframe.keyframe_id] = keyframe.observations.stamp_ns
+            session.add_keyframe(keyframe.keyframe_id, keyframe.observations)
+            for e in edges:
+                expected.add(frozenset((stamps[e.source_id], stamps[e.target_id])))
+                session.add_edge(EdgeRecord.from_edge(e))
+        if track is not None:
+            session.add_frame(track)
+    session.update(force_full=True)
+    return len(stamps)
+
+
+def _edges_by_stamp(mapper: Mapper) -> set:
+    kf = mapper.keyframes
+    return {frozenset((kf[e.source].stamp_ns, kf[e.target].stamp_ns)) for e in mapper.edges.values()}
+
+
+def test_a_restarted_view_graph_never_attaches_to_the_keyframes_of_the_first(observations):
+    """The matcher restarts mid-capture and numbers its keyframes from 0 again: they are new
+    keyframes of the map (before: ignored as known ids, and the new edges joined the old
+    keyframes of the same ids), every edge joins the keyframes it was made between, and the
+    second half's frames are localized."""
+    session, expected = MapSession(), set()
+    first = _feed(session, observations[:25], expected)
+    second = _feed(session, observations[25:], expected)
+    mapper = session.mapper
+    assert first >= 3 and second >= 3
+    assert len(mapper.keyframes) == first + second
+    made = _edges_by_stamp(mapper)
+    assert made <= expected and len(made) >= 0.9 * len(expected)
+    late = {obs.stamp_ns for obs in observations[25:]}
+    assert any(stamp in late for pair in made for stamp in pair)
+    assert len(set(mapper.frame_poses()) & late) >= 10
+
+
+def test_a_view_graph_continues_a_loaded_map_without_id_collisions(observations, tmp_path):
+    """load_map_on_start: the map holds keyframes 0..n-1, the matcher starts at 0."""
+    first_session, expected = MapSession(), set()
+    first = _feed(first_session, observations[:25], expected)
+    path = save_map(first_session.mapper, tmp_path / 'room.rfm')
+    session = MapSession()
+    session.load(path)
+    second = _feed(session, observations[25:], expected)
+    assert len(session.mapper.keyframes) == first + second
+    assert _edges_by_stamp(session.mapper) <= expected
+    assert min(k for k in session.mapper.keyframes if session.mapper.keyframes[k].stamp_ns
+               >= observations[25].stamp_ns) >= first
+
+
+def test_huge_keyframe_ids_get_small_map_ids_and_the_map_saves(observations, tmp_path):
+    """A keyframe id >= 2^63 (the message's uint64 allows it) killed the mapper's autosave."""
+    session = MapSession()
+    ids = [2 ** 64 - 3, 2 ** 64 - 2, 2 ** 64 - 1]
+    for k, obs in zip(ids, observations[::10]):
+        assert session.add_keyframe(k, obs)
+    assert not session.add_keyframe(ids[-1], observations[20])        # the same keyframe again
+    assert len(session.mapper.keyframes) == 3 and max(session.mapper.keyframes) < MAX_KEYFRAME_ID
+    fresh = Mapper()
+    load_map(fresh, save_map(session.mapper, tmp_path / 'big.rfm'))
+    assert sorted(fresh.keyframes) == sorted(session.mapper.keyframes)
+    np.testing.assert_array_equal([fresh.keyframes[k].stamp_ns for k in sorted(fresh.keyframes)],
+                                  [o.stamp_ns for o in observations[::10][:3]])
