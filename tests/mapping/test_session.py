@@ -91,3 +91,26 @@ def test_huge_keyframe_ids_get_small_map_ids_and_the_map_saves(observations, tmp
     assert sorted(fresh.keyframes) == sorted(session.mapper.keyframes)
     np.testing.assert_array_equal([fresh.keyframes[k].stamp_ns for k in sorted(fresh.keyframes)],
                                   [o.stamp_ns for o in observations[::10][:3]])
+
+
+def test_a_tracked_frame_that_arrives_before_its_keyframe_waits_for_it(observations):
+    """Keyframes and tracked frames travel on different topics: a frame may come first."""
+    graph, session = ViewGraphBuilder(), MapSession()
+    held = []
+    for obs in observations[:12]:
+        keyframe, edges, track = graph.add(obs)
+        if keyframe is not None and keyframe.keyframe_id > 0:
+            held.append((keyframe, edges))               # the keyframe is late
+        elif keyframe is not None:
+            session.add_keyframe(keyframe.keyframe_id, keyframe.observations)
+        if track is not None:
+            session.add_frame(track)
+    logged = session.counts['frames']
+    assert held and session.pending_frames
+    for keyframe, edges in held:
+        session.add_keyframe(keyframe.keyframe_id, keyframe.observations)
+        for e in edges:
+            session.add_edge(EdgeRecord.from_edge(e))
+    assert not session.pending_frames and session.counts['frames'] > logged
+    session.update(force_full=True)
+    assert len(session.mapper.frame_poses()) == session.counts['frames'] == 12

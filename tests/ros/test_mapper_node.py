@@ -167,6 +167,16 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         # --- services
         saved = h.call(SaveMap, 'rfm/save_map', SaveMap.Request(path=str(tmp_path / 'room.rfm')))
         assert saved.success and saved.path.endswith('room.rfm'), saved.message
+        # requests are confined to map_dir (default: map_path's folder) (#19 row 5)
+        relative = h.call(SaveMap, 'rfm/save_map', SaveMap.Request(path='sub/rel.rfm'))
+        assert relative.success and (tmp_path / 'sub' / 'rel.rfm').is_file(), relative.message
+        (tmp_path / 'escape').symlink_to(tmp_path.parent)
+        for outside in (str(tmp_path.parent / 'outside.rfm'), '../outside.rfm', 'escape/outside.rfm'):
+            refused = h.call(SaveMap, 'rfm/save_map', SaveMap.Request(path=outside))
+            assert not refused.success and 'map_dir' in refused.message, (outside, refused.message)
+            probe = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=outside))
+            assert not probe.success and 'map_dir' in probe.message, (outside, probe.message)
+        assert not (tmp_path.parent / 'outside.rfm').exists()
         missing = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=str(tmp_path / 'nope.rfm')))
         assert not missing.success and 'no map file' in missing.message
         (tmp_path / 'corrupt.rfm').write_bytes(b'\x00' * 100)

@@ -113,3 +113,45 @@ def test_play_remaps_filters_and_rate(small_bag):
     assert TOPICS['depth'] not in seen_topics and TOPICS['color'] not in seen_topics
     assert elapsed < 3 + 1.9 / 4 + 20         # 1.9 s of bag at 4x, plus start-up (slow when loaded)
     assert arrival[-1] - arrival[0] < 1.2     # 1.9 s of images at 4x: ~0.5 s (1.9 s at 1x)
+
+
+def test_the_recorder_stops_a_topic_at_its_size_cap(tmp_path):
+    """`rfm run --live --record-images MB`: images are recorded up to the cap, the rest of
+    the outputs go on (before: every colour image, without limit; #19 row 10)."""
+    from sensor_msgs.msg import Image
+    from std_msgs.msg import String
+
+    from rclpy.executors import SingleThreadedExecutor
+
+    from rfm_bringup.recorder import BagRecorder
+    rclpy.init()
+    try:
+        image = Image(height=10, width=100, encoding='rgb8', step=300, data=bytes(3000))
+        from rclpy.serialization import serialize_message
+        size = len(serialize_message(image))
+        node = Node('cap_test')
+        qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+        img_pub, txt_pub = node.create_publisher(Image, '/cam', qos), node.create_publisher(String, '/txt', qos)
+        recorder = BagRecorder(str(tmp_path / 'out'), topics=['/cam', '/txt'], max_bytes={'/cam': 3.5 * size})
+        executor = SingleThreadedExecutor()
+        executor.add_node(recorder)
+        executor.add_node(node)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not {'/cam', '/txt'} <= set(recorder.counts):
+            executor.spin_once(timeout_sec=0.1)
+        for i in range(10):
+            img_pub.publish(image)
+            txt_pub.publish(String(data=str(i)))
+            executor.spin_once(timeout_sec=0.05)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and recorder.counts.get('/txt', 0) < 10:
+            executor.spin_once(timeout_sec=0.1)
+        counts = recorder.close()
+        executor.shutdown()
+        recorder.destroy_node()
+        node.destroy_node()
+    finally:
+        rclpy.try_shutdown()
+    assert counts['/cam'] == 3 and counts['/txt'] == 10, counts
+    written = bag_messages(tmp_path / 'out')
+    assert len(written['/cam']) == 3 and len(written['/txt']) == 10

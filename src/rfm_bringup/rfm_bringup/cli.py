@@ -715,6 +715,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser('run', help='run detector -> matcher -> mapper on a bag (--bag) or live camera (--live)')
     p.add_argument('--bag', help='rosbag2 directory to replay (uses /clock and sim time)')
     p.add_argument('--live', action='store_true', help='subscribe to live camera topics until Ctrl-C')
+    p.add_argument('--record-images', type=float, nargs='?', const=500.0, default=None, metavar='MB',
+                   help='with --live: also record the colour images into outputs.mcap, at most MB megabytes '
+                        '(default 500); off by default')
     p.add_argument('--output', help='output folder (default rfm_output/<bag name>)')
     p.add_argument('--force', action='store_true', help='replace an existing output folder')
     p.add_argument('--backend', default='depth_clusters', choices=BACKENDS)

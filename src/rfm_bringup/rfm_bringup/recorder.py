@@ -19,15 +19,18 @@ __all__ = ['BagRecorder']
 class BagRecorder(Node):
 
     def __init__(self, path, topics=(), node_name: str = 'rfm_recorder',
-                 discovery_period: float = 0.5, compression_level: int = 10):
+                 discovery_period: float = 0.5, compression_level: int = 10, max_bytes: dict | None = None):
         """``compression_level``: zstd level of the chunks (10: small files; 1-3: cheap on the
-        CPU, for recording beside a running graph)."""
+        CPU, for recording beside a running graph). ``max_bytes``: {topic: bytes}, a topic
+        stops being recorded (logged once) once its messages add up to that many."""
         super().__init__(node_name)
         from rfm_core.io.bag import BagWriter  # noqa: PLC0415
 
         self.path = path
         self.wanted = set(topics)
         self.counts: dict = {}
+        self.bytes: dict = {}
+        self.max_bytes = dict(max_bytes or {})
         self._bag = BagWriter(path, compression_level=compression_level).__enter__()
         self._subscriptions_by_topic = {}
         self._closed = False
@@ -79,6 +82,14 @@ class BagRecorder(Node):
     def _write(self, topic: str, raw: bytes) -> None:
         if self._closed:
             return
+        size = self.bytes.get(topic, 0) + len(raw)
+        cap = self.max_bytes.get(topic)
+        if cap is not None and size > cap:
+            if self.bytes.get(topic, 0) <= cap:
+                self.get_logger().warning(f'{topic}: {cap / 1e6:.0f} MB recorded, the cap; no more of it is recorded')
+                self.bytes[topic] = cap + 1
+            return
+        self.bytes[topic] = size
         self._bag.write_raw(topic, self.get_clock().now().nanoseconds, raw)
         self.counts[topic] += 1
 

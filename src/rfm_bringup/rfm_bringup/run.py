@@ -31,7 +31,7 @@ __all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
 BAG_REMAPS = {'rgb/image': CAMERA_TOPICS['color'], 'rgb/camera_info': CAMERA_TOPICS['color_info'],
               'depth/image': CAMERA_TOPICS['depth'], 'imu': CAMERA_TOPICS['imu'],
               'ground_truth/detections': GROUND_TRUTH_TOPICS['gt_detections']}
-# What outputs.mcap records (with --live also the colour images, which a bag already has).
+# What outputs.mcap records (with --live --record-images also the colour images, which a bag already has).
 OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames',
                  '/rfm/keyframe_poses', '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map',
                  '/rfm/object_markers', '/rfm/status', '/rfm/detection_markers', '/tf', '/tf_static']
@@ -217,14 +217,21 @@ class _InProcessGraph:
                 'busy': self.mapper.session.dirty or self.detector.worker.busy}
 
     def save(self, path) -> bool:
+        """Save the map once the nodes have stopped spinning: no callback changes the map
+        while it is written (with --live input still arrives)."""
+        self._halt()
         written, text = self.mapper._save(str(path))
         return written is not None
 
-    def stop(self):
+    def _halt(self):
         for executor in self.executors:
             executor.shutdown()
         for thread in self.threads:
             thread.join(timeout=10)
+        self.executors, self.threads = [], []
+
+    def stop(self):
+        self._halt()
         for node in (self.detector, self.matcher, self.mapper):
             node.destroy_node()
 
@@ -349,9 +356,10 @@ def run_graph(args) -> int:
     start = time.monotonic()
     play_start = None                              # the first frame detected
     try:
-        topics = OUTPUT_TOPICS + ([] if bag is not None else [remaps['rgb/image']])
-        recorder = BagRecorder(str(output / 'outputs.mcap'), topics=topics, node_name='rfm_run_recorder',
-                               compression_level=1)         # beside the graph: cheap on the CPU
+        images = remaps['rgb/image'] if bag is None and args.record_images else None
+        recorder = BagRecorder(str(output / 'outputs.mcap'), topics=OUTPUT_TOPICS + ([images] if images else []),
+                               node_name='rfm_run_recorder', compression_level=1,   # beside the graph: cheap
+                               max_bytes={images: args.record_images * 1e6} if images else None)
         graph = (_ProcessGraph(params, remaps, output, lambda: recorder.counts.get('/rfm/detections', 0))
                  if args.processes else _InProcessGraph(params, remaps))
         graph.add(recorder)

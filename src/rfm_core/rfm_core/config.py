@@ -103,6 +103,9 @@ class MapperNodeConfig:
                                        're-solves a window of recent keyframes); 0: never', lo=0.0, hi=3600.0)
     map_path: str = setting('', 'Map file of save_map / load_map requests with an empty path, and of autosave; '
                             'empty: $ROS_HOME/rfm/map.rfm (~/.ros/rfm/map.rfm)')
+    map_dir: str = setting('', 'Directory that save_map / load_map requests may name files in (relative paths '
+                           'are taken inside it; paths outside it, symbolic links included, are refused); empty: '
+                           'the directory of map_path', read_only=True)
     autosave_every_n_keyframes: int = setting(10, 'Save the map to map_path every n new keyframes: a crash '
                                               'loses at most this many (0: never)', lo=0, hi=100000)
     load_map_on_start: bool = setting(False, 'Load map_path at start-up', read_only=True)

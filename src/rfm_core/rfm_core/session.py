@@ -32,7 +32,7 @@ from rfm_core.observations import FrameObservations, FrameTrack
 
 __all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses']
 
-PENDING_EDGES = 5000            #: edges waiting for their keyframes (oldest dropped first)
+PENDING_EDGES = 5000            #: edges (and tracked frames) waiting for their keyframes (oldest dropped first)
 PENDING_EDGE_AGE_S = 30.0       #: ... for at most this long
 PENDING_KEYFRAMES = 100         #: posed keyframes waiting for their poses
 MAX_KEYFRAME_ID = 2 ** 40       #: larger incoming ids get the next free map id (track ids stay in 64 bits)
@@ -99,6 +99,7 @@ class MapSession:
     def _clear(self) -> None:
         self.pending_edges: list = []         # (arrival time, EdgeRecord) waiting for keyframes
         self.pending_keyframes: list = []     # posed: (id, observations) waiting for a pose
+        self.pending_frames: list = []        # (arrival time, FrameTrack) waiting for their keyframe
         self.dirty = False                    # keyframes or edges not yet solved
         self.since_save = 0                   # keyframes added since the map was last saved
         self._full_solve_due = None           # clock time of the idle full re-solve
@@ -155,6 +156,7 @@ class MapSession:
                           f'its keyframes continue as new map ids from {self._max_id + 1}')
             self._incoming.clear()
             self.pending_edges.clear()
+            self.pending_frames.clear()
         map_id = incoming if self._max_id < incoming < MAX_KEYFRAME_ID else self._max_id + 1
         self._incoming[incoming] = map_id
         self._incoming_last = incoming
@@ -173,6 +175,7 @@ class MapSession:
         self.since_save += 1
         self.dirty = True
         self._retry_edges()
+        self._retry_frames()
 
     def add_edge(self, edge: EdgeRecord) -> None:
         """A verified edge; it waits (bounded) while one of its keyframes has not arrived."""
@@ -206,6 +209,17 @@ class MapSession:
             elif now - arrived < PENDING_EDGE_AGE_S:
                 self.pending_edges.append((arrived, edge))
 
+    def _retry_frames(self) -> None:
+        if not self.pending_frames:
+            return
+        pending, self.pending_frames = self.pending_frames, []
+        now = self.clock()
+        for arrived, track in pending:
+            if track.keyframe_id in self._incoming:
+                self.add_frame(track)
+            elif now - arrived < PENDING_EDGE_AGE_S:
+                self.pending_frames.append((arrived, track))
+
     def attach_external_poses(self) -> None:
         """Posed mode: give waiting keyframes their poses from ``pose_lookup`` (call again
         when a new pose has arrived)."""
@@ -232,7 +246,13 @@ class MapSession:
         if self.mode != 'mapping':
             return None
         map_id = self._incoming.get(track.keyframe_id)
-        if map_id is None or not self.mapper.add_frame(replace(track, keyframe_id=map_id)):
+        if map_id is None:                  # its keyframe has not arrived yet (topics are not ordered)
+            self.pending_frames.append((self.clock(), track))
+            if len(self.pending_frames) > PENDING_EDGES:
+                self.pending_frames.pop(0)
+                self.counts['dropped'] += 1
+            return None
+        if not self.mapper.add_frame(replace(track, keyframe_id=map_id)):
             self.counts['dropped'] += 1
             self.warn(f'tracked frame dropped: its keyframe {track.keyframe_id} is not in the map with that stamp '
                       '(did the matcher restart?)')

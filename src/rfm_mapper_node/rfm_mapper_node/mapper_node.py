@@ -51,6 +51,7 @@ class MapperNode(Node):
         self.map_frame, self.publish_tf, self.tf_child = cfg.map_frame, cfg.publish_tf, cfg.tf_child_frame
         self.map_period, self.map_cpu_share = cfg.map_publish_period_s, cfg.map_max_cpu_share
         self.map_path = cfg.map_path or str(Path(os.environ.get('ROS_HOME', '~/.ros')) / 'rfm' / 'map.rfm')
+        self.map_dir = Path(cfg.map_dir or Path(self.map_path).expanduser().parent).expanduser().resolve()
         self.autosave_every = cfg.autosave_every_n_keyframes
         self.pose_source = cfg.pose_source
         config = replace(cfg.mapper, posed=bool(self.pose_source))
@@ -309,8 +310,25 @@ class MapperNode(Node):
         (self.get_logger().debug if quiet else self.get_logger().info)(text)
         return written, text
 
+    def _request_path(self, path: str) -> str:
+        """The file a service request names: map_path when empty, else a path inside map_dir
+        (relative ones are taken there); ValueError saying why for one outside it."""
+        if not path:
+            return self.map_path
+        p = Path(path).expanduser()
+        resolved = (p if p.is_absolute() else self.map_dir / p).resolve()
+        if self.map_dir not in resolved.parents:
+            raise ValueError(f'{path} is outside map_dir {self.map_dir} (the mapper\'s map_dir parameter sets where '
+                             'maps may be saved and loaded)')
+        return str(resolved)
+
     def _srv_save(self, request, response):
-        written, text = self._save(request.path)
+        try:
+            path = self._request_path(request.path)
+        except ValueError as exc:
+            response.success, response.message, response.path = False, f'not saved: {exc}', ''
+            return response
+        written, text = self._save(path)
         response.success = written is not None
         response.message = text
         response.path = str(written or '')
@@ -328,10 +346,10 @@ class MapperNode(Node):
         return header
 
     def _srv_load(self, request, response):
-        path = request.path or self.map_path
         try:
+            path = self._request_path(request.path)
             header = self._load(path)
-        except MapFileError as exc:
+        except (MapFileError, ValueError) as exc:
             response.success, response.message = False, f'{exc} (the current map is unchanged)'
             return response
         response.success = True
