@@ -5,12 +5,13 @@ ENV := ros_ws/env.sh
 LOCAL := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 PYTEST_ARGS ?=
 
-.PHONY: setup test test-fast demo bench clean help
+.PHONY: setup test test-fast fuzz demo bench clean help
 
 help:
 	@echo "make demo   - set up everything and run rfm on the bundled demo bag (results: rfm_output/demo)"
 	@echo "make test   - set up everything and run the test suite"
 	@echo "make test-fast - the suite without the tests marked slow (whole-graph runs, training; ~1 min)"
+	@echo "make fuzz   - 10,000 hostile messages and service calls into the three nodes (tests/fault)"
 	@echo "make setup  - only create .venv and build the ROS workspace (idempotent)"
 	@echo "make bench  - run the micro-benchmarks in bench/"
 	@echo "make clean  - remove .venv and ros_ws/build|install|log"
@@ -23,6 +24,9 @@ test: setup
 
 test-fast: setup
 	@$(LOCAL) $(ENV) python -m pytest tests -m "not slow" $(PYTEST_ARGS)
+
+fuzz: setup
+	@RFM_FUZZ_N=$${RFM_FUZZ_N:-10000} $(LOCAL) $(ENV) python -m pytest tests/fault $(PYTEST_ARGS)
 
 demo: setup
 	@$(LOCAL) $(ENV) rfm run --bag bags/demo --output rfm_output/demo --force

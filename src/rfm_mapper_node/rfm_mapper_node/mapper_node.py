@@ -315,6 +315,8 @@ class MapperNode(Node):
         (relative ones are taken there); ValueError saying why for one outside it."""
         if not path:
             return self.map_path
+        if len(path) > 1024 or '\x00' in path:
+            raise ValueError('the path is longer than 1024 characters or holds a NUL')
         p = Path(path).expanduser()
         resolved = (p if p.is_absolute() else self.map_dir / p).resolve()
         if self.map_dir not in resolved.parents:
