@@ -6,7 +6,7 @@ from rfm_core.evaluation.pipeline import detections_for
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import EdgeRecord, Mapper
 from rfm_core.matching.view_graph import ViewGraphBuilder
-from rfm_core.session import MAX_KEYFRAME_ID, MapSession
+from rfm_core.session import MAX_KEYFRAME_ID, MapSession, SequenceCheck
 from rfm_core.sim.capture import Capture, CaptureConfig
 
 
@@ -114,3 +114,11 @@ def test_a_tracked_frame_that_arrives_before_its_keyframe_waits_for_it(observati
     assert not session.pending_frames and session.counts['frames'] > logged
     session.update(force_full=True)
     assert len(session.mapper.frame_poses()) == session.counts['frames'] == 12
+
+
+def test_gaps_in_the_matchers_numbering_are_counted():
+    check = SequenceCheck()
+    assert [check.add(9, s) for s in (1, 2, 5, 6)] == [0, 0, 2, 0] and check.lost == 2
+    assert check.add(9, 6) == 0 and check.add(0, 0) == 0                    # a repeat; unnumbered
+    assert [check.add(10, s) for s in (1, 3)] == [0, 1] and check.lost == 3  # a new session
+    assert check.add(10, 1) == 0 and check.add(10, 2) == 0                   # restarted, same id

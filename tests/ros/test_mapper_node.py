@@ -232,12 +232,15 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         loaded = {k: f.stamp_ns for k, f in fresh.mapper.keyframes.items()}
         assert h2.wait(lambda: h2.kf_pub.get_subscription_count() > 0 and h2.edge_pub.get_subscription_count() > 0)
         restart = [m for m in messages if not isinstance(m, TrackedFrame)][:8]
-        for msg in restart:
+        numbers = {Keyframe: iter([1, 2, 4, 5, 6, 7, 8, 9]), ViewGraphEdge: iter(range(1, 9))}
+        for msg in restart:                                 # numbered, keyframe 3 "lost" on the way
+            msg.session, msg.sequence = 77, next(numbers[type(msg)])
             (h2.kf_pub if isinstance(msg, Keyframe) else h2.edge_pub).publish(msg)
         n_new = sum(isinstance(m, Keyframe) for m in restart)
         assert h2.wait(lambda: len(fresh.mapper.keyframes) == len(loaded) + n_new)
         assert all(fresh.mapper.keyframes[k].stamp_ns == s for k, s in loaded.items())
         assert h2.wait(lambda: fresh.session.counts['edges'] >= 1)
+        assert fresh.num_lost == 1 and 'never arrived' in fresh.session.message
         assert all(s not in loaded or t not in loaded for s, t in list(fresh.mapper.edges)[-fresh.session.counts['edges']:])
         h2.close()
     finally:

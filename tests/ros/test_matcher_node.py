@@ -62,6 +62,10 @@ def test_keyframes_and_edges_agree_with_ground_truth():
     assert matcher.graph.stats.frames == len(frames)
     assert 3 <= len(keyframes) < len(frames)
     assert len(edges) >= len(keyframes) - 1
+    # numbered per topic within the matcher's session, for the mapper's delivery check
+    for stream in (keyframes, edges):
+        assert {m.session for m in stream} == {keyframes[0].session} != {0}
+        assert [m.sequence for m in stream] == list(range(1, len(stream) + 1))
     by_stamp = {f.stamp_ns: f for f in frames}
     kf_frame = {k.keyframe_id: by_stamp[k.header.stamp.sec * 10**9 + k.header.stamp.nanosec]
                 for k in keyframes}

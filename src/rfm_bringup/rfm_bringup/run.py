@@ -213,7 +213,7 @@ class _InProcessGraph:
         return {'received': self.detector.counts['received'], 'frames': self.detector.counts['processed'],
                 'dropped': self.detector.counts['dropped_busy'],
                 'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
-                'registered': len(mp.poses), 'objects': self.mapper.num_objects,
+                'registered': len(mp.poses), 'objects': self.mapper.num_objects, 'lost': self.mapper.num_lost,
                 'busy': self.mapper.session.dirty or self.detector.worker.busy}
 
     def save(self, path) -> bool:
@@ -292,7 +292,7 @@ class _ProcessGraph:
         n = self.detections()
         return {'frames': n, 'dropped': 0, 'detections': n,
                 'keyframes': s.num_keyframes if s else 0, 'registered': s.num_registered if s else 0,
-                'objects': s.num_objects if s else 0, 'busy': False}
+                'objects': s.num_objects if s else 0, 'lost': s.num_lost if s else 0, 'busy': False}
 
     def save(self, path) -> bool:
         from rfm_msgs.srv import SaveMap  # noqa: PLC0415
@@ -462,6 +462,7 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
                'backend': params['detector']['backend'], 'matcher': params['matcher']['matcher'], 'posed': posed,
                'input_frames': input_frames, 'received': progress.get('received'), 'frames': progress.get('frames', 0),
                'detections': progress.get('detections', 0), 'dropped': progress.get('dropped', 0),
+               'lost_between_nodes': progress.get('lost', 0),
                'localized': len(mapper.frame_poses()), 'keyframes': len(mapper.keyframes),
                'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),
                'edges_rejected': len(mapper.edges) - len(mapper.active_edges()), 'objects': len(mapper.tracks()),

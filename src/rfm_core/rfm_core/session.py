@@ -30,12 +30,31 @@ from rfm_core.mapping.relocalization import Relocalization
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 from rfm_core.observations import FrameObservations, FrameTrack
 
-__all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses']
+__all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses', 'SequenceCheck']
 
 PENDING_EDGES = 5000            #: edges (and tracked frames) waiting for their keyframes (oldest dropped first)
 PENDING_EDGE_AGE_S = 30.0       #: ... for at most this long
 PENDING_KEYFRAMES = 100         #: posed keyframes waiting for their poses
 MAX_KEYFRAME_ID = 2 ** 40       #: larger incoming ids get the next free map id (track ids stay in 64 bits)
+
+
+class SequenceCheck:
+    """Gaps in a numbered message stream (the matcher's ``session`` / ``sequence`` fields):
+    :meth:`add` returns how many messages were skipped before this one (0 in order; a new
+    session, a repeat or an unnumbered message: 0)."""
+
+    def __init__(self):
+        self.session, self.last, self.lost = 0, 0, 0
+
+    def add(self, session: int, sequence: int) -> int:
+        if not session or not sequence:
+            return 0
+        if session != self.session or sequence <= self.last:
+            self.session, self.last = session, sequence - 1     # a matcher (re)started: count from here
+        gap = sequence - self.last - 1
+        self.last = sequence
+        self.lost += gap
+        return gap
 
 
 class CameraPose(NamedTuple):

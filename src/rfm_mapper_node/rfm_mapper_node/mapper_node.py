@@ -36,7 +36,7 @@ from rfm_core.io.messages import (
 from rfm_core.io.parameters import declare_config
 from rfm_core.mapping.map_io import MapFileError
 from rfm_core.matching.factory import make_matcher
-from rfm_core.session import CameraPose, ExternalPoses, MapSession
+from rfm_core.session import CameraPose, ExternalPoses, MapSession, SequenceCheck
 
 try:                                               # tf2_ros is optional (pip installs lack it)
     from tf2_ros import TransformBroadcaster
@@ -70,6 +70,7 @@ class MapperNode(Node):
         self._last_map_time = 0.0
         self._map_seconds = 0.0                  # cost of the last object-map rebuild
         self.num_objects = 0                     # objects in the last published map
+        self._sequences: dict = {}               # delivery checks of the matcher's numbered topics
 
         reliable = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
@@ -149,7 +150,21 @@ class MapperNode(Node):
         self.session.counts['dropped'] += 1
         self._warn(f'{what} dropped: {exc}')
 
+    def _delivered(self, what: str, msg) -> None:
+        """Count (and log, throttled) messages the matcher numbered that never arrived."""
+        check = self._sequences.setdefault(what, SequenceCheck())
+        lost = check.add(int(getattr(msg, 'session', 0)), int(getattr(msg, 'sequence', 0)))
+        if lost:
+            self.session.message = (f'{lost} {what} from the matcher never arrived ({check.lost} in all): a full '
+                                    'queue or a dropped connection; the map has a gap there')
+            self._warn(self.session.message)
+
+    @property
+    def num_lost(self) -> int:
+        return sum(c.lost for c in self._sequences.values())
+
     def _on_keyframe(self, msg: Keyframe) -> None:
+        self._delivered('keyframes', msg)
         try:
             obs = frame_detections_from_msg(msg.detections)
         except ValueError as exc:
@@ -158,6 +173,7 @@ class MapperNode(Node):
         self.session.add_keyframe(int(msg.keyframe_id), obs)
 
     def _on_edge(self, msg: ViewGraphEdge) -> None:
+        self._delivered('edges', msg)
         try:
             edge = edge_record_from_msg(msg)
         except ValueError as exc:
@@ -167,6 +183,7 @@ class MapperNode(Node):
 
     def _on_tracked_frame(self, msg: TrackedFrame) -> None:
         """Mapping mode: log the frame and publish its camera pose (once its keyframe has one)."""
+        self._delivered('tracked frames', msg)
         if self.session.mode != 'mapping':
             return
         try:
@@ -279,6 +296,7 @@ class MapperNode(Node):
         msg.num_objects = self.num_objects
         msg.num_components = mp.num_components()
         msg.num_frames = len(mp.frames)
+        msg.num_lost = self.num_lost
         msg.last_update_seconds = float(mp.last_update_seconds)
         msg.message = self.session.message
         self.status_pub.publish(msg)

@@ -12,6 +12,7 @@ Thin rclpy wrapper: the algorithms live in rfm_core.matching.
 """
 from __future__ import annotations
 
+import random
 import sys
 
 import rclpy
@@ -43,6 +44,9 @@ class MatcherNode(Node):
         self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', deep)
         self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', deep)
         self.track_pub = self.create_publisher(TrackedFrame, 'rfm/tracked_frames', deep)
+        # every published keyframe, edge and tracked frame is numbered (the mapper counts gaps)
+        self.session_id = random.SystemRandom().randint(1, 2 ** 63 - 1)
+        self.sequence = {Keyframe: 0, ViewGraphEdge: 0, TrackedFrame: 0}
         self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
                                  QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
         self.get_logger().info(f'matcher ready ({cfg.matcher} object matcher): rfm/detections -> rfm/keyframes, '
@@ -60,13 +64,19 @@ class MatcherNode(Node):
             return
         if keyframe is not None:                  # this frame or, bridging lost tracking, the previous one
             detections = msg if keyframe.observations is obs else frame_detections_to_msg(keyframe.observations)
-            self.keyframe_pub.publish(Keyframe(header=detections.header, keyframe_id=keyframe.keyframe_id,
-                                               detections=detections))
+            self.keyframe_pub.publish(self._numbered(Keyframe(header=detections.header,
+                                                              keyframe_id=keyframe.keyframe_id,
+                                                              detections=detections)))
             for edge in edges:
-                self.edge_pub.publish(edge_msg(edge, obs.stamp_ns))
+                self.edge_pub.publish(self._numbered(edge_msg(edge, obs.stamp_ns)))
             self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')
         if track is not None:            # after its keyframe, so the mapper knows the keyframe
-            self.track_pub.publish(tracked_frame_to_msg(track))
+            self.track_pub.publish(self._numbered(tracked_frame_to_msg(track)))
+
+    def _numbered(self, msg):
+        self.sequence[type(msg)] += 1
+        msg.session, msg.sequence = self.session_id, self.sequence[type(msg)]
+        return msg
 
 
 def main(args=None):

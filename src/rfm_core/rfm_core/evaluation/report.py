@@ -193,7 +193,9 @@ def write_report(path, summary: dict) -> Path:
              f'mode: {"posed" if s.get("posed") else "un-posed"}',
              f'- frames processed by the detector: {processed}{share}; frames dropped while it was busy '
              f'(newest wins): {s.get("dropped", 0)}'
-             + (f'; colour images received: {s["received"]}' if s.get('received') is not None else ''),
+             + (f'; colour images received: {s["received"]}' if s.get('received') is not None else '')
+             + (f'; keyframes, edges and tracked frames lost between matcher and mapper: {s["lost_between_nodes"]}'
+                if s.get('lost_between_nodes') else ''),
              f'- frames localized: {s.get("localized", 0)} (written to `trajectory.tum`)',
              f'- keyframes: {s.get("keyframes", 0)}, registered: {s.get("registered", 0)}, '
              f'edges kept / rejected: {s.get("edges", 0)} / {s.get("edges_rejected", 0)}',
