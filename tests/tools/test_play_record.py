@@ -155,3 +155,15 @@ def test_the_recorder_stops_a_topic_at_its_size_cap(tmp_path):
     assert counts['/cam'] == 3 and counts['/txt'] == 10, counts
     written = bag_messages(tmp_path / 'out')
     assert len(written['/cam']) == 3 and len(written['/txt']) == 10
+
+
+def test_preview_streams_the_bag_and_shows_the_picked_frames(small_bag, tmp_path):
+    """`rfm preview`: colour | depth of evenly spaced frames (the bag is streamed, not read
+    into memory whole: #19 row 10)."""
+    from matplotlib.image import imread
+    out = tmp_path / 'sheet.png'
+    done = subprocess.run([RFM, 'preview', str(small_bag), str(out), '--frames', '3'],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stdout + done.stderr
+    assert 'frames [0, 10, 19] of 20' in done.stdout
+    assert imread(out).shape[:2] == (3 * 72, 2 * 96)

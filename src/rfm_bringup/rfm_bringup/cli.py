@@ -220,31 +220,31 @@ def cmd_preview(args) -> int:
 
     color_topic = args.color_topic or TOPICS['color']
     depth_topic = args.depth_topic or TOPICS['depth']
-    frames = {color_topic: [], depth_topic: []}
+    picked = {color_topic: {}, depth_topic: {}}          # index -> image, only the frames shown
     with AnyReader([Path(args.bag)]) as reader:
-        conns = [c for c in reader.connections if c.topic in frames]
-        if not any(c.topic == color_topic for c in conns):
+        conns = [c for c in reader.connections if c.topic in picked]
+        n = sum(c.msgcount for c in conns if c.topic == color_topic)
+        if not n:
             raise SystemExit(f'rfm: no {color_topic} in {args.bag} (its topics: '
                              f'{sorted({c.topic for c in reader.connections})}); pass --color-topic')
-        for conn, _, raw in reader.messages(connections=conns):
-            frames[conn.topic].append((conn.msgtype, raw))
-    colors = frames[color_topic]
-    if not colors:
-        raise SystemExit(f'rfm: no {color_topic} in {args.bag}')
-    picks = np.linspace(0, len(colors) - 1, min(args.frames, len(colors))).round().astype(int)
+        picks = np.linspace(0, n - 1, min(args.frames, n)).round().astype(int)
+        wanted, seen = set(picks.tolist()), {color_topic: 0, depth_topic: 0}
+        for conn, _, raw in reader.messages(connections=conns):   # streamed: a bag of any size
+            i = seen[conn.topic]
+            seen[conn.topic] += 1
+            if i in wanted:
+                msg = reader.deserialize(raw, conn.msgtype)
+                picked[conn.topic][i] = (image_to_rgb(msg) if conn.topic == color_topic
+                                         else np.nan_to_num(depth_to_meters(msg), nan=0.0))
     rows = []
-    with AnyReader([Path(args.bag)]) as reader:
-        for i in picks:
-            rgb = image_to_rgb(reader.deserialize(colors[i][1], colors[i][0]))
-            row = [rgb]
-            if i < len(frames[depth_topic]):
-                msgtype, raw = frames[depth_topic][i]
-                depth = np.nan_to_num(depth_to_meters(reader.deserialize(raw, msgtype)), nan=0.0)
-                grey = (np.clip(depth / args.max_depth, 0, 1) * 255).astype(np.uint8)
-                row.append(np.repeat(grey[..., None], 3, axis=2))
-            rows.append(np.concatenate(row, axis=1))
+    for i in picks:
+        row = [picked[color_topic][i]]
+        if i in picked[depth_topic]:
+            grey = (np.clip(picked[depth_topic][i] / args.max_depth, 0, 1) * 255).astype(np.uint8)
+            row.append(np.repeat(grey[..., None], 3, axis=2))
+        rows.append(np.concatenate(row, axis=1))
     write_png(args.output, np.concatenate(rows, axis=0))
-    print(f'wrote {args.output}: frames {picks.tolist()} of {len(colors)}')
+    print(f'wrote {args.output}: frames {picks.tolist()} of {n}')
     return 0
 
 

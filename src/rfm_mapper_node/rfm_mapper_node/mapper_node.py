@@ -53,6 +53,7 @@ class MapperNode(Node):
         self.map_path = cfg.map_path or str(Path(os.environ.get('ROS_HOME', '~/.ros')) / 'rfm' / 'map.rfm')
         self.map_dir = Path(cfg.map_dir or Path(self.map_path).expanduser().parent).expanduser().resolve()
         self.autosave_every = cfg.autosave_every_n_keyframes
+        self.autosave_growth = cfg.autosave_growth
         self.pose_source = cfg.pose_source
         config = replace(cfg.mapper, posed=bool(self.pose_source))
         try:
@@ -229,7 +230,8 @@ class MapperNode(Node):
         if changed is not False:
             self._map_dirty = True
             self._publish_poses(changed)
-            if self.autosave_every and self.session.since_save >= self.autosave_every:
+            if self.autosave_every and self.session.since_save >= max(
+                    self.autosave_every, self.autosave_growth * len(self.mapper.keyframes)):
                 self._save(self.map_path, quiet=True)
         wait = max(self.map_period, self._map_seconds / self.map_cpu_share)
         if self._map_dirty and time.monotonic() - self._last_map_time >= wait:
