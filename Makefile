@@ -5,13 +5,14 @@ ENV := ros_ws/env.sh
 LOCAL := ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 PYTEST_ARGS ?=
 
-.PHONY: setup test test-fast fuzz demo bench clean help
+.PHONY: setup test test-fast fuzz soak demo bench clean help
 
 help:
 	@echo "make demo   - set up everything and run rfm on the bundled demo bag (results: rfm_output/demo)"
 	@echo "make test   - set up everything and run the test suite"
 	@echo "make test-fast - the suite without the tests marked slow (whole-graph runs, training; ~1 min)"
 	@echo "make fuzz   - 10,000 hostile messages and service calls into the three nodes (tests/fault)"
+	@echo "make soak   - 10 min of a camera walking round one room, replayed through the graph: growth and memory (bench/soak.py)"
 	@echo "make setup  - only create .venv and build the ROS workspace (idempotent)"
 	@echo "make bench  - run the micro-benchmarks in bench/"
 	@echo "make clean  - remove .venv and ros_ws/build|install|log"
@@ -27,6 +28,9 @@ test-fast: setup
 
 fuzz: setup
 	@RFM_FUZZ_N=$${RFM_FUZZ_N:-10000} $(LOCAL) $(ENV) python -m pytest tests/fault $(PYTEST_ARGS)
+
+soak: setup
+	@$(LOCAL) $(ENV) python bench/soak.py
 
 demo: setup
 	@$(LOCAL) $(ENV) rfm run --bag bags/demo --output rfm_output/demo --force

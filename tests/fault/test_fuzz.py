@@ -21,9 +21,9 @@ from rclpy.parameter import Parameter  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / 'ros'))
 from msg_fill import fill  # noqa: E402
 
-from rfm_core.evaluation.pipeline import detections_for  # noqa: E402
+from sim_frames import detected_frames  # noqa: E402
+
 from rfm_core.io.messages import frame_detections_to_msg  # noqa: E402
-from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
 
 pytestmark = pytest.mark.ros
 N = int(os.environ.get('RFM_FUZZ_N', '400'))
@@ -76,14 +76,7 @@ def _hostile(msg_type, rng, good=None):
 
 @pytest.fixture(scope='module')
 def good_frames():
-    capture = Capture(CaptureConfig(seed=40, frames=30, fps=5))
-    detect = detections_for('ground_truth:rgbd', 3)
-    out = []
-    for frame in capture.frames():
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
-        out.append(frame_detections_to_msg(obs))
-    return out
+    return [frame_detections_to_msg(obs) for obs in detected_frames(frames=30)]
 
 
 def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):

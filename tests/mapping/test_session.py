@@ -1,25 +1,17 @@
 """MapSession: keyframe ids from a view graph that restarts, or that meets a loaded map (#19)."""
 import numpy as np
 import pytest
+from sim_frames import detected_frames
 
-from rfm_core.evaluation.pipeline import detections_for
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import EdgeRecord, Mapper
 from rfm_core.matching.view_graph import ViewGraphBuilder
 from rfm_core.session import MAX_KEYFRAME_ID, MapSession, SequenceCheck
-from rfm_core.sim.capture import Capture, CaptureConfig
 
 
 @pytest.fixture(scope='module')
 def observations():
-    capture = Capture(CaptureConfig(seed=40, frames=50, fps=5))
-    detect = detections_for('ground_truth:rgbd', 3)
-    out = []
-    for frame in capture.frames():
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
-        out.append(obs)
-    return out
+    return detected_frames(frames=50)
 
 
 def _feed(session: MapSession, frames, expected: set) -> int:

@@ -48,7 +48,7 @@ def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
     keyframes of the start."""
     det = make_detector('ground_truth', preset='perfect')
     graph = ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=2, retrieved_keyframes=3,
-                                                      unordered_retrieved_keyframes=4))
+                                                      unordered_retrieved_keyframes=4, reuse_keyframes=False))
     for frame in stream:
         graph.add(det.perturb(frame.ground_truth))
         assert len(graph.stats.last_candidates) <= 5
@@ -60,6 +60,32 @@ def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
     assert len(graph.stats.last_candidates) <= 6
     assert early & set(graph.stats.last_candidates)
     assert early & {e.source_id for e in edges}
+
+
+def test_a_revisited_place_reuses_its_keyframe(stream):
+    """The walk once more from the start (stamps going on): with keyframe reuse (default) the
+    second pass is tracked against the first pass's keyframes and adds (almost) none; without,
+    it adds about as many again (#19: a map that grows with the places seen, not with time)."""
+    from dataclasses import replace
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    first = [det.perturb(f.ground_truth) for f in stream]
+    span = first[-1].stamp_ns - first[0].stamp_ns + 250_000_000
+    second = [replace(o, stamp_ns=o.stamp_ns + span) for o in first]
+    counts = {}
+    for reuse in (True, False):
+        graph = ViewGraphBuilder(keyframes=KeyframeConfig(reuse_keyframes=reuse))
+        steps = [graph.add(o) for o in first]
+        n_first = len(graph.keyframes)
+        steps = [graph.add(o) for o in second]
+        counts[reuse] = (n_first, len(graph.keyframes) - n_first)
+        if reuse:
+            ids = {k.keyframe_id for k in graph.keyframes[:n_first]}
+            tracked = [s.track for s in steps if s.track is not None]
+            assert len(tracked) >= 0.9 * len(second)
+            assert sum(t.keyframe_id in ids for t in tracked) >= 0.8 * len(tracked)
+            assert graph.stats.reused >= 1
+    (n, again), (n_off, again_off) = counts[True], counts[False]
+    assert n == n_off >= 5 and again <= 1 and again_off >= n // 2, counts
 
 
 def test_keyframes_are_spaced_by_min_interval(stream):

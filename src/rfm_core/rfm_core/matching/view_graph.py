@@ -82,6 +82,11 @@ class KeyframeConfig:
     motion_prior: bool = setting(True, 'Within a stream, reject tracking and edges implying faster motion than '
                                  'max_yaw_rate_deg_s / max_speed_m_s plus the slack; false: every frame is a '
                                  'separate view (stamps mean nothing)')
+    reuse_keyframes: bool = setting(True, 'Revisits: a frame of a stream that would become a keyframe is first '
+                                    'localized against the retrieved older keyframes; one it verifies against '
+                                    '(min_retrieved_inliers objects, and overlapping as the reference would '
+                                    'need) becomes the reference instead of a new keyframe: the map grows with '
+                                    'the places seen, not with time')
     min_retrieved_inliers: int = setting(3, 'Verified objects an edge needs where the motion prior cannot check '
                                          'it (separate views, retrieved keyframes): two verify nothing beyond '
                                          'the minimal sample, and repeated furniture aliases', lo=2, hi=100)
@@ -159,6 +164,7 @@ class _Stats:
     imu_rejected: int = 0             #: relative poses whose yaw the gyroscope contradicted
     predicted_tracking: int = 0       #: frames tracked with predicted matches (no object matcher)
     motion_edges: int = 0             #: keyframes placed by the motion alone (tracking lost a moment)
+    reused: int = 0                   #: frames that made an older keyframe the reference (revisits)
     last_candidates: list = field(default_factory=list)
     tracking_s: float = 0.0           #: time spent localizing frames against the last keyframe
     keyframe_s: float = 0.0           #: time spent matching new keyframes against candidates
@@ -180,6 +186,14 @@ class ViewGraphBuilder:
         self._segment = -1
         self._tracking: _Tracking | None = None
         self._motion_placed: set = set()  # keyframes placed by a motion edge alone
+        self._neighbours: dict = {}       # keyframe index -> indices it shares a verified edge with
+        self._index: dict = {}            # keyframe id -> index
+        self._ref = -1                    # index of the reference keyframe frames are tracked against
+
+    @property
+    def reference(self) -> Keyframe:
+        """The keyframe frames are tracked against: the newest, or an older one revisited."""
+        return self.keyframes[self._ref]
 
     def _relative(self, source: FrameObservations, target: FrameObservations,
                   matches=None, stream: bool = False) -> RelativePose | None:
@@ -244,7 +258,7 @@ class ViewGraphBuilder:
         """T_keyframe_frame to the last keyframe as the previous tracked frame's position and
         the gyroscope's yaw predict it; None without a previous frame on that keyframe or
         without a gyroscope."""
-        prev, last = self._tracking, self.keyframes[-1]
+        prev, last = self._tracking, self.reference
         if prev is None or prev.keyframe_id != last.keyframe_id:
             return None
         measured = self._imu_yaw(last.observations, obs)
@@ -273,7 +287,7 @@ class ViewGraphBuilder:
         predict them, and the object matcher is asked only when that does not verify; the
         motion from the previous tracked frame must be plausible. Across a gap the pose
         needs ``min_retrieved_inliers`` objects."""
-        last = self.keyframes[-1]
+        last = self.reference
         rel = None
         predicted = self._predicted_matches(last.observations, obs) if stream else None
         if predicted is not None and len(predicted) >= 2:
@@ -307,7 +321,7 @@ class ViewGraphBuilder:
         if not self.keyframes or last_rel is None:
             return True
         cfg = self.config
-        last = self.keyframes[-1].observations
+        last = self.reference.observations
         overlap = len(last_rel.inliers) / max(min(len(obs), len(last)), 1)
         return (overlap < cfg.min_overlap
                 or np.linalg.norm(last_rel.pose.t) > cfg.max_translation_m
@@ -320,13 +334,15 @@ class ViewGraphBuilder:
         n = len(self.keyframes)
         recent = list(range(max(0, n - cfg.recent_keyframes), n))
         older = n - len(recent)
+        if n and self._ref % n not in recent:                 # the reference (a revisited keyframe)
+            recent.append(self._ref % n)
         wanted = cfg.unordered_retrieved_keyframes if separate else cfg.retrieved_keyframes
         if older > 0 and wanted > 0 and self._desc_buffer.shape[1] == len(descriptor):
             sims = self._desc_buffer[:older] @ descriptor
             k = min(wanted, older)
             top = np.argpartition(-sims, k - 1)[:k]
             top = top[np.argsort(-sims[top])]
-            recent += [int(i) for i in top if sims[i] >= cfg.min_retrieval_similarity]
+            recent += [int(i) for i in top if sims[i] >= cfg.min_retrieval_similarity and int(i) not in recent]
         return recent
 
     def _continues_stream(self, stamp_ns: int) -> bool:
@@ -366,7 +382,7 @@ class ViewGraphBuilder:
         last_rel = self._track(obs, stream) if self.keyframes else None
         self.stats.tracking_s += time.perf_counter() - start
         if last_rel is not None and (self._too_soon(obs) or not self._is_keyframe(obs, last_rel)):
-            last = self.keyframes[-1]
+            last = self.reference
             self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel,
                                        verified_ns=self._verified_through(last.keyframe_id))
             self.stats.tracked += 1
@@ -379,7 +395,49 @@ class ViewGraphBuilder:
                 return bridged
         if self._too_soon(obs):                     # lost, but no keyframe yet
             return GraphStep(None, [], None)
+        if self.config.reuse_keyframes and stream and len(self.keyframes) > 1:
+            revisit = self._revisit(obs, stream)
+            if revisit is not None:
+                return revisit
         return self._new_keyframe(obs, last_rel, stream)
+
+    def _revisit(self, obs: FrameObservations, stream: bool) -> GraphStep | None:
+        """A frame about to become a keyframe, localized against the retrieved older
+        keyframes instead: the first that verifies it with ``min_retrieved_inliers`` objects
+        and overlaps it enough becomes the reference, and the frame is tracked against it."""
+        start = time.perf_counter()
+        ref = self._ref % len(self.keyframes)
+        # the reference's neighbourhood in the graph (two edges away: after one revisit, the
+        # keyframes of the earlier pass around it), then the retrieved ones
+        near = set(self._neighbours.get(ref, ()))
+        near |= {j for i in near for j in self._neighbours.get(i, ())}
+        cand = sorted(near - {ref}, reverse=True)[:self.config.retrieved_keyframes + self.config.recent_keyframes]
+        cand += [i for i in self.candidates(bag_of_objects(obs), separate=not stream) if i != ref and i not in cand]
+        found = None
+        if cand:
+            matches = self.matcher.match_many(obs, [self.keyframes[i].observations for i in cand])
+            ref = self._ref
+            for i, m in zip(cand, matches):
+                rel = self._relative(self.keyframes[i].observations, obs, m, stream=False)
+                if rel is None or len(rel.inliers) < self.config.min_retrieved_inliers:
+                    continue
+                self._ref = i
+                if not self._is_keyframe(obs, rel) and (found is None or len(rel.inliers) > len(found[1].inliers)):
+                    found = (i, rel)
+                self._ref = ref
+        self.stats.tracking_s += time.perf_counter() - start
+        if found is None:
+            return None
+        i, rel = found
+        self._ref = i
+        kf = self.keyframes[i]
+        self._tracking = _Tracking(kf.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
+                                   verified_ns=self._verified_through(kf.keyframe_id))
+        self.stats.tracked += 1
+        self.stats.reused += 1
+        return GraphStep(None, [], FrameTrack(
+            obs.stamp_ns, obs.frame_id, obs.gravity_cam, kf.keyframe_id, kf.observations.stamp_ns, rel.pose,
+            len(rel.inliers), is_keyframe=False, continuous=stream))
 
     def _bridge(self, obs: FrameObservations) -> GraphStep | None:
         """Tracking failed against the last keyframe: if the frame verifies against the last
@@ -430,7 +488,7 @@ class ViewGraphBuilder:
         edges = []
         cand = self.candidates(descriptor, separate=not stream)
         self.stats.last_candidates = [self.keyframes[i].keyframe_id for i in cand]
-        last = len(self.keyframes) - 1
+        last = self._ref % len(self.keyframes) if self.keyframes else -1      # the reference: last_rel's
         # two verified objects suffice for a recent neighbour of the same stream segment,
         # where the motion prior has checked the pose
         recent_from = len(self.keyframes) - self.config.recent_keyframes
@@ -446,13 +504,13 @@ class ViewGraphBuilder:
                 rel = self._relative(source.observations, obs, batched[i], stream=same)
                 if same:
                     rel = self._plausible(rel, source.observations, obs)
-            if rel is not None and ((same and i >= recent_from)
+            if rel is not None and ((same and (i >= recent_from or i == last))
                                     or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
         if not edges and stream and self.keyframes:
             motion = self._motion_edge(obs)
             if motion is not None:
-                edges.append(Edge(self.keyframes[-1].keyframe_id, keyframe.keyframe_id, motion))
+                edges.append(Edge(self.reference.keyframe_id, keyframe.keyframe_id, motion))
                 self._motion_placed.add(keyframe.keyframe_id)
         n = len(self.keyframes)
         if n == 0:                                                 # first keyframe: sets the length
@@ -461,6 +519,13 @@ class ViewGraphBuilder:
             self._desc_buffer = np.vstack([self._desc_buffer, np.zeros_like(self._desc_buffer)])
         self._desc_buffer[n] = descriptor
         self.keyframes.append(keyframe)
+        self._ref = len(self.keyframes) - 1
+        self._index[keyframe.keyframe_id] = self._ref
+        for e in edges:
+            if e.relative.num_matches:                             # verified by objects (not motion)
+                i = self._index[e.source_id]
+                self._neighbours.setdefault(i, set()).add(self._ref)
+                self._neighbours.setdefault(self._ref, set()).add(i)
         self.stats.keyframes += 1
         self.stats.tracked += 1
         self.stats.edges += len(edges)
