@@ -316,12 +316,14 @@ class ViewGraphBuilder:
         dt = obs.stamp_ns - self.keyframes[-1].observations.stamp_ns
         return 0 <= dt < self.config.min_interval_s * 1e9
 
-    def _is_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None) -> bool:
-        """Whether a frame becomes a keyframe, given its verified pose to the last keyframe."""
+    def _is_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None,
+                     reference: FrameObservations | None = None) -> bool:
+        """Whether a frame becomes a keyframe, given its verified pose to the reference
+        keyframe (or to ``reference``)."""
         if not self.keyframes or last_rel is None:
             return True
         cfg = self.config
-        last = self.reference.observations
+        last = reference if reference is not None else self.reference.observations
         overlap = len(last_rel.inliers) / max(min(len(obs), len(last)), 1)
         return (overlap < cfg.min_overlap
                 or np.linalg.norm(last_rel.pose.t) > cfg.max_translation_m
@@ -402,9 +404,11 @@ class ViewGraphBuilder:
         return self._new_keyframe(obs, last_rel, stream)
 
     def _revisit(self, obs: FrameObservations, stream: bool) -> GraphStep | None:
-        """A frame about to become a keyframe, localized against the retrieved older
-        keyframes instead: the first that verifies it with ``min_retrieved_inliers`` objects
-        and overlaps it enough becomes the reference, and the frame is tracked against it."""
+        """A frame about to become a keyframe, localized against older keyframes instead
+        (the reference's neighbours two edges away, then the retrieved ones): of those that
+        verify it with ``min_retrieved_inliers`` objects and overlap it as the reference would
+        need, the one with the most inliers becomes the reference and the frame is tracked
+        against it."""
         start = time.perf_counter()
         ref = self._ref % len(self.keyframes)
         # the reference's neighbourhood in the graph (two edges away: after one revisit, the
@@ -416,15 +420,13 @@ class ViewGraphBuilder:
         found = None
         if cand:
             matches = self.matcher.match_many(obs, [self.keyframes[i].observations for i in cand])
-            ref = self._ref
             for i, m in zip(cand, matches):
-                rel = self._relative(self.keyframes[i].observations, obs, m, stream=False)
-                if rel is None or len(rel.inliers) < self.config.min_retrieved_inliers:
-                    continue
-                self._ref = i
-                if not self._is_keyframe(obs, rel) and (found is None or len(rel.inliers) > len(found[1].inliers)):
+                source = self.keyframes[i].observations
+                rel = self._relative(source, obs, m, stream=False)
+                if (rel is not None and len(rel.inliers) >= self.config.min_retrieved_inliers
+                        and not self._is_keyframe(obs, rel, source)
+                        and (found is None or len(rel.inliers) > len(found[1].inliers))):
                     found = (i, rel)
-                self._ref = ref
         self.stats.tracking_s += time.perf_counter() - start
         if found is None:
             return None
