@@ -14,21 +14,24 @@ def observations():
     return detected_frames(frames=50)
 
 
-def _feed(session: MapSession, frames, expected: set) -> int:
-    """The frames through a new view graph (a matcher started afresh) into ``session``;
-    ``expected`` collects its edges as pairs of keyframe stamps. Returns its keyframe count."""
+def _feed(session: MapSession, frames, expected: set, source: int = 0, sent: list | None = None) -> int:
+    """The frames through a new view graph (a matcher started afresh, numbered ``source``)
+    into ``session``; ``expected`` collects its edges as pairs of keyframe stamps, ``sent``
+    what was sent. Returns its keyframe count."""
     graph = ViewGraphBuilder(session.mapper.config.matching)
-    stamps = {}
+    stamps, sent = {}, sent if sent is not None else []
     for obs in frames:
         keyframe, edges, track = graph.add(obs)
         if keyframe is not None:
             stamps[keyframe.keyframe_id] = keyframe.observations.stamp_ns
-            session.add_keyframe(keyframe.keyframe_id, keyframe.observations)
+            sent.append(('keyframe', keyframe.keyframe_id, keyframe.observations))
+            session.add_keyframe(keyframe.keyframe_id, keyframe.observations, source)
             for e in edges:
                 expected.add(frozenset((stamps[e.source_id], stamps[e.target_id])))
-                session.add_edge(EdgeRecord.from_edge(e))
+                sent.append(('edge', EdgeRecord.from_edge(e)))
+                session.add_edge(EdgeRecord.from_edge(e), source)
         if track is not None:
-            session.add_frame(track)
+            session.add_frame(track, source)
     session.update(force_full=True)
     return len(stamps)
 
@@ -114,3 +117,30 @@ def test_gaps_in_the_matchers_numbering_are_counted():
     assert check.add(9, 6) == 0 and check.add(0, 0) == 0                    # a repeat; unnumbered
     assert [check.add(10, s) for s in (1, 3)] == [0, 1] and check.lost == 3  # a new session
     assert check.add(10, 1) == 0 and check.add(10, 2) == 0                   # restarted, same id
+
+
+def test_a_restored_map_recognises_the_keyframes_it_gets_again(observations, tmp_path):
+    """A mapper restarted from its autosave gets the matcher's kept history again (transient
+    local): keyframes and edges it holds are recognised by (view-graph session, id) from the
+    map file and ignored, the ones the autosave missed are added, and the session goes on.
+    A second, numbered matcher session with the same ids never meets the first."""
+    session, expected, sent = MapSession(), set(), []
+    _feed(session, observations[:20], expected, source=7, sent=sent)
+    save_map(session.mapper, tmp_path / 'auto.rfm')
+    n_saved = len(session.mapper.keyframes)
+    restored = MapSession()
+    restored.load(tmp_path / 'auto.rfm')
+    assert restored.mapper.origins == session.mapper.origins and len(restored.mapper.origins) == n_saved
+    for item in sent:                                   # the matcher's history, replayed in full
+        if item[0] == 'keyframe':
+            assert not restored.add_keyframe(item[1], item[2], 7)
+        else:
+            restored.add_edge(item[1], 7)
+    assert len(restored.mapper.keyframes) == n_saved and restored.counts['edges'] == 0
+    assert not restored.pending_edges
+    more = _feed(restored, observations[20:], expected, source=9)      # a restarted matcher: ids from 0
+    assert len(restored.mapper.keyframes) == n_saved + more
+    stamps = [f.stamp_ns for f in restored.mapper.keyframes.values()]
+    assert len(set(stamps)) == len(stamps)
+    made = _edges_by_stamp(restored.mapper)
+    assert made <= expected and len(made) >= 0.9 * len(expected)

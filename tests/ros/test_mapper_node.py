@@ -22,6 +22,8 @@ from rfm_core.matching.view_graph import ViewGraphBuilder  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402
 
 pytestmark = pytest.mark.ros
+#: the matcher's keyframe and edge topics: kept for subscribers that join later
+GRAPH_QOS = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def _graph_messages():
@@ -63,8 +65,8 @@ class _Harness:
         self.node.create_subscription(PoseStamped, 'rfm/camera_pose', self.cameras.append, reliable)
         self.track_pub = self.node.create_publisher(TrackedFrame, 'rfm/tracked_frames', reliable)
         self.node.create_subscription(ObjectMap, 'rfm/object_map', self.maps.append, latched)
-        self.kf_pub = self.node.create_publisher(Keyframe, 'rfm/keyframes', reliable)
-        self.edge_pub = self.node.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', reliable)
+        self.kf_pub = self.node.create_publisher(Keyframe, 'rfm/keyframes', GRAPH_QOS)
+        self.edge_pub = self.node.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', GRAPH_QOS)
         # one single-threaded executor per node, each in its thread, as rfm run spins them
         # (rclpy's multi-threaded executor starves the other threads of the GIL)
         self.executors = [SingleThreadedExecutor(), SingleThreadedExecutor()]

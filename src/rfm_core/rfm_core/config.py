@@ -107,7 +107,9 @@ class MapperNodeConfig:
                            'are taken inside it; paths outside it, symbolic links included, are refused); empty: '
                            'the directory of map_path', read_only=True)
     autosave_every_n_keyframes: int = setting(10, 'Save the map to map_path every n new keyframes: a crash '
-                                              'loses at most this many (0: never)', lo=0, hi=100000)
+                                              'loses at most this many (those still in the running matcher\'s '
+                                              'kept history come back after a restart with load_map_on_start) '
+                                              '(0: never)', lo=0, hi=100000)
     autosave_growth: float = setting(0.1, '... or, once the map is larger, when it has grown by this fraction '
                                      'since the last save (a save rewrites the whole map: the total cost of '
                                      'autosaving then stays linear in the map size)', lo=0.0, hi=10.0)

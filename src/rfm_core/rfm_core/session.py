@@ -94,10 +94,14 @@ class MapSession:
     Keyframe ids: the view graph numbers its keyframes from 0 again when it restarts, and a
     map loaded from a file already holds ids. Each incoming keyframe gets a map id (its own
     while that is new and larger than every id in the map, else the next free one); edges and
-    tracked frames are translated through the current view-graph session's table. A new
-    session is recognised by an id that does not increase, or one reused with another stamp:
-    the table and the edges still waiting for keyframes are dropped, so nothing from a
-    restarted matcher ever attaches to the keyframes of an earlier one.
+    tracked frames are translated through a table keyed by (view-graph session, its keyframe
+    id). The matcher node numbers its sessions (``source``), and the table is kept in map
+    files (:attr:`Mapper.origins`), so a keyframe received again (a mapper restarted from its
+    autosave that gets the matcher's kept history) is recognised and ignored, and a restarted
+    matcher's ids never meet an earlier session's. Without a session number (``source`` 0,
+    e.g. in one process) a restart is recognised by an id that does not increase, or one
+    reused with another stamp: that table and the edges still waiting for keyframes are
+    dropped, so nothing from a restarted view graph attaches to the keyframes of an earlier one.
     """
 
     def __init__(self, config: MapperConfig | None = None, matcher=None, pose_lookup=None,
@@ -124,8 +128,9 @@ class MapSession:
         self._full_solve_due = None           # clock time of the idle full re-solve
         self._latest_track = None             # the newest tracked frame
         self._last_camera = None              # the last CameraPose handed out
-        self._incoming: dict = {}             # the view graph session's keyframe ids -> map ids
-        self._incoming_last = None            # its newest keyframe id
+        # (view-graph session, its keyframe id) -> map id; numbered sessions' from the map file
+        self._incoming: dict = {origin: k for k, origin in self.mapper.origins.items()}
+        self._incoming_last = None            # the newest keyframe id of the unnumbered session
         self._max_id = max(self.mapper.keyframes, default=-1)   # the largest map id given out
 
     @property
@@ -145,12 +150,12 @@ class MapSession:
 
     # ------------------------------------------------------------------ mapping input
 
-    def add_keyframe(self, keyframe_id: int, obs: FrameObservations) -> bool:
-        """A keyframe from the view graph (posed: it waits for its pose). False: ignored
-        (localization mode, or a keyframe already received)."""
+    def add_keyframe(self, keyframe_id: int, obs: FrameObservations, source: int = 0) -> bool:
+        """A keyframe from the view graph session ``source`` (0: unnumbered; posed: it waits
+        for its pose). False: ignored (localization mode, or a keyframe already received)."""
         if self.mode != 'mapping':
             return False
-        map_id = self._new_map_id(int(keyframe_id), obs.stamp_ns)
+        map_id = self._new_map_id(int(keyframe_id), obs.stamp_ns, int(source))
         if map_id is None:
             return False
         if self.mapper.config.posed:
@@ -162,32 +167,35 @@ class MapSession:
         self._keyframe_added()
         return True
 
-    def _new_map_id(self, incoming: int, stamp_ns: int) -> int | None:
+    def _new_map_id(self, incoming: int, stamp_ns: int, source: int) -> int | None:
         """The map id of a new keyframe from the view graph; None for one received before."""
-        known = self._incoming.get(incoming)
+        known = self._incoming.get((source, incoming))
         if known is not None:
             obs = self.mapper.keyframes.get(known) or dict(self.pending_keyframes).get(known)
             if obs is not None and obs.stamp_ns == stamp_ns:
                 return None                                   # the same keyframe again
-        if known is not None or (self._incoming_last is not None and incoming < self._incoming_last):
-            if self._incoming:
+        if not source and (known is not None or (self._incoming_last is not None and incoming < self._incoming_last)):
+            if any(not s for s, _ in self._incoming):
                 self.warn(f'keyframe id {incoming} after {self._incoming_last}: the view graph restarted; '
                           f'its keyframes continue as new map ids from {self._max_id + 1}')
-            self._incoming.clear()
-            self.pending_edges.clear()
-            self.pending_frames.clear()
+            self._incoming = {key: k for key, k in self._incoming.items() if key[0]}
+            self.pending_edges = [p for p in self.pending_edges if p[1]]
+            self.pending_frames = [p for p in self.pending_frames if p[1]]
         map_id = incoming if self._max_id < incoming < MAX_KEYFRAME_ID else self._max_id + 1
-        self._incoming[incoming] = map_id
-        self._incoming_last = incoming
+        self._incoming[source, incoming] = map_id
+        if source:
+            self.mapper.origins[map_id] = (source, incoming)
+        else:
+            self._incoming_last = incoming
         self._max_id = max(self._max_id, map_id)
         return map_id
 
-    def _translate_edge(self, edge: EdgeRecord) -> EdgeRecord | None:
+    def _translate_edge(self, edge: EdgeRecord, source: int) -> EdgeRecord | None:
         """The edge between map ids; None while one of its keyframes has not arrived."""
-        source, target = self._incoming.get(edge.source), self._incoming.get(edge.target)
-        if source is None or target is None:
+        a, b = self._incoming.get((source, edge.source)), self._incoming.get((source, edge.target))
+        if a is None or b is None:
             return None
-        return replace(edge, source=source, target=target)
+        return replace(edge, source=a, target=b)
 
     def _keyframe_added(self) -> None:
         self.counts['keyframes'] += 1
@@ -196,14 +204,15 @@ class MapSession:
         self._retry_edges()
         self._retry_frames()
 
-    def add_edge(self, edge: EdgeRecord) -> None:
-        """A verified edge; it waits (bounded) while one of its keyframes has not arrived."""
+    def add_edge(self, edge: EdgeRecord, source: int = 0) -> None:
+        """A verified edge of view-graph session ``source``; it waits (bounded) while one of
+        its keyframes has not arrived."""
         if self.mode != 'mapping':
             return
         keyframes = self.mapper.keyframes
-        mapped = self._translate_edge(edge)
+        mapped = self._translate_edge(edge, source)
         if mapped is None or mapped.source not in keyframes or mapped.target not in keyframes:
-            self.pending_edges.append((self.clock(), edge))
+            self.pending_edges.append((self.clock(), source, edge))
             if len(self.pending_edges) > PENDING_EDGES:
                 self.pending_edges.pop(0)
                 self.counts['dropped'] += 1
@@ -221,23 +230,23 @@ class MapSession:
             return
         pending, self.pending_edges = self.pending_edges, []
         now = self.clock()
-        for arrived, edge in pending:
-            mapped = self._translate_edge(edge)
+        for arrived, source, edge in pending:
+            mapped = self._translate_edge(edge, source)
             if mapped is not None and mapped.source in self.mapper.keyframes and mapped.target in self.mapper.keyframes:
-                self.add_edge(edge)
+                self.add_edge(edge, source)
             elif now - arrived < PENDING_EDGE_AGE_S:
-                self.pending_edges.append((arrived, edge))
+                self.pending_edges.append((arrived, source, edge))
 
     def _retry_frames(self) -> None:
         if not self.pending_frames:
             return
         pending, self.pending_frames = self.pending_frames, []
         now = self.clock()
-        for arrived, track in pending:
-            if track.keyframe_id in self._incoming:
-                self.add_frame(track)
+        for arrived, source, track in pending:
+            if (source, track.keyframe_id) in self._incoming:
+                self.add_frame(track, source)
             elif now - arrived < PENDING_EDGE_AGE_S:
-                self.pending_frames.append((arrived, track))
+                self.pending_frames.append((arrived, source, track))
 
     def attach_external_poses(self) -> None:
         """Posed mode: give waiting keyframes their poses from ``pose_lookup`` (call again
@@ -259,14 +268,14 @@ class MapSession:
         self.pending_keyframes = still[-PENDING_KEYFRAMES:]
         self._retry_edges()
 
-    def add_frame(self, track: FrameTrack) -> CameraPose | None:
-        """A tracked frame (its pose relative to a keyframe): logged; returns its camera pose
-        when it has one and is newer than the last one handed out."""
+    def add_frame(self, track: FrameTrack, source: int = 0) -> CameraPose | None:
+        """A tracked frame (its pose relative to a keyframe of view-graph session ``source``):
+        logged; returns its camera pose when it has one and is newer than the last one handed out."""
         if self.mode != 'mapping':
             return None
-        map_id = self._incoming.get(track.keyframe_id)
+        map_id = self._incoming.get((source, track.keyframe_id))
         if map_id is None:                  # its keyframe has not arrived yet (topics are not ordered)
-            self.pending_frames.append((self.clock(), track))
+            self.pending_frames.append((self.clock(), source, track))
             if len(self.pending_frames) > PENDING_EDGES:
                 self.pending_frames.pop(0)
                 self.counts['dropped'] += 1

@@ -1,6 +1,8 @@
 """rfm mapper node: pose averaging, object tracks, relocalization, map persistence (paper 3.5-3.6).
 
-Subscribes rfm/keyframes, rfm/view_graph/edges and rfm/tracked_frames (from the matcher),
+Subscribes rfm/keyframes, rfm/view_graph/edges (transient local: a mapper started after the
+matcher gets its kept history; keyframes it already holds are recognised by their view-graph
+session and id) and rfm/tracked_frames (from the matcher),
 rfm/detections (in localization mode: every frame is relocalized), and in posed mode a pose
 source. Publishes rfm/keyframe_poses, rfm/trajectory, rfm/camera_pose and TF (map -> camera)
 for every localized frame, rfm/object_map, rfm/object_markers and rfm/status. Services:
@@ -34,6 +36,7 @@ from rfm_core.io.messages import (
     stamp_to_ns, track_map_msgs, tracked_frame_from_msg, transform_stamped_msg, transform_to_matrix,
 )
 from rfm_core.io.parameters import declare_config
+from rfm_core.io.topics import GRAPH_HISTORY
 from rfm_core.mapping.map_io import MapFileError
 from rfm_core.matching.factory import make_matcher
 from rfm_core.session import CameraPose, ExternalPoses, MapSession, SequenceCheck
@@ -77,8 +80,10 @@ class MapperNode(Node):
         latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         guard = self._guarded
-        self.create_subscription(Keyframe, 'rfm/keyframes', guard(self._on_keyframe), reliable)
-        self.create_subscription(ViewGraphEdge, 'rfm/view_graph/edges', guard(self._on_edge), reliable)
+        kept = QoSProfile(depth=GRAPH_HISTORY, history=HistoryPolicy.KEEP_LAST,
+                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.create_subscription(Keyframe, 'rfm/keyframes', guard(self._on_keyframe), kept)
+        self.create_subscription(ViewGraphEdge, 'rfm/view_graph/edges', guard(self._on_edge), kept)
         self.create_subscription(TrackedFrame, 'rfm/tracked_frames', guard(self._on_tracked_frame), reliable)
         self.create_subscription(FrameDetections, 'rfm/detections', guard(self._on_detections),
                                  QoSProfile(depth=5, reliability=ReliabilityPolicy.RELIABLE))
@@ -171,7 +176,7 @@ class MapperNode(Node):
         except ValueError as exc:
             self._dropped(f'keyframe {msg.keyframe_id}', exc)
             return
-        self.session.add_keyframe(int(msg.keyframe_id), obs)
+        self.session.add_keyframe(int(msg.keyframe_id), obs, int(msg.session))
 
     def _on_edge(self, msg: ViewGraphEdge) -> None:
         self._delivered('edges', msg)
@@ -180,7 +185,7 @@ class MapperNode(Node):
         except ValueError as exc:
             self._dropped('edge', exc)
             return
-        self.session.add_edge(edge)
+        self.session.add_edge(edge, int(msg.session))
 
     def _on_tracked_frame(self, msg: TrackedFrame) -> None:
         """Mapping mode: log the frame and publish its camera pose (once its keyframe has one)."""
@@ -192,7 +197,7 @@ class MapperNode(Node):
         except ValueError as exc:
             self._dropped('tracked frame', exc)
             return
-        self._publish_camera(self.session.add_frame(track))
+        self._publish_camera(self.session.add_frame(track, int(msg.session)))
 
     def _on_external_pose(self, msg: PoseStamped) -> None:
         try:

@@ -2,9 +2,10 @@
 3.2-3.4), and every frame's pose relative to a keyframe (tracking).
 
 Subscribes rfm/detections (rfm_msgs/FrameDetections). Publishes rfm/keyframes
-(rfm_msgs/Keyframe) and rfm/view_graph/edges (rfm_msgs/ViewGraphEdge), reliable with deep
-queues so the mapper does not miss any, and rfm/tracked_frames (rfm_msgs/TrackedFrame), one
-per localized frame. An edge's (yaw, translation) is T_source_target, between the
+(rfm_msgs/Keyframe) and rfm/view_graph/edges (rfm_msgs/ViewGraphEdge), reliable and
+transient local with deep queues (the last GRAPH_HISTORY are kept, so a mapper that starts or
+restarts later still gets them; numbered, so the mapper counts what it missed), and
+rfm/tracked_frames (rfm_msgs/TrackedFrame), one per localized frame. An edge's (yaw, translation) is T_source_target, between the
 gravity-aligned camera frames of its keyframes; its inliers pair detection indices of the
 source and target keyframes.
 
@@ -18,12 +19,13 @@ import sys
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 
 from rfm_core.config import MatcherNodeConfig
 from rfm_core.io.messages import edge_msg, frame_detections_from_msg, frame_detections_to_msg, tracked_frame_to_msg
 from rfm_core.io.parameters import declare_config
+from rfm_core.io.topics import GRAPH_HISTORY
 from rfm_core.matching.factory import make_matcher
 from rfm_core.matching.view_graph import ViewGraphBuilder
 
@@ -41,8 +43,10 @@ class MatcherNode(Node):
         self.graph = ViewGraphBuilder(cfg.matching, cfg.keyframes, matcher=matcher)
         deep = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
                           reliability=ReliabilityPolicy.RELIABLE)
-        self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', deep)
-        self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', deep)
+        kept = QoSProfile(depth=GRAPH_HISTORY, history=HistoryPolicy.KEEP_LAST,
+                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', kept)
+        self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', kept)
         self.track_pub = self.create_publisher(TrackedFrame, 'rfm/tracked_frames', deep)
         # every published keyframe, edge and tracked frame is numbered (the mapper counts gaps)
         self.session_id = random.SystemRandom().randint(1, 2 ** 63 - 1)

@@ -5,7 +5,8 @@ version, counts, and the mapper's whole configuration, so that whoever loads the
 rebuilds its tracks as the mapper that made it did) and flat arrays: every keyframe with its
 detections (boxes, scores, labels, embeddings, 2D boxes, gravity, intrinsics, stamp, frame
 id), every edge with its verified object and corner matches, the keyframe poses, and every
-localized frame (its pose relative to a keyframe: the full-rate trajectory). Object tracks
+localized frame (its pose relative to a keyframe: the full-rate trajectory) and where each
+keyframe came from (the matcher session and its id there). Object tracks
 are derived data and are rebuilt on load. Files written before the configuration and the
 frames were stored load with the loading mapper's configuration and no frames.
 
@@ -64,6 +65,8 @@ def _keyframe_arrays(mapper: Mapper) -> dict:
         # the map's boxes (FrameObservations.full_boxes) of the keyframes that have them
         'kf_full': np.array([f.full_boxes is not None for f in frames], bool),
         'det_full_boxes': cat(lambda f: f.map_boxes, (7,), np.float64),
+        # where each keyframe came from: (view-graph session, its id there); (0, 0) unknown
+        'kf_origin': np.array([mapper.origins.get(k, (0, 0)) for k in ids], np.uint64).reshape(-1, 2),
     }, {'kf_frame_ids': [f.frame_id for f in frames],
         'kf_backends': [f.backend for f in frames],
         'det_labels': [lab for f in frames for lab in (f.labels if len(f.labels) == len(f) else [''] * len(f))]}
@@ -216,6 +219,9 @@ def _parse_map(path: Path, data: dict) -> dict:
              'non-finite frame poses'),
             (np.all(np.linalg.norm(data['frame_gravity'], axis=1) > 0.5), 'frame gravity is not a unit vector'),
         ]
+    if 'kf_origin' in data:                                   # none in maps of older rfm versions
+        checks += [(data['kf_origin'].shape == (n_kf, 2) and data['kf_origin'].dtype.kind in 'iu',
+                    'keyframe origins')]
     if 'kf_full' in data or 'det_full_boxes' in data:       # none in maps of older rfm versions
         full = data.get('det_full_boxes', np.zeros(0))
         checks += [(data.get('kf_full', np.zeros(0)).shape == (n_kf,) and full.shape == (n_det, 7)
@@ -257,8 +263,9 @@ def _parse_map(path: Path, data: dict) -> dict:
                                 data['edge_corners'][ic[i]:ic[i + 1]], float(data['edge_scores'][i])))
     poses = {int(k): Pose4(float(v[0]), v[1:]) for k, v in zip(data['pose_ids'], data['pose_values'])}
     active = [(int(s), int(t)) for (s, t), a in zip(data['edge_ids'], data['edge_active']) if a]
+    origins = {int(k): (int(s), int(i)) for k, (s, i) in zip(data['kf_ids'], data.get('kf_origin', ())) if s}
     return {'header': header, 'keyframes': keyframes, 'edges': edges, 'poses': poses, 'active_edges': active,
-            'config': config, 'frames': frames}
+            'config': config, 'frames': frames, 'origins': origins}
 
 
 def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
@@ -284,6 +291,7 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
             fresh.frames.restore(content['frames'])
     except (ValueError, TypeError, IndexError, KeyError) as exc:
         raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
+    fresh.origins = content['origins']
     fresh.revision = content['header'].get('revision', 0) + 1
     fresh.mode = mapper.mode
     mapper.__dict__.update(fresh.__dict__)

@@ -107,6 +107,7 @@ class Mapper:
         self._tracks = None
         self._descriptors: dict = {}
         self.frames = FrameLog()             # every localized frame (tracked or relocalized)
+        self.origins: dict = {}              # id -> (view-graph session, its keyframe id), where numbered
         self.last_update_seconds = 0.0
 
     # ------------------------------------------------------------------ input
