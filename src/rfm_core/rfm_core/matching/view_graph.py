@@ -48,13 +48,6 @@ class KeyframeConfig:
     max_yaw_deg: float = setting(20.0, 'New keyframe after turning this much from the last one (deg)',
                                  lo=0.0, hi=180.0)
     min_detections: int = setting(2, 'Skip frames with fewer detections', lo=0, hi=1000)
-    min_keyframe_detections: int = setting(3, 'Within a stream, a frame with fewer detections does not become a '
-                                           'new keyframe where a neighbour of the reference (other than the '
-                                           'reference) already covers its predicted pose (it is tracked when it '
-                                           'can be, else left unlocalized): it could not verify a revisit '
-                                           '(min_retrieved_inliers) and its edges rest on two objects, so on a '
-                                           'long capture such views would add keyframes with time, not with the '
-                                           'room. Elsewhere it links the walk as before', lo=0, hi=1000)
     min_interval_s: float = setting(0.0, 'No new keyframe sooner than this after the last one (s; 0: off). '
                                     'Fewer keyframes cost less matching but lower accuracy (BENCHMARKS.md)',
                                     lo=0.0, hi=60.0)
@@ -89,14 +82,11 @@ class KeyframeConfig:
     motion_prior: bool = setting(True, 'Within a stream, reject tracking and edges implying faster motion than '
                                  'max_yaw_rate_deg_s / max_speed_m_s plus the slack; false: every frame is a '
                                  'separate view (stamps mean nothing)')
-    reuse_keyframes: bool = setting(True, 'Revisits: a frame of a stream that would become a keyframe (or '
-                                    'bridge lost tracking) is first localized against older keyframes: the '
-                                    "reference's graph neighbours where their edges and the frame's predicted "
-                                    'pose put it (two objects agreeing with the prediction), then the '
-                                    'neighbourhood and retrieved ones (min_retrieved_inliers objects); one that '
-                                    'verifies it and overlaps it as the reference would need becomes the '
-                                    'reference instead of a new keyframe: the map grows with the places seen, '
-                                    'not with time')
+    reuse_keyframes: bool = setting(True, 'Revisits: a frame of a stream that would become a keyframe is first '
+                                    'localized against the retrieved older keyframes; one it verifies against '
+                                    '(min_retrieved_inliers objects, and overlapping as the reference would '
+                                    'need) becomes the reference instead of a new keyframe: the map grows with '
+                                    'the places seen, not with time')
     min_retrieved_inliers: int = setting(3, 'Verified objects an edge needs where the motion prior cannot check '
                                          'it (separate views, retrieved keyframes): two verify nothing beyond '
                                          'the minimal sample, and repeated furniture aliases', lo=2, hi=100)
@@ -396,8 +386,7 @@ class ViewGraphBuilder:
         start = time.perf_counter()
         last_rel = self._track(obs, stream) if self.keyframes else None
         self.stats.tracking_s += time.perf_counter() - start
-        if last_rel is not None and (self._too_soon(obs) or self._weak(obs, stream)
-                                     or not self._is_keyframe(obs, last_rel)):
+        if last_rel is not None and (self._too_soon(obs) or not self._is_keyframe(obs, last_rel)):
             last = self.reference
             self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel,
                                        verified_ns=self._verified_through(last.keyframe_id))
@@ -413,28 +402,9 @@ class ViewGraphBuilder:
             bridged = self._bridge(obs)
             if bridged is not None:
                 return bridged
-        if self._too_soon(obs) or self._weak(obs, stream):          # lost, but no keyframe (yet)
+        if self._too_soon(obs):                     # lost, but no keyframe yet
             return GraphStep(None, [], None)
         return self._new_keyframe(obs, last_rel, stream)
-
-    def _weak(self, obs: FrameObservations, stream: bool, pose: Pose4 | None = None) -> bool:
-        """Whether a frame of a stream has too few detections to become a new keyframe
-        where the map already has one: a neighbour of the reference (not the reference
-        itself, which it failed to track against) within ``max_translation_m`` and
-        ``max_yaw_deg`` of its pose relative to the reference (``pose``, else predicted)."""
-        cfg = self.config
-        if not (stream and self.keyframes and len(obs) < cfg.min_keyframe_detections):
-            return False
-        pose = pose if pose is not None else self._predicted_pose(obs)        # T_ref_frame
-        if pose is None:
-            return False
-        ref = self._ref % len(self.keyframes)
-        for j in self._neighbours.get(ref, ()):
-            near = self._edge_pose[ref, j].inverse() @ pose                    # T_j_frame
-            if (np.linalg.norm(near.t) <= cfg.max_translation_m
-                    and np.degrees(abs(wrap_angle(near.yaw))) <= cfg.max_yaw_deg):
-                return True
-        return False
 
     def _revisit(self, obs: FrameObservations, stream: bool) -> GraphStep | None:
         """A frame about to become a keyframe, localized against older keyframes instead
@@ -509,8 +479,6 @@ class ViewGraphBuilder:
         frame that was tracked (moments earlier), that frame becomes the keyframe (it is linked
         to the last keyframe by its tracked pose) and this frame is tracked against it."""
         prev = self._tracking
-        if prev.keyframe_id == self.reference.keyframe_id and self._weak(prev.observations, True, prev.pose):
-            return None
         start = time.perf_counter()
         rel = self._plausible(self._relative(prev.observations, obs, stream=True), prev.observations, obs)
         self.stats.tracking_s += time.perf_counter() - start
