@@ -187,7 +187,6 @@ class ViewGraphBuilder:
         self._tracking: _Tracking | None = None
         self._motion_placed: set = set()  # keyframes placed by a motion edge alone
         self._neighbours: dict = {}       # keyframe index -> indices it shares a verified edge with
-        self._edge_pose: dict = {}        # (index i, index j) -> T_i_j of their verified edge
         self._index: dict = {}            # keyframe id -> index
         self._ref = -1                    # index of the reference keyframe frames are tracked against
 
@@ -265,14 +264,12 @@ class ViewGraphBuilder:
         measured = self._imu_yaw(last.observations, obs)
         return None if measured is None else Pose4(measured[0], prev.pose.t)
 
-    def _predicted_matches(self, keyframe: FrameObservations, obs: FrameObservations,
-                           predicted: Pose4 | None = None) -> ObjectMatches | None:
-        """Matches of the frame's boxes to the keyframe's where the predicted pose
-        T_keyframe_frame (default: to the reference, :meth:`_predicted_pose`) puts them
-        (nearest centre, one-to-one, within the distance the camera can have moved plus the
-        detector's noise): tracking without the object matcher. None when nothing predicts
-        the pose."""
-        predicted = predicted if predicted is not None else self._predicted_pose(obs)
+    def _predicted_matches(self, keyframe: FrameObservations, obs: FrameObservations) -> ObjectMatches | None:
+        """Matches of the frame's boxes to the last keyframe's where the predicted pose puts
+        them (:meth:`_predicted_pose`; nearest centre, one-to-one, within the distance the
+        camera can have moved plus the detector's noise): tracking without the object
+        matcher. None when nothing predicts the pose."""
+        predicted = self._predicted_pose(obs)                         # T_keyframe_frame
         if predicted is None or len(obs) == 0 or len(keyframe) == 0:
             return None
         moved = predicted.transform_points(obs.boxes[:, :3])          # frame boxes in the keyframe
@@ -394,16 +391,16 @@ class ViewGraphBuilder:
             return GraphStep(None, [], FrameTrack(
                 obs.stamp_ns, obs.frame_id, obs.gravity_cam, last.keyframe_id, last.observations.stamp_ns, last_rel.pose,
                 len(last_rel.inliers), is_keyframe=False, continuous=stream))
-        # a revisit (an older keyframe verifies the frame) before anything new
-        revisit = self._revisit(obs, stream) if self.config.reuse_keyframes and stream and len(self.keyframes) > 1 else None
-        if revisit is not None:
-            return revisit
         if last_rel is None and stream and self._tracking is not None and self._tracking.observations is not None:
             bridged = self._bridge(obs)
             if bridged is not None:
                 return bridged
         if self._too_soon(obs):                     # lost, but no keyframe yet
             return GraphStep(None, [], None)
+        if self.config.reuse_keyframes and stream and len(self.keyframes) > 1:
+            revisit = self._revisit(obs, stream)
+            if revisit is not None:
+                return revisit
         return self._new_keyframe(obs, last_rel, stream)
 
     def _revisit(self, obs: FrameObservations, stream: bool) -> GraphStep | None:
@@ -414,10 +411,6 @@ class ViewGraphBuilder:
         against it."""
         start = time.perf_counter()
         ref = self._ref % len(self.keyframes)
-        found = self._revisit_predicted(obs, ref)
-        if found is not None:
-            self.stats.tracking_s += time.perf_counter() - start
-            return self._revisited(obs, stream, *found)
         # the reference's neighbourhood in the graph (two edges away: after one revisit, the
         # keyframes of the earlier pass around it), then the retrieved ones
         near = set(self._neighbours.get(ref, ()))
@@ -435,35 +428,9 @@ class ViewGraphBuilder:
                         and (found is None or len(rel.inliers) > len(found[1].inliers))):
                     found = (i, rel)
         self.stats.tracking_s += time.perf_counter() - start
-        return None if found is None else self._revisited(obs, stream, *found)
-
-    def _revisit_predicted(self, obs: FrameObservations, ref: int):
-        """(index, pose) of the reference's graph neighbour that verifies the frame where the
-        reference's edge to it and the frame's predicted pose put it (the next keyframe of an
-        earlier pass, usually): predicted matches as in tracking, so two objects suffice when
-        the verified pose agrees with the prediction; None otherwise."""
-        predicted = self._predicted_pose(obs)                        # T_ref_frame
-        if predicted is None:
+        if found is None:
             return None
-        cfg, found = self.config, None
-        for j in sorted(self._neighbours.get(ref, ())):
-            source = self.keyframes[j].observations
-            expected = self._edge_pose[ref, j].inverse() @ predicted   # T_j_frame
-            matches = self._predicted_matches(source, obs, expected)
-            if matches is None or len(matches) < 2:
-                continue
-            rel = self._relative(source, obs, matches, stream=True)
-            if (rel is None or len(rel.inliers) < max(2, 0.5 * len(matches))
-                    or np.linalg.norm(np.subtract(rel.pose.t, expected.t)) > cfg.track_gate_m
-                    or np.degrees(abs(wrap_angle(rel.pose.yaw - expected.yaw))) > cfg.motion_slack_deg
-                    or self._is_keyframe(obs, rel, source)):
-                continue
-            if found is None or len(rel.inliers) > len(found[1].inliers):
-                found = (j, rel)
-        return found
-
-    def _revisited(self, obs: FrameObservations, stream: bool, i: int, rel: RelativePose) -> GraphStep:
-        """The frame tracked against keyframe index ``i``, which becomes the reference."""
+        i, rel = found
         self._ref = i
         kf = self.keyframes[i]
         self._tracking = _Tracking(kf.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
@@ -561,8 +528,6 @@ class ViewGraphBuilder:
                 i = self._index[e.source_id]
                 self._neighbours.setdefault(i, set()).add(self._ref)
                 self._neighbours.setdefault(self._ref, set()).add(i)
-                self._edge_pose[i, self._ref] = e.relative.pose
-                self._edge_pose[self._ref, i] = e.relative.pose.inverse()
         self.stats.keyframes += 1
         self.stats.tracked += 1
         self.stats.edges += len(edges)
