@@ -1,0 +1,92 @@
+"""The soak's capture in one process: where do keyframes come from on a long walk, and does
+the map stay straight? (#19 item 4; the graph's version is bench/soak.py)
+
+    ros_ws/env.sh python bench/soak_offline.py [--minutes 5] [--fps 5] [--seed 7000]
+                                               [--cache /tmp/rfm_soak_offline.pkl]
+
+Renders the soak's handheld walk (furniture made of parts, clutter; ~9 s a loop), detects
+every frame with ``depth_clusters`` (cached: the first run takes a few minutes, later runs
+about 15 s), runs :class:`rfm_core.session.Session` over all frames with the true gravity,
+and prints the keyframes made by time, how many of those made after the first 30 s had a
+keyframe within ``max_translation_m`` / ``max_yaw_deg`` already (true poses), and the
+localization error of every frame (4-DoF aligned). A change to keyframe reuse can be judged
+here in seconds before the real-time soak.
+"""
+from __future__ import annotations
+
+import argparse
+import pickle
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def _detections(args) -> list:
+    if args.cache.is_file():
+        cached = pickle.loads(args.cache.read_bytes())
+        if cached['key'] == (args.minutes, args.fps, args.seed):
+            return cached['frames']
+    from rfm_core.evaluation.pipeline import detections_for  # noqa: PLC0415
+    from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: PLC0415
+    capture = Capture(CaptureConfig(seed=args.seed, capture='handheld', frames=int(round(args.minutes * 60 * args.fps)),
+                                    fps=args.fps, furniture='parts', clutter=True))
+    detect = detections_for('depth_clusters')
+    frames = []
+    for frame in capture.frames():
+        obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1          # the gyroscope's, as the detector node attaches it
+        frames.append((obs, frame.pose_matrix))
+    args.cache.write_bytes(pickle.dumps({'key': (args.minutes, args.fps, args.seed), 'frames': frames}))
+    return frames
+
+
+def _heading(pose: np.ndarray) -> float:
+    forward = pose[:3, 2]
+    return float(np.arctan2(forward[1], forward[0]))
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--minutes', type=float, default=5.0)
+    parser.add_argument('--fps', type=float, default=5.0)
+    parser.add_argument('--seed', type=int, default=7000)
+    parser.add_argument('--cache', type=Path, default=Path('/tmp/rfm_soak_offline.pkl'))
+    args = parser.parse_args()
+    from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
+    from rfm_core.session import Session  # noqa: PLC0415
+
+    frames = _detections(args)
+    truth = {obs.stamp_ns: pose for obs, pose in frames}
+    start_ns = frames[0][0].stamp_ns
+    session = Session()
+    cfg = session.graph.config
+    made, near = [], 0                                # (seconds, true pose) of each keyframe
+    t0 = time.perf_counter()
+    for obs, _ in frames:
+        step = session.step(obs)
+        if step.keyframe is None:
+            continue
+        kf = step.keyframe.observations
+        seconds, pose = (kf.stamp_ns - start_ns) / 1e9, truth[kf.stamp_ns]
+        if seconds > 30 and made:
+            d = np.array([np.linalg.norm(p[:3, 3] - pose[:3, 3]) for _, p in made])
+            turn = np.array([abs((_heading(p) - _heading(pose) + np.pi) % (2 * np.pi) - np.pi) for _, p in made])
+            near += bool(np.any((d <= cfg.max_translation_m) & (np.degrees(turn) <= cfg.max_yaw_deg)))
+        made.append((seconds, pose))
+    session.finish()
+    seconds = time.perf_counter() - t0
+    errors = trajectory_errors(session.mapper.frame_poses(), truth, align='4dof')
+    times = np.array([s for s, _ in made])
+    print('keyframes made by ' + ', '.join(f'{t} s: {int((times <= t).sum())}' for t in (10, 30, 60, 120, 300)
+                                           if t <= times.max(initial=0) + 60))
+    late = int((times > 30).sum())
+    print(f'after 30 s: {late} keyframes, {near} of them with a keyframe within {cfg.max_translation_m} m and '
+          f'{cfg.max_yaw_deg} deg already; revisits {session.graph.stats.reused}, bridges {session.graph.stats.bridged}')
+    print(f"frames localized {100 * errors['registered']:.0f}%, ARE {errors['ARE_median']:.2f} deg, "
+          f"ATE {100 * errors['ATE_median']:.1f} cm; {len(session.mapper.tracks())} objects; {seconds:.0f} s")
+    return 0
+
+
+if __name__ == '__main__':
+    raise SystemExit(main())
