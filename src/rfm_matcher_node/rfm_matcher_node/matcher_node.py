@@ -5,9 +5,9 @@ Subscribes rfm/detections (rfm_msgs/FrameDetections). Publishes rfm/keyframes
 (rfm_msgs/Keyframe) and rfm/view_graph/edges (rfm_msgs/ViewGraphEdge), reliable and
 transient local with deep queues (the last GRAPH_HISTORY are kept, so a mapper that starts or
 restarts later still gets them; numbered, so the mapper counts what it missed), and
-rfm/tracked_frames (rfm_msgs/TrackedFrame), one per localized frame. An edge's (yaw, translation) is T_source_target, between the
-gravity-aligned camera frames of its keyframes; its inliers pair detection indices of the
-source and target keyframes.
+rfm/tracked_frames (rfm_msgs/TrackedFrame), one per localized frame. An edge's (yaw,
+translation) is T_source_target, between the gravity-aligned camera frames of its
+keyframes; its inliers pair detection indices of the source and target keyframes.
 
 Thin rclpy wrapper: the algorithms live in rfm_core.matching.
 """
