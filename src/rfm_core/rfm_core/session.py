@@ -191,9 +191,9 @@ class MapSession:
         return map_id
 
     def _translate_edge(self, edge: EdgeRecord, source: int) -> EdgeRecord | None:
-        """The edge between map ids; None while one of its keyframes has not arrived."""
+        """The edge between map ids; None while one of its keyframes is not in the map."""
         a, b = self._incoming.get((source, edge.source)), self._incoming.get((source, edge.target))
-        if a is None or b is None:
+        if a is None or b is None or a not in self.mapper.keyframes or b not in self.mapper.keyframes:
             return None
         return replace(edge, source=a, target=b)
 
@@ -209,9 +209,8 @@ class MapSession:
         its keyframes has not arrived."""
         if self.mode != 'mapping':
             return
-        keyframes = self.mapper.keyframes
         mapped = self._translate_edge(edge, source)
-        if mapped is None or mapped.source not in keyframes or mapped.target not in keyframes:
+        if mapped is None:
             self.pending_edges.append((self.clock(), source, edge))
             if len(self.pending_edges) > PENDING_EDGES:
                 self.pending_edges.pop(0)
@@ -226,27 +225,24 @@ class MapSession:
             self.warn(f'edge dropped: {exc}')
 
     def _retry_edges(self) -> None:
-        if not self.pending_edges:
-            return
-        pending, self.pending_edges = self.pending_edges, []
-        now = self.clock()
-        for arrived, source, edge in pending:
-            mapped = self._translate_edge(edge, source)
-            if mapped is not None and mapped.source in self.mapper.keyframes and mapped.target in self.mapper.keyframes:
-                self.add_edge(edge, source)
-            elif now - arrived < PENDING_EDGE_AGE_S:
-                self.pending_edges.append((arrived, source, edge))
+        self.pending_edges = self._retry(self.pending_edges, lambda e, s: self._translate_edge(e, s) is not None,
+                                         self.add_edge)
 
     def _retry_frames(self) -> None:
-        if not self.pending_frames:
-            return
-        pending, self.pending_frames = self.pending_frames, []
-        now = self.clock()
-        for arrived, source, track in pending:
-            if (source, track.keyframe_id) in self._incoming:
-                self.add_frame(track, source)
+        self.pending_frames = self._retry(self.pending_frames, lambda t, s: (s, t.keyframe_id) in self._incoming,
+                                          self.add_frame)
+
+    def _retry(self, pending: list, ready, add) -> list:
+        """Hand on the waiting (arrival time, session, item) whose keyframes have arrived
+        (``ready(item, session)``, then ``add(item, session)``); returns those still waiting
+        and younger than PENDING_EDGE_AGE_S."""
+        now, still = self.clock(), []
+        for arrived, source, item in pending:
+            if ready(item, source):
+                add(item, source)
             elif now - arrived < PENDING_EDGE_AGE_S:
-                self.pending_frames.append((arrived, source, track))
+                still.append((arrived, source, item))
+        return still
 
     def attach_external_poses(self) -> None:
         """Posed mode: give waiting keyframes their poses from ``pose_lookup`` (call again
