@@ -54,8 +54,9 @@ def run(config: CaptureConfig) -> dict:
         t0 = time.perf_counter()
         if keyframe is not None:
             mapper.add_keyframe(keyframe.keyframe_id, keyframe.observations)
-            for e in edges:
-                mapper.add_edge(EdgeRecord.from_edge(e))
+        for e in edges:                                # a keyframe's, or a revisit's
+            mapper.add_edge(EdgeRecord.from_edge(e))
+        if keyframe is not None or edges:
             mapper.update()
         if track is not None:
             mapper.add_frame(track)

@@ -178,6 +178,36 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     assert fresh.poses.keys() == good.keys()            # refused loads left the map alone
 
 
+def test_repeated_measurements_of_a_pair_vote_and_survive_a_map_file(mapped, tmp_path):
+    """Frames revisiting keyframes measure their pairs again: each new measurement votes in
+    pose averaging (a wrong one is dropped), the same message twice counts once, a pair keeps
+    at most MAX_PAIR_MEASUREMENTS, and a map file keeps every measurement and its verdict."""
+    from dataclasses import replace
+    from rfm_core.mapping.mapper import MAX_PAIR_MEASUREMENTS
+    mapper = Mapper()
+    for k, obs in mapped.mapper.keyframes.items():
+        mapper.add_keyframe(k, obs)
+    firsts = list(mapped.mapper.edges.values())
+    for e in firsts:
+        assert mapper.add_edge(e)
+    e0 = firsts[0]
+    near = replace(e0, pose=Pose4(e0.pose.yaw, e0.pose.t + 0.01))
+    wrong = replace(e0, pose=Pose4(e0.pose.yaw, e0.pose.t + np.array([0.8, 0.0, 0.0])))
+    assert mapper.add_edge(near) and mapper.add_edge(wrong) and not mapper.add_edge(near)
+    mapper.update(force_full=True)
+    kept = {id(e) for e in mapper.active_edges()}
+    assert id(near) in kept and id(wrong) not in kept and id(e0) in kept
+    path = save_map(mapper, tmp_path / 'repeats.rfm')
+    fresh = Mapper()
+    load_map(fresh, path)
+    assert [(e.source, e.target, e.pose) for e in fresh.measurements()] == \
+        [(e.source, e.target, e.pose) for e in mapper.measurements()]
+    assert [id(e) in {id(a) for a in fresh.active_edges()} for e in fresh.measurements()] == \
+        [id(e) in kept for e in mapper.measurements()]
+    added = sum(mapper.add_edge(replace(e0, pose=Pose4(e0.pose.yaw, e0.pose.t + 0.001 * i))) for i in range(1, 30))
+    assert added == MAX_PAIR_MEASUREMENTS - 3
+
+
 def test_the_map_is_built_from_full_boxes_and_saves_them(mapped, tmp_path):
     """Keyframes whose detections carry full boxes (depth_clusters' refiner) build their
     tracks from those; the boxes behind relative poses stay the fitted ones; a map file keeps

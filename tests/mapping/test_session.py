@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from sim_frames import detected_frames
 
+from rfm_core.geometry import Pose4
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import EdgeRecord, Mapper
 from rfm_core.matching.view_graph import ViewGraphBuilder
@@ -26,10 +27,10 @@ def _feed(session: MapSession, frames, expected: set, source: int = 0, sent: lis
             stamps[keyframe.keyframe_id] = keyframe.observations.stamp_ns
             sent.append(('keyframe', keyframe.keyframe_id, keyframe.observations))
             session.add_keyframe(keyframe.keyframe_id, keyframe.observations, source)
-            for e in edges:
-                expected.add(frozenset((stamps[e.source_id], stamps[e.target_id])))
-                sent.append(('edge', EdgeRecord.from_edge(e)))
-                session.add_edge(EdgeRecord.from_edge(e), source)
+        for e in edges:                                      # a keyframe's, or a revisit's
+            expected.add(frozenset((stamps[e.source_id], stamps[e.target_id])))
+            sent.append(('edge', EdgeRecord.from_edge(e)))
+            session.add_edge(EdgeRecord.from_edge(e), source)
         if track is not None:
             session.add_frame(track, source)
     session.update(force_full=True)
@@ -144,3 +145,47 @@ def test_a_restored_map_recognises_the_keyframes_it_gets_again(observations, tmp
     assert len(set(stamps)) == len(stamps)
     made = _edges_by_stamp(restored.mapper)
     assert made <= expected and len(made) >= 0.9 * len(expected)
+
+
+def test_revisits_measure_edges_and_the_walk_stops_adding_keyframes():
+    """A handheld walk going round one room about five times (the soak's room, #19 item 4):
+    frames that revisit older keyframes add no keyframe but measure the edges a keyframe
+    would have (the reference they leave to the one they revisit, and the latter to every
+    other keyframe they verify): as accurate as the keyframes' own edges. After two loops
+    the walk adds at most two thirds as many keyframes as in them, and the map stays
+    within centimetres of the truth."""
+    from rfm_core.evaluation.pipeline import detections_for
+    from rfm_core.evaluation.trajectory import trajectory_errors
+    from rfm_core.mapping.frame_log import camera_to_map
+    from rfm_core.session import Session
+    from rfm_core.sim.capture import Capture, CaptureConfig
+    detect = detections_for('ground_truth:rgbd', noise_seed=2)
+    frames, truth = [], {}
+    for frame in Capture(CaptureConfig(seed=7000, frames=250, fps=5, furniture='parts')).frames():
+        obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
+        frames.append(obs)
+        truth[obs.stamp_ns] = frame.pose_matrix
+    session = Session()
+    steps = [session.step(obs) for obs in frames]
+    session.finish()
+    mapper = session.mapper
+
+    def error_m(edge) -> float:                  # the edge's camera displacement against the truth
+        kf = mapper.keyframes
+        measured = np.linalg.inv(camera_to_map(Pose4(0.0, (0.0, 0.0, 0.0)), kf[edge.source].gravity_cam)) \
+            @ camera_to_map(edge.pose.inverse(), kf[edge.target].gravity_cam)
+        true = np.linalg.inv(truth[kf[edge.source].stamp_ns]) @ truth[kf[edge.target].stamp_ns]
+        return float(np.linalg.norm(measured[:3, 3] - true[:3, 3]))
+
+    revisited = [s for s in steps if s.keyframe is None and s.edges]
+    assert len(revisited) >= 20 and len(mapper.repeats) >= 50
+    repeats = np.median([error_m(e) for e in mapper.repeats])
+    firsts = np.median([error_m(e) for e in mapper.edges.values()])
+    assert repeats <= max(1.5 * firsts, 0.05), (repeats, firsts)
+    half = len(frames) * 2 // 5                                   # about two loops
+    first = sum(s.keyframe is not None for s in steps[:half])
+    later = sum(s.keyframe is not None for s in steps[half:])
+    assert later <= first * 2 // 3, (first, later)
+    errors = trajectory_errors(mapper.frame_poses(), truth, align='4dof')
+    assert errors['registered'] >= 0.9 and errors['ATE_median'] <= 0.05 and errors['ARE_median'] <= 1.5, errors

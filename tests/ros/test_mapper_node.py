@@ -43,9 +43,9 @@ def _graph_messages():
         if keyframe is not None:
             det = frame_detections_to_msg(keyframe.observations)
             messages.append(Keyframe(header=det.header, keyframe_id=keyframe.keyframe_id, detections=det))
-            messages += [edge_msg(e, obs.stamp_ns) for e in edges]
             truth[keyframe.keyframe_id] = next(f.pose_matrix for f, _ in frames
                                                if f.stamp_ns == keyframe.observations.stamp_ns)
+        messages += [edge_msg(e, obs.stamp_ns) for e in edges]      # a keyframe's, or a revisit's
         if track is not None:
             messages.append(tracked_frame_to_msg(track))
     return messages, truth, frames

@@ -465,7 +465,7 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
                'lost_between_nodes': progress.get('lost', 0),
                'localized': len(mapper.frame_poses()), 'keyframes': len(mapper.keyframes),
                'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),
-               'edges_rejected': len(mapper.edges) - len(mapper.active_edges()), 'objects': len(mapper.tracks()),
+               'edges_rejected': len(mapper.measurements()) - len(mapper.active_edges()), 'objects': len(mapper.tracks()),
                'wall_s': wall_s, 'bag_s': bag_s, 'realtime': bag_s / max(wall_s, 1e-9), 'accuracy': accuracy}
     write_report(output / 'report.md', summary)
     machine = dict(summary, accuracy={k: v for k, v in accuracy.items() if k != 'alignment'} if accuracy else None)

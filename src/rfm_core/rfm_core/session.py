@@ -431,8 +431,9 @@ class Session:
         matched = time.perf_counter()
         if keyframe is not None:                          # this frame, or an earlier one bridging lost tracking
             self.map.add_keyframe(keyframe.keyframe_id, keyframe.observations)
-            for edge in edges:
-                self.map.add_edge(EdgeRecord.from_edge(edge))
+        for edge in edges:                                # the keyframe's, or a revisit's
+            self.map.add_edge(EdgeRecord.from_edge(edge))
+        if keyframe is not None or edges:
             self.map.update()                             # 3.5: incremental pose averaging
         camera = self.map.add_frame(track) if track is not None else None
         self.seconds['match'] += matched - start

@@ -299,7 +299,7 @@ class MapperNode(Node):
         msg.num_registered = len(mp.poses)
         active = len(mp.active_edges())
         msg.num_edges = active
-        msg.num_edges_rejected = len(mp.edges) - active
+        msg.num_edges_rejected = len(mp.measurements()) - active
         msg.num_objects = self.num_objects
         msg.num_components = mp.num_components()
         msg.num_frames = len(mp.frames)

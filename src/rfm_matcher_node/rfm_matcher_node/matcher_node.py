@@ -71,9 +71,9 @@ class MatcherNode(Node):
             self.keyframe_pub.publish(self._numbered(Keyframe(header=detections.header,
                                                               keyframe_id=keyframe.keyframe_id,
                                                               detections=detections)))
-            for edge in edges:
-                self.edge_pub.publish(self._numbered(edge_msg(edge, obs.stamp_ns)))
             self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')
+        for edge in edges:                        # the keyframe's, or those a revisiting frame measured
+            self.edge_pub.publish(self._numbered(edge_msg(edge, obs.stamp_ns)))
         if track is not None:            # after its keyframe, so the mapper knows the keyframe
             self.track_pub.publish(self._numbered(tracked_frame_to_msg(track)))
 

@@ -411,14 +411,6 @@ class _EdgeStore:
         self._blocked[i] = False
         self.n += 1
 
-    def keep(self, mask):
-        """Drop the edges where ``mask`` is False."""
-        idx = np.flatnonzero(mask)
-        for name in _EDGE_ARRAYS:
-            arr = getattr(self, name)
-            arr[:len(idx)] = arr[idx]
-        self.n = len(idx)
-
     src = property(lambda self: self._src[:self.n])
     dst = property(lambda self: self._dst[:self.n])
     yaw = property(lambda self: self._yaw[:self.n])
@@ -488,14 +480,6 @@ class IncrementalAverager:
                           float(weight), yaw_only)
         self._new_edges = True
 
-    def remove_keyframe_edges(self, keyframe_id: int) -> None:
-        """Forget every edge of a keyframe (e.g. its detections were found bad)."""
-        k = self._index.get(keyframe_id)
-        if k is not None:
-            self.edges.keep((self.edges.src != k) & (self.edges.dst != k))
-            self._settled_edges = len(self.edges)
-            self._needs_full = True
-
     # ------------------------------------------------------------------ output
 
     @property
@@ -548,14 +532,13 @@ class IncrementalAverager:
                                  int(np.count_nonzero(~self.edges.active)))
         return self.stats
 
-    def restore(self, poses: dict, active_edges) -> None:
+    def restore(self, poses: dict, active) -> None:
         """Set the solution (e.g. from a map file) without solving: ``poses`` {id: Pose4
-        T_k_map} of the registered keyframes, ``active_edges`` the (source, target) pairs
-        kept. Keyframes and edges must have been added."""
+        T_k_map} of the registered keyframes, ``active`` whether each edge (in the order
+        added) is kept; yaw-only edges always are. Keyframes and edges must have been added."""
         self.update()                            # fold pending input first, then overwrite
-        keep = set(map(tuple, active_edges))
         e = self.edges
-        e.active[:] = np.array([(self.ids[a], self.ids[b]) in keep for a, b in zip(e.src, e.dst)], bool) | e.yaw_only
+        e.active[:] = np.asarray(active, bool).reshape(len(e)) | e.yaw_only
         self._registered[:] = False
         self._theta[:] = np.nan
         self._centres[:] = np.nan

@@ -73,13 +73,13 @@ def _keyframe_arrays(mapper: Mapper) -> dict:
 
 
 def _edge_arrays(mapper: Mapper) -> dict:
-    edges = list(mapper.edges.values())
-    active = {(e.source, e.target) for e in mapper.active_edges()}
+    edges = mapper.measurements()
+    active = {id(e) for e in mapper.active_edges()}
     return {
         'edge_ids': np.array([[e.source, e.target] for e in edges], np.int64).reshape(-1, 2),
         'edge_poses': np.array([[e.pose.yaw, *e.pose.t] for e in edges], float).reshape(-1, 4),
         'edge_scores': np.array([e.score for e in edges], float),
-        'edge_active': np.array([(e.source, e.target) in active for e in edges], bool),
+        'edge_active': np.array([id(e) in active for e in edges], bool),
         'edge_inlier_counts': np.array([len(e.inliers) for e in edges], np.int64),
         'edge_inliers': (np.concatenate([e.inliers for e in edges]).astype(np.int64)
                          if edges else np.zeros((0, 2), np.int64)).reshape(-1, 2),
@@ -103,7 +103,7 @@ def save_map(mapper: Mapper, path) -> Path:
     arrays['pose_values'] = np.array([[poses[k].yaw, *poses[k].t] for k in pose_ids], float).reshape(-1, 4)
     arrays.update({f'frame_{k}': v for k, v in mapper.frames.arrays().items()})
     header = {'format': FORMAT, 'version': VERSION, 'keyframes': len(mapper.keyframes),
-              'edges': len(mapper.edges), 'registered': len(pose_ids), 'posed': mapper.config.posed,
+              'edges': len(arrays['edge_ids']), 'registered': len(pose_ids), 'posed': mapper.config.posed,
               'frames': len(mapper.frames), 'revision': mapper.revision, 'config': mapper.config.to_dict(), **lists}
     buffer = io.BytesIO()
     np.savez_compressed(buffer, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
@@ -262,9 +262,9 @@ def _parse_map(path: Path, data: dict) -> dict:
                                 data['edge_inlier_scores'][io_[i]:io_[i + 1]],
                                 data['edge_corners'][ic[i]:ic[i + 1]], float(data['edge_scores'][i])))
     poses = {int(k): Pose4(float(v[0]), v[1:]) for k, v in zip(data['pose_ids'], data['pose_values'])}
-    active = [(int(s), int(t)) for (s, t), a in zip(data['edge_ids'], data['edge_active']) if a]
     origins = {int(k): (int(s), int(i)) for k, (s, i) in zip(data['kf_ids'], data.get('kf_origin', ())) if s}
-    return {'header': header, 'keyframes': keyframes, 'edges': edges, 'poses': poses, 'active_edges': active,
+    return {'header': header, 'keyframes': keyframes, 'edges': edges, 'poses': poses,
+            'edge_active': [bool(a) for a in data['edge_active']],
             'config': config, 'frames': frames, 'origins': origins}
 
 
@@ -282,11 +282,7 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
             fresh.add_keyframe(k, content['keyframes'][k])
         for e in content['edges']:
             fresh.add_edge(e)
-        if fresh.config.posed:
-            for k, p in content['poses'].items():
-                fresh.set_keyframe_pose(k, p)
-        else:
-            fresh.averager.restore(content['poses'], content['active_edges'])
+        fresh.restore(content['poses'], [e for e, a in zip(content['edges'], content['edge_active']) if a])
         if content['frames']:
             fresh.frames.restore(content['frames'])
     except (ValueError, TypeError, IndexError, KeyError) as exc:

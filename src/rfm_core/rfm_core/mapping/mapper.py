@@ -35,6 +35,10 @@ __all__ = ['MapperConfig', 'RelocalizationConfig', 'EdgeRecord', 'Relocalization
 
 MODES = ('mapping', 'localization')
 
+#: measurements of one keyframe pair kept at most (the first and its repeats, from frames that
+#: revisit the pair): the map's edges grow with its keyframes, not with time
+MAX_PAIR_MEASUREMENTS = 16
+
 
 @dataclass(frozen=True)
 class MapperConfig:
@@ -98,7 +102,10 @@ class Mapper:
 
     def reset(self) -> None:
         self.keyframes: dict = {}            # id -> FrameObservations
-        self.edges: dict = {}                # (source, target) -> EdgeRecord
+        self.edges: dict = {}                # (source, target) -> EdgeRecord: the pair's first measurement
+        self.repeats: list = []              # the pairs' further measurements (revisits), in arrival order
+        self._pairs: dict = {}               # (source, target) -> every measurement of the pair
+        self._averaged: dict = {}            # averager edge index -> EdgeRecord
         self._edges_to: dict = {}            # target -> [(source, target), ...]
         self.averager = IncrementalAverager(self.config.averaging)
         self.external_poses: dict = {}       # posed mode: id -> Pose4 T_k_map
@@ -138,11 +145,13 @@ class Mapper:
 
     def add_edge(self, edge: EdgeRecord) -> bool:
         """Add a verified edge; False when ignored (localization mode, unknown keyframe,
-        duplicate, or malformed)."""
+        a loop, a pair measured ``MAX_PAIR_MEASUREMENTS`` times already, or malformed). A
+        pair measured before (a frame revisiting it) adds a repeat measurement: all of them
+        vote in pose averaging."""
         if self.mode != 'mapping':
             return False
         key = (edge.source, edge.target)
-        if key in self.edges or edge.source == edge.target:
+        if edge.source == edge.target or len(self._pairs.get(key, ())) >= MAX_PAIR_MEASUREMENTS:
             return False
         for k, col in ((edge.source, 0), (edge.target, 1)):
             if k not in self.keyframes:
@@ -150,9 +159,16 @@ class Mapper:
             if len(edge.inliers) and (edge.inliers[:, col].max() >= len(self.keyframes[k])
                                       or edge.inliers[:, col].min() < 0):
                 raise ValueError(f'edge {key}: inlier index out of range for keyframe {k}')
-        self.edges[key] = edge
-        self._edges_to.setdefault(edge.target, []).append(key)
+        if key in self.edges:
+            if any(e.pose == edge.pose for e in self._pairs[key]):          # the same message again
+                return False
+            self.repeats.append(edge)
+        else:
+            self.edges[key] = edge
+            self._edges_to.setdefault(edge.target, []).append(key)
+        self._pairs.setdefault(key, []).append(edge)
         if not self.config.posed:
+            self._averaged[len(self.averager.edges)] = edge
             self.averager.add_edge(edge.source, edge.target, edge.pose,
                                    edge.weight * self.config.averaging.turn_factor(edge.pose.yaw))
         self._tracks = None
@@ -258,10 +274,29 @@ class Mapper:
         graph = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(len(ids), len(ids)))
         return int(connected_components(graph, directed=False)[0])
 
+    def measurements(self) -> list:
+        """Every edge measurement: each pair's first, then the repeats."""
+        return list(self.edges.values()) + self.repeats
+
     def active_edges(self) -> list:
+        """The edge measurements the current solution keeps."""
         if self.config.posed:
-            return list(self.edges.values())
-        return [self.edges[k] for k in self.averager.active_edges() if k in self.edges]
+            return self.measurements()
+        e = self.averager.edges
+        return [self._averaged[i] for i in np.flatnonzero(e.active & ~e.yaw_only) if i in self._averaged]
+
+    def restore(self, poses: dict, kept: list) -> None:
+        """Set the solution without solving (a map file's): ``poses`` {id: Pose4 T_k_map},
+        ``kept`` the added edge measurements it keeps."""
+        if self.config.posed:
+            for k, p in poses.items():
+                self.set_keyframe_pose(k, p)
+            return
+        kept = {id(e) for e in kept}
+        mask = np.zeros(len(self.averager.edges), bool)
+        for i, e in self._averaged.items():
+            mask[i] = id(e) in kept
+        self.averager.restore(poses, mask)
 
     def tracks(self) -> list:
         """Object tracks of the current map (cached until the map changes)."""

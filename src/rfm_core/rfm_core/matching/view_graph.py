@@ -6,7 +6,11 @@ relative pose to that keyframe localizes it. It becomes a keyframe when tracking
 when it shares too few objects with the keyframe, or has moved or turned too far from it.
 A new keyframe is then matched against candidates: the few most recent keyframes plus the
 keyframes whose bag-of-objects descriptor (mean of the object embeddings) is most similar,
-so the cost per keyframe stays bounded however large the map grows.
+so the cost per keyframe stays bounded however large the map grows. A frame of a stream
+that would become a keyframe is first tried against older keyframes (a revisit): one that
+verifies it becomes the reference instead, and the frame sends the edges a keyframe there
+would have added, measured through itself, so that a map that stops growing still gets
+the repeated measurements that outvote a wrong edge.
 
 Whether the frames come from a continuous stream (a camera moving through the room) or are
 separate views (photos seconds apart, an unordered collection) is decided from the frame
@@ -48,6 +52,13 @@ class KeyframeConfig:
     max_yaw_deg: float = setting(20.0, 'New keyframe after turning this much from the last one (deg)',
                                  lo=0.0, hi=180.0)
     min_detections: int = setting(2, 'Skip frames with fewer detections', lo=0, hi=1000)
+    min_keyframe_detections: int = setting(3, 'Within a stream, a frame with fewer detections does not become a '
+                                           'new keyframe where a neighbour of the reference (other than the '
+                                           'reference) already covers its predicted pose (it is tracked when it '
+                                           'can be, else left unlocalized): it could not verify a revisit '
+                                           '(min_retrieved_inliers) and its edges rest on two objects, so on a '
+                                           'long capture such views would add keyframes with time, not with the '
+                                           'room. Elsewhere it links the walk as before', lo=0, hi=1000)
     min_interval_s: float = setting(0.0, 'No new keyframe sooner than this after the last one (s; 0: off). '
                                     'Fewer keyframes cost less matching but lower accuracy (BENCHMARKS.md)',
                                     lo=0.0, hi=60.0)
@@ -82,11 +93,17 @@ class KeyframeConfig:
     motion_prior: bool = setting(True, 'Within a stream, reject tracking and edges implying faster motion than '
                                  'max_yaw_rate_deg_s / max_speed_m_s plus the slack; false: every frame is a '
                                  'separate view (stamps mean nothing)')
-    reuse_keyframes: bool = setting(True, 'Revisits: a frame of a stream that would become a keyframe is first '
-                                    'localized against the retrieved older keyframes; one it verifies against '
-                                    '(min_retrieved_inliers objects, and overlapping as the reference would '
-                                    'need) becomes the reference instead of a new keyframe: the map grows with '
-                                    'the places seen, not with time')
+    reuse_keyframes: bool = setting(True, 'Revisits: a frame of a stream that would become a keyframe (or '
+                                    'bridge lost tracking) is first localized against older keyframes (the '
+                                    "reference's graph neighbourhood, then the retrieved ones); one it verifies "
+                                    'against (min_retrieved_inliers objects, and overlapping as the reference '
+                                    'would need) becomes the reference instead of a new keyframe: the map grows '
+                                    'with the places seen, not with time')
+    revisit_edges: int = setting(8, 'Revisits: a frame that revisits links, as a keyframe would, the keyframe it '
+                                 'leaves to the one it revisits and that one to every other keyframe it verified '
+                                 'against (edges measured through the frame); at most this many measurements of one '
+                                 'keyframe pair (0: none). Without them a map that stops growing keeps its first '
+                                 'edges unchallenged', lo=0, hi=16)
     min_retrieved_inliers: int = setting(3, 'Verified objects an edge needs where the motion prior cannot check '
                                          'it (separate views, retrieved keyframes): two verify nothing beyond '
                                          'the minimal sample, and repeated furniture aliases', lo=2, hi=100)
@@ -114,6 +131,12 @@ class Edge:
     def score(self) -> float:
         """Confidence in [0, 1]: the share of matched objects that verified the pose."""
         return float(np.clip(self.relative.inlier_ratio, 0.0, 1.0))
+
+
+def _reversed(rel: RelativePose) -> RelativePose:
+    """T_b_a of a verified T_a_b, its inliers as (b, a)."""
+    return RelativePose(rel.pose.inverse(), rel.inliers[:, ::-1], rel.inlier_ious, rel.inlier_scores,
+                        rel.mean_error, rel.num_matches)
 
 
 def bag_of_objects(obs: FrameObservations) -> np.ndarray:
@@ -165,6 +188,8 @@ class _Stats:
     predicted_tracking: int = 0       #: frames tracked with predicted matches (no object matcher)
     motion_edges: int = 0             #: keyframes placed by the motion alone (tracking lost a moment)
     reused: int = 0                   #: frames that made an older keyframe the reference (revisits)
+    handovers: int = 0                #: edges from the reference left to the keyframe revisited
+    through: int = 0                  #: edges between keyframes measured through a revisiting frame
     last_candidates: list = field(default_factory=list)
     tracking_s: float = 0.0           #: time spent localizing frames against the last keyframe
     keyframe_s: float = 0.0           #: time spent matching new keyframes against candidates
@@ -187,7 +212,9 @@ class ViewGraphBuilder:
         self._tracking: _Tracking | None = None
         self._motion_placed: set = set()  # keyframes placed by a motion edge alone
         self._neighbours: dict = {}       # keyframe index -> indices it shares a verified edge with
+        self._edge_pose: dict = {}        # (index i, index j) -> T_i_j of their verified edge
         self._index: dict = {}            # keyframe id -> index
+        self._pair_edges: dict = {}       # (source id, target id) -> measurements of the pair sent
         self._ref = -1                    # index of the reference keyframe frames are tracked against
 
     @property
@@ -383,7 +410,8 @@ class ViewGraphBuilder:
         start = time.perf_counter()
         last_rel = self._track(obs, stream) if self.keyframes else None
         self.stats.tracking_s += time.perf_counter() - start
-        if last_rel is not None and (self._too_soon(obs) or not self._is_keyframe(obs, last_rel)):
+        if last_rel is not None and (self._too_soon(obs) or self._weak(obs, stream)
+                                     or not self._is_keyframe(obs, last_rel)):
             last = self.reference
             self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel,
                                        verified_ns=self._verified_through(last.keyframe_id))
@@ -391,19 +419,38 @@ class ViewGraphBuilder:
             return GraphStep(None, [], FrameTrack(
                 obs.stamp_ns, obs.frame_id, obs.gravity_cam, last.keyframe_id, last.observations.stamp_ns, last_rel.pose,
                 len(last_rel.inliers), is_keyframe=False, continuous=stream))
+        if self.config.reuse_keyframes and stream and len(self.keyframes) > 1:
+            revisit = self._revisit(obs, stream, last_rel)
+            if revisit is not None:
+                return revisit
         if last_rel is None and stream and self._tracking is not None and self._tracking.observations is not None:
             bridged = self._bridge(obs)
             if bridged is not None:
                 return bridged
-        if self._too_soon(obs):                     # lost, but no keyframe yet
+        if self._too_soon(obs) or self._weak(obs, stream):          # lost, but no keyframe (yet)
             return GraphStep(None, [], None)
-        if self.config.reuse_keyframes and stream and len(self.keyframes) > 1:
-            revisit = self._revisit(obs, stream)
-            if revisit is not None:
-                return revisit
         return self._new_keyframe(obs, last_rel, stream)
 
-    def _revisit(self, obs: FrameObservations, stream: bool) -> GraphStep | None:
+    def _weak(self, obs: FrameObservations, stream: bool, pose: Pose4 | None = None) -> bool:
+        """Whether a frame of a stream has too few detections to become a new keyframe
+        where the map already has one: a neighbour of the reference (not the reference
+        itself, which it failed to track against) within ``max_translation_m`` and
+        ``max_yaw_deg`` of its pose relative to the reference (``pose``, else predicted)."""
+        cfg = self.config
+        if not (stream and self.keyframes and len(obs) < cfg.min_keyframe_detections):
+            return False
+        pose = pose if pose is not None else self._predicted_pose(obs)        # T_ref_frame
+        if pose is None:
+            return False
+        ref = self._ref % len(self.keyframes)
+        for j in self._neighbours.get(ref, ()):
+            near = self._edge_pose[ref, j].inverse() @ pose                    # T_j_frame
+            if (np.linalg.norm(near.t) <= cfg.max_translation_m
+                    and np.degrees(abs(wrap_angle(near.yaw))) <= cfg.max_yaw_deg):
+                return True
+        return False
+
+    def _revisit(self, obs: FrameObservations, stream: bool, last_rel: RelativePose | None = None) -> GraphStep | None:
         """A frame about to become a keyframe, localized against older keyframes instead
         (the reference's neighbours two edges away, then the retrieved ones): of those that
         verify it with ``min_retrieved_inliers`` objects and overlap it as the reference would
@@ -417,35 +464,101 @@ class ViewGraphBuilder:
         near |= {j for i in near for j in self._neighbours.get(i, ())}
         cand = sorted(near - {ref}, reverse=True)[:self.config.retrieved_keyframes + self.config.recent_keyframes]
         cand += [i for i in self.candidates(bag_of_objects(obs), separate=not stream) if i != ref and i not in cand]
-        found = None
+        found, verified = None, []
         if cand:
             matches = self.matcher.match_many(obs, [self.keyframes[i].observations for i in cand])
             for i, m in zip(cand, matches):
                 source = self.keyframes[i].observations
                 rel = self._relative(source, obs, m, stream=False)
-                if (rel is not None and len(rel.inliers) >= self.config.min_retrieved_inliers
-                        and not self._is_keyframe(obs, rel, source)
+                if rel is None or len(rel.inliers) < self.config.min_retrieved_inliers:
+                    continue
+                verified.append((i, rel))
+                if (not self._is_keyframe(obs, rel, source)
                         and (found is None or len(rel.inliers) > len(found[1].inliers))):
                     found = (i, rel)
         self.stats.tracking_s += time.perf_counter() - start
-        if found is None:
-            return None
-        i, rel = found
+        return None if found is None else self._revisited(obs, stream, *found, last_rel, verified)
+
+    def _revisited(self, obs: FrameObservations, stream: bool, i: int, rel: RelativePose,
+                   last_rel: RelativePose | None, verified=()) -> GraphStep:
+        """The frame tracked against keyframe index ``i`` (``rel``), which becomes the
+        reference, with the edges it measured (:attr:`KeyframeConfig.revisit_edges`):
+        ``last_rel`` its pose to the reference it leaves, ``verified`` the other keyframes
+        (index, pose) it verified against."""
+        edges = [self._handover(obs, i, rel, last_rel)]
+        # the frame, as a keyframe would, links the keyframes it verified against: each to the new reference
+        edges += [self._through(self.keyframes[i].keyframe_id, self.keyframes[j].keyframe_id,
+                                rel.pose @ rel_j.pose.inverse(), [rel, _reversed(rel_j)])
+                  for j, rel_j in verified if j != i]
+        edges = [e for e in edges if e is not None and self._count_pair(e) <= self.config.revisit_edges]
         self._ref = i
         kf = self.keyframes[i]
         self._tracking = _Tracking(kf.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
                                    verified_ns=self._verified_through(kf.keyframe_id))
         self.stats.tracked += 1
         self.stats.reused += 1
-        return GraphStep(None, [], FrameTrack(
+        return GraphStep(None, edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, kf.keyframe_id, kf.observations.stamp_ns, rel.pose,
             len(rel.inliers), is_keyframe=False, continuous=stream))
+
+    def _handover(self, obs: FrameObservations, i: int, rel: RelativePose,
+                  last_rel: RelativePose | None) -> Edge | None:
+        """The edge from the reference the frame leaves to keyframe index ``i`` it revisits
+        (T_reference_i through the frame: its pose to the reference, ``last_rel`` or through
+        the previous tracked frame, and ``rel``, its pose to ``i``), or None. A revisit adds
+        no keyframe, but its edge is the measurement a new keyframe would have added."""
+        ref = self.reference
+        legs = []
+        if last_rel is not None:
+            t_ref_frame = last_rel.pose
+            legs.append(last_rel)
+        else:
+            prev = self._tracking
+            if (prev is None or prev.observations is None or prev.relative is None
+                    or prev.keyframe_id != ref.keyframe_id):
+                return None
+            step = self._plausible(self._relative(prev.observations, obs, stream=True), prev.observations, obs)
+            if step is None:
+                return None
+            t_ref_frame = prev.pose @ step.pose
+            legs += [prev.relative, step]
+        legs.append(_reversed(rel))                                                  # (frame, i)
+        edge = self._through(ref.keyframe_id, self.keyframes[i].keyframe_id, t_ref_frame @ rel.pose.inverse(), legs)
+        self.stats.handovers += edge is not None
+        return edge
+
+    def _through(self, source_id: int, target_id: int, pose: Pose4, legs: list) -> Edge | None:
+        """The edge T_source_target (``pose``) measured through frames: ``legs`` are the
+        verified relative poses from the source keyframe to the target one, one after the other;
+        its inliers are the objects verified along every leg (None: fewer than two)."""
+        chain = {int(a): (int(a), 1.0) for a in legs[0].inliers[:, 0]}
+        for leg in legs:
+            step_map = {int(a): (int(b), float(s)) for (a, b), s in zip(leg.inliers, leg.inlier_scores)}
+            chain = {start: (step_map[end][0], min(score, step_map[end][1]))
+                     for start, (end, score) in chain.items() if end in step_map}
+        if len(chain) < 2:
+            return None
+        inliers = np.array([[a, b] for a, (b, _) in chain.items()], int)
+        scores = np.array([s for _, s in chain.values()], float)
+        ratio = min(leg.inlier_ratio for leg in legs)
+        self.stats.through += 1
+        return Edge(source_id, target_id, RelativePose(
+            pose, inliers, np.ones(len(inliers)), scores, max(leg.mean_error for leg in legs),
+            max(len(inliers), int(np.ceil(len(inliers) / max(ratio, 1e-3))))))
+
+    def _count_pair(self, edge: Edge) -> int:
+        """Count a measurement of the edge's keyframe pair; returns the pair's count."""
+        key = (edge.source_id, edge.target_id)
+        self._pair_edges[key] = self._pair_edges.get(key, 0) + 1
+        return self._pair_edges[key]
 
     def _bridge(self, obs: FrameObservations) -> GraphStep | None:
         """Tracking failed against the last keyframe: if the frame verifies against the last
         frame that was tracked (moments earlier), that frame becomes the keyframe (it is linked
         to the last keyframe by its tracked pose) and this frame is tracked against it."""
         prev = self._tracking
+        if prev.keyframe_id == self.reference.keyframe_id and self._weak(prev.observations, True, prev.pose):
+            return None
         start = time.perf_counter()
         rel = self._plausible(self._relative(prev.observations, obs, stream=True), prev.observations, obs)
         self.stats.tracking_s += time.perf_counter() - start
@@ -528,6 +641,10 @@ class ViewGraphBuilder:
                 i = self._index[e.source_id]
                 self._neighbours.setdefault(i, set()).add(self._ref)
                 self._neighbours.setdefault(self._ref, set()).add(i)
+                self._edge_pose[i, self._ref] = e.relative.pose
+                self._edge_pose[self._ref, i] = e.relative.pose.inverse()
+        for e in edges:
+            self._count_pair(e)
         self.stats.keyframes += 1
         self.stats.tracked += 1
         self.stats.edges += len(edges)
