@@ -286,6 +286,43 @@ def test_relocalization_of_a_second_trajectory(tmp_path):
     assert len(mapper.keyframes) == len(mapped.mapper.keyframes)      # the map did not change
 
 
+def test_a_pose_must_explain_the_query_in_the_whole_map(mapped, tmp_path):
+    """Relocalization checks a pose against the whole map: a keyframe's own view explains
+    its detections (each overlaps a map object once placed); a query whose two real objects
+    match but whose other detections land where the map has nothing is refused (the paper's
+    two-object test alone accepts a pose for it, here two of the free-space boxes matched to
+    real ones)."""
+    from dataclasses import replace
+    from rfm_core.mapping.relocalization import explained
+    path = save_map(mapped.mapper, tmp_path / 'room.rfm')
+    mapper = Mapper()
+    load_map(mapper, path)
+    mapper.mode = 'localization'
+    k = max(mapper.poses, key=lambda i: len(mapper.keyframes[i]))
+    view = mapper.keyframes[k]
+    assert len(view) >= 4
+    reloc = mapper.relocalize(view)
+    assert reloc is not None and reloc.explained >= 4
+    assert explained(view, mapper.poses[k], mapper.tracks(), mapper.config.matching) == reloc.explained
+    # two real objects, three boxes in free space (2.5 m up, where the room has nothing)
+    rng = np.random.default_rng(0)
+    fake = view.boxes[:3].copy()
+    fake[:, 2] += 2.5
+    query = replace(view, boxes=np.vstack([view.boxes[:2], fake]), scores=np.ones(5, np.float32),
+                    labels=[''] * 5, boxes_2d=np.zeros((5, 4), np.float32), visibility=np.ones(5, np.float32),
+                    object_ids=np.arange(5), corner_descriptors=None, full_boxes=None,
+                    embeddings=np.vstack([view.embeddings[:2],
+                                          rng.normal(size=(3, view.embeddings.shape[1])).astype(np.float32)]))
+    why = []
+    assert mapper.relocalize(query, why) is None
+    assert why and 'verification against the map failed' in why[0] and 'of the query\'s 5 detections' in why[0]
+    lenient = Mapper(replace(mapper.config, relocalization=replace(mapper.config.relocalization, min_explained=0)))
+    load_map(lenient, path, use_config=False)
+    lenient.mode = 'localization'
+    accepted = lenient.relocalize(query)
+    assert accepted is not None and accepted.support == 2 and accepted.explained < 4
+
+
 def test_consecutive_keyframes_of_one_gyroscope_epoch_get_its_yaw():
     """The mapper links consecutive keyframes integrated by one gyroscope epoch by the yaw
     it measured (a yaw-only averaging edge); none across epochs, none when switched off."""

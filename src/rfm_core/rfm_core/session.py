@@ -338,13 +338,14 @@ class MapSession:
             return None, f'the query has {len(obs)} detections; need >= 2'
         if not self.mapper.poses:
             return None, 'the map is empty: nothing to relocalize against'
-        reloc = self.mapper.relocalize(obs)
+        why = []
+        reloc = self.mapper.relocalize(obs, why)
         if reloc is None:
             self.counts['relocalize_failed'] += 1
-            return None, 'no keyframe verified a pose for the query (too few matching objects)'
+            return None, why[0] if why else 'no pose found'
         self.counts['relocalized'] += 1
         return reloc, (f'relocalized against keyframe {reloc.keyframe_id}: {reloc.num_inliers} inliers, '
-                       f'{reloc.agreeing} agreeing keyframes')
+                       f'{reloc.agreeing} agreeing keyframes, {reloc.explained} detections explained by the map')
 
     def localize(self, obs: FrameObservations) -> CameraPose | None:
         """Localization mode: relocalize a frame against the (frozen) map and log it."""

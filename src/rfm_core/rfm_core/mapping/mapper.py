@@ -313,7 +313,7 @@ class Mapper:
 
     # ------------------------------------------------------------------ relocalization
 
-    def relocalize(self, query: FrameObservations) -> Relocalization | None:
+    def relocalize(self, query: FrameObservations, why: list | None = None) -> Relocalization | None:
         """The paper's procedure, made more robust: match the query against registered
         keyframes (the ``relocalization.candidates`` most similar by bag-of-objects
         descriptor) and verify each relative pose. The paper takes the keyframe with the most
@@ -324,4 +324,4 @@ class Mapper:
         the agreeing keyframes and refitted on the map's tracks. ``keyframe_id`` is the
         agreeing keyframe with the most inliers."""
         return relocalize(query, self.keyframes, self.poses, self._descriptors, self.tracks, self.matcher,
-                          self.config.relocalization, self.config.matching, self.config.averaging)
+                          self.config.relocalization, self.config.matching, self.config.averaging, why)

@@ -6,7 +6,10 @@ takes the keyframe with the most object inliers. Here every keyframe verified wi
 ``min_keyframe_inliers`` objects votes for its pose; the pose whose agreeing keyframes
 (within pose averaging's outlier thresholds) verify the most distinct query objects wins,
 needs ``min_inliers`` of them, is averaged over the agreeing keyframes, and is refitted on
-the map's object tracks. No ROS here; the mapper (and its node's ``rfm/relocalize``
+the map's object tracks. Up to ``hypotheses`` such poses (groups of agreeing keyframes) are
+then checked against the whole map: the query's detections placed by each must overlap the
+map's objects, ``min_explained`` of them (all, for a query with fewer); the pose explaining
+the most wins. No ROS here; the mapper (and its node's ``rfm/relocalize``
 service, and localization mode) call :func:`relocalize`.
 """
 from __future__ import annotations
@@ -24,7 +27,7 @@ from rfm_core.matching.view_graph import bag_of_objects
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'relocalize', 'refine_on_tracks']
+__all__ = ['RelocalizationConfig', 'Relocalization', 'relocalize', 'refine_on_tracks', 'explained']
 
 
 @dataclass(frozen=True)
@@ -35,6 +38,14 @@ class RelocalizationConfig:
                                'for fewer wrong poses', lo=1, hi=100,
                                paper='2 (one keyframe verified by the relative-pose test)')
     min_keyframe_inliers: int = setting(2, "A keyframe's vote needs this many inliers", lo=1, hi=100)
+    min_explained: int = setting(4, "Query detections the pose must explain in the map (all of them, for a query "
+                                 "with fewer): placed by it, each overlapping one of the map's objects (its box or a "
+                                 "view of it) with the relative pose test's IoU. Verifies the pose against the whole "
+                                 "map, not only the matched keyframes: a wrong pose from look-alike furniture "
+                                 "explains its two or three matches and little else (BENCHMARKS.md); 0: off",
+                                 lo=0, hi=100)
+    hypotheses: int = setting(3, 'Distinct poses (groups of agreeing keyframes, by support) verified against the '
+                              'map per query; the one explaining the most detections wins', lo=1, hi=20)
 
 
 @dataclass
@@ -46,6 +57,7 @@ class Relocalization:
     candidates: int                          #: keyframes tried
     support: int = 0                         #: inliers of all keyframes agreeing on the pose
     agreeing: int = 1                        #: keyframes agreeing on the pose
+    explained: int = 0                       #: query detections the pose places on the map's objects
 
     def camera_to_map(self, query: FrameObservations) -> np.ndarray:
         """4x4 pose of the query's camera optical frame in the map frame."""
@@ -65,11 +77,15 @@ def _candidates(query, keyframes: dict, poses: dict, descriptors: dict, count: i
 
 def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descriptors: dict, tracks, matcher,
                config: RelocalizationConfig, matching: MatchingConfig,
-               averaging: AveragingConfig) -> Relocalization | None:
-    """The query's pose in the map, or None. ``keyframes``: id -> FrameObservations;
-    ``poses``: id -> T_k_map of the registered ones; ``descriptors``: id -> bag of objects;
-    ``tracks``: a callable giving the map's object tracks (only built when a pose is found)."""
+               averaging: AveragingConfig, why: list | None = None) -> Relocalization | None:
+    """The query's pose in the map, or None (and the reason appended to ``why``).
+    ``keyframes``: id -> FrameObservations; ``poses``: id -> T_k_map of the registered ones;
+    ``descriptors``: id -> bag of objects; ``tracks``: a callable giving the map's object
+    tracks (only built when a pose is found)."""
+    why = why if why is not None else []
     if len(query) < 2 or not poses:
+        why.append(f'the query has {len(query)} detections; need >= 2' if poses else 'the map has no registered '
+                   'keyframes')
         return None
     candidates = _candidates(query, keyframes, poses, descriptors, config.candidates)
     found = []
@@ -80,24 +96,56 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
         # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
         found.append((k, rel, rel.pose.inverse() @ poses[k]))
     if not found:
+        why.append(f'no candidate keyframe (of {len(candidates)}) verified a relative pose with '
+                   f'{config.min_keyframe_inliers} objects')
         return None
     # consensus: each verified keyframe votes for its pose; the pose whose agreeing keyframes
     # verify the most distinct query objects wins, averaged over them
     centres = np.array([pose.inverse().t for _, _, pose in found])
     agree = agreement([pose.yaw for _, _, pose in found], centres, averaging)
-    support = [len({int(iq) for j in np.flatnonzero(row) for iq in found[j][1].inliers[:, 0]}) for row in agree]
-    winner = int(np.argmax(support))
-    if support[winner] < config.min_inliers:
+    support = np.array([len({int(iq) for j in np.flatnonzero(row) for iq in found[j][1].inliers[:, 0]})
+                        for row in agree])
+    # distinct hypotheses, by support: each a group of agreeing keyframes not in a stronger one
+    hypotheses, used = [], np.zeros(len(found), bool)
+    for winner in np.argsort(-support, kind='stable'):
+        if used[winner] or support[winner] < config.min_inliers or len(hypotheses) >= config.hypotheses:
+            continue
+        members = np.flatnonzero(agree[winner] & ~used)
+        used[members] = True
+        best = max(members, key=lambda j: (len(found[j][1].inliers), -found[j][1].mean_error))
+        w = np.array([len(found[j][1].inliers) for j in members], float)
+        pose = Pose4.from_centre(circular_mean([found[j][2].yaw for j in members], w),
+                                 (w[:, None] * centres[members]).sum(0) / w.sum())
+        pose = refine_on_tracks(query, pose, [found[j] for j in members], tracks(), matching, keyframes, poses)
+        hypotheses.append((explained(query, pose, tracks(), matching), int(support[winner]), pose, best, members))
+    if not hypotheses:
+        why.append(f'the verified keyframes agree on no pose with {config.min_inliers} query objects')
         return None
-    members = np.flatnonzero(agree[winner])
-    best = max(members, key=lambda j: (len(found[j][1].inliers), -found[j][1].mean_error))
+    count, support_, pose, best, members = max(hypotheses, key=lambda h: h[:2])
+    if count < min(config.min_explained, len(query)):
+        why.append(f'verification against the map failed: the best pose explains {count} of the query\'s '
+                   f'{len(query)} detections; need {min(config.min_explained, len(query))}')
+        return None
     k, rel, _ = found[best]
-    w = np.array([len(found[j][1].inliers) for j in members], float)
-    pose = Pose4.from_centre(circular_mean([found[j][2].yaw for j in members], w),
-                             (w[:, None] * centres[members]).sum(0) / w.sum())
-    pose = refine_on_tracks(query, pose, [found[j] for j in members], tracks(), matching, keyframes, poses)
-    return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), int(support[winner]),
-                          len(members))
+    return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count)
+
+
+def explained(query: FrameObservations, pose: Pose4, tracks: list, matching: MatchingConfig) -> int:
+    """How many of the query's detections ``pose`` (T_query_map) explains: placed in the
+    map, each overlaps one of the tracks (its box, or one of its views lifted into the map)
+    by ``matching.inlier_iou``. Only boxes within reach are compared."""
+    if not tracks or not len(query):
+        return 0
+    moved = pose.inverse().transform_boxes(query.map_boxes)                # in the map
+    targets = np.concatenate([t.boxes for t in tracks] + [np.array([t.box for t in tracks])])
+    reach = 0.5 * (np.linalg.norm(moved[:, None, 3:6], axis=-1) + np.linalg.norm(targets[None, :, 3:6], axis=-1))
+    near = np.linalg.norm(moved[:, None, :3] - targets[None, :, :3], axis=-1) < reach
+    rows, cols = np.nonzero(near)
+    hit = np.zeros(len(moved), bool)
+    if len(rows):
+        ok = iou_3d_paired(moved[rows], targets[cols]) >= matching.inlier_iou
+        hit[rows[ok]] = True
+    return int(hit.sum())
 
 
 def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: list, matching: MatchingConfig,
