@@ -103,8 +103,7 @@ class Mapper:
     def reset(self) -> None:
         self.keyframes: dict = {}            # id -> FrameObservations
         self.edges: dict = {}                # (source, target) -> EdgeRecord: the pair's first measurement
-        self.repeats: list = []              # the pairs' further measurements (revisits), in arrival order
-        self._pairs: dict = {}               # (source, target) -> every measurement of the pair
+        self._pairs: dict = {}               # (source, target) -> every measurement of the pair, in arrival order
         self._averaged: dict = {}            # averager edge index -> EdgeRecord
         self._edges_to: dict = {}            # target -> [(source, target), ...]
         self.averager = IncrementalAverager(self.config.averaging)
@@ -162,7 +161,6 @@ class Mapper:
         if key in self.edges:
             if any(e.pose == edge.pose for e in self._pairs[key]):          # the same message again
                 return False
-            self.repeats.append(edge)
         else:
             self.edges[key] = edge
             self._edges_to.setdefault(edge.target, []).append(key)
@@ -275,8 +273,13 @@ class Mapper:
         return int(connected_components(graph, directed=False)[0])
 
     def measurements(self) -> list:
-        """Every edge measurement: each pair's first, then the repeats."""
-        return list(self.edges.values()) + self.repeats
+        """Every edge measurement, pair by pair (each pair's first, then its repeats)."""
+        return [e for measured in self._pairs.values() for e in measured]
+
+    @property
+    def repeats(self) -> list:
+        """The pairs' measurements after their first (frames that revisited them)."""
+        return [e for measured in self._pairs.values() for e in measured[1:]]
 
     def active_edges(self) -> list:
         """The edge measurements the current solution keeps."""

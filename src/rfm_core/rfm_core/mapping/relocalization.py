@@ -81,7 +81,7 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
     """The query's pose in the map, or None (and the reason appended to ``why``).
     ``keyframes``: id -> FrameObservations; ``poses``: id -> T_k_map of the registered ones;
     ``descriptors``: id -> bag of objects; ``tracks``: a callable giving the map's object
-    tracks (only built when a pose is found)."""
+    tracks (only built once a keyframe verified a pose)."""
     why = why if why is not None else []
     if len(query) < 2 or not poses:
         why.append(f'the query has {len(query)} detections; need >= 2' if poses else 'the map has no registered '
@@ -106,7 +106,7 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
     support = np.array([len({int(iq) for j in np.flatnonzero(row) for iq in found[j][1].inliers[:, 0]})
                         for row in agree])
     # distinct hypotheses, by support: each a group of agreeing keyframes not in a stronger one
-    hypotheses, used = [], np.zeros(len(found), bool)
+    hypotheses, used, mapped = [], np.zeros(len(found), bool), tracks()
     for winner in np.argsort(-support, kind='stable'):
         if used[winner] or support[winner] < config.min_inliers or len(hypotheses) >= config.hypotheses:
             continue
@@ -116,8 +116,8 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
         w = np.array([len(found[j][1].inliers) for j in members], float)
         pose = Pose4.from_centre(circular_mean([found[j][2].yaw for j in members], w),
                                  (w[:, None] * centres[members]).sum(0) / w.sum())
-        pose = refine_on_tracks(query, pose, [found[j] for j in members], tracks(), matching, keyframes, poses)
-        hypotheses.append((explained(query, pose, tracks(), matching), int(support[winner]), pose, best, members))
+        pose = refine_on_tracks(query, pose, [found[j] for j in members], mapped, matching, keyframes, poses)
+        hypotheses.append((explained(query, pose, mapped, matching), int(support[winner]), pose, best, members))
     if not hypotheses:
         why.append(f'the verified keyframes agree on no pose with {config.min_inliers} query objects')
         return None
