@@ -293,7 +293,7 @@ def test_a_pose_must_explain_the_query_in_the_whole_map(mapped, tmp_path):
     two-object test alone accepts a pose for it, here two of the free-space boxes matched to
     real ones)."""
     from dataclasses import replace
-    from rfm_core.mapping.relocalization import explained
+    from rfm_core.mapping.relocalization import explained, track_boxes
     path = save_map(mapped.mapper, tmp_path / 'room.rfm')
     mapper = Mapper()
     load_map(mapper, path)
@@ -303,7 +303,7 @@ def test_a_pose_must_explain_the_query_in_the_whole_map(mapped, tmp_path):
     assert len(view) >= 4
     reloc = mapper.relocalize(view)
     assert reloc is not None and reloc.explained >= 4
-    assert explained(view, mapper.poses[k], mapper.tracks(), mapper.config.matching) == reloc.explained
+    assert explained(view, mapper.poses[k], track_boxes(mapper.tracks()), mapper.config.matching) == reloc.explained
     # two real objects, three boxes in free space (2.5 m up, where the room has nothing)
     rng = np.random.default_rng(0)
     fake = view.boxes[:3].copy()

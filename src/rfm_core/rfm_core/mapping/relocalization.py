@@ -27,7 +27,7 @@ from rfm_core.matching.view_graph import bag_of_objects
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'relocalize', 'refine_on_tracks', 'explained']
+__all__ = ['RelocalizationConfig', 'Relocalization', 'relocalize', 'refine_on_tracks', 'explained', 'track_boxes']
 
 
 @dataclass(frozen=True)
@@ -107,6 +107,7 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
                         for row in agree])
     # distinct hypotheses, by support: each a group of agreeing keyframes not in a stronger one
     hypotheses, used, mapped = [], np.zeros(len(found), bool), tracks()
+    targets = track_boxes(mapped)
     for winner in np.argsort(-support, kind='stable'):
         if used[winner] or support[winner] < config.min_inliers or len(hypotheses) >= config.hypotheses:
             continue
@@ -117,7 +118,7 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
         pose = Pose4.from_centre(circular_mean([found[j][2].yaw for j in members], w),
                                  (w[:, None] * centres[members]).sum(0) / w.sum())
         pose = refine_on_tracks(query, pose, [found[j] for j in members], mapped, matching, keyframes, poses)
-        hypotheses.append((explained(query, pose, mapped, matching), int(support[winner]), pose, best, members))
+        hypotheses.append((explained(query, pose, targets, matching), int(support[winner]), pose, best, members))
     if not hypotheses:
         why.append(f'the verified keyframes agree on no pose with {config.min_inliers} query objects')
         return None
@@ -130,14 +131,21 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count)
 
 
-def explained(query: FrameObservations, pose: Pose4, tracks: list, matching: MatchingConfig) -> int:
+def track_boxes(tracks: list) -> np.ndarray:
+    """(M, 7) the map's object boxes a query is checked against: every track's box and its
+    views lifted into the map."""
+    if not tracks:
+        return np.zeros((0, 7))
+    return np.concatenate([t.boxes for t in tracks] + [np.array([t.box for t in tracks])])
+
+
+def explained(query: FrameObservations, pose: Pose4, targets: np.ndarray, matching: MatchingConfig) -> int:
     """How many of the query's detections ``pose`` (T_query_map) explains: placed in the
-    map, each overlaps one of the tracks (its box, or one of its views lifted into the map)
-    by ``matching.inlier_iou``. Only boxes within reach are compared."""
-    if not tracks or not len(query):
+    map, each overlaps one of ``targets`` (:func:`track_boxes`) by ``matching.inlier_iou``.
+    Only boxes within reach are compared."""
+    if not len(targets) or not len(query):
         return 0
     moved = pose.inverse().transform_boxes(query.map_boxes)                # in the map
-    targets = np.concatenate([t.boxes for t in tracks] + [np.array([t.box for t in tracks])])
     reach = 0.5 * (np.linalg.norm(moved[:, None, 3:6], axis=-1) + np.linalg.norm(targets[None, :, 3:6], axis=-1))
     near = np.linalg.norm(moved[:, None, :3] - targets[None, :, :3], axis=-1) < reach
     rows, cols = np.nonzero(near)

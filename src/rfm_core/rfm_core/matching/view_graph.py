@@ -480,7 +480,7 @@ class ViewGraphBuilder:
         return None if found is None else self._revisited(obs, stream, *found, last_rel, verified)
 
     def _revisited(self, obs: FrameObservations, stream: bool, i: int, rel: RelativePose,
-                   last_rel: RelativePose | None, verified=()) -> GraphStep:
+                   last_rel: RelativePose | None, verified: list) -> GraphStep:
         """The frame tracked against keyframe index ``i`` (``rel``), which becomes the
         reference, with the edges it measured (:attr:`KeyframeConfig.revisit_edges`):
         ``last_rel`` its pose to the reference it leaves, ``verified`` the other keyframes
