@@ -210,11 +210,12 @@ class _InProcessGraph:
 
     def progress(self) -> dict:
         mp = self.mapper.mapper
+        dropped = self.detector.frontend.dropped()
         return {'received': self.detector.counts['received'], 'frames': self.detector.counts['processed'],
-                'dropped': self.detector.counts['dropped_busy'],
+                'dropped': sum(dropped.values()), 'dropped_by_reason': dropped,
                 'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
                 'registered': len(mp.poses), 'objects': self.mapper.num_objects, 'lost': self.mapper.num_lost,
-                'busy': self.mapper.session.dirty or self.detector.worker.busy}
+                'busy': self.mapper.session.dirty or not self.detector.worker.idle}
 
     def save(self, path) -> bool:
         """Save the map once the nodes have stopped spinning: no callback changes the map
@@ -462,6 +463,7 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
                'backend': params['detector']['backend'], 'matcher': params['matcher']['matcher'], 'posed': posed,
                'input_frames': input_frames, 'received': progress.get('received'), 'frames': progress.get('frames', 0),
                'detections': progress.get('detections', 0), 'dropped': progress.get('dropped', 0),
+               'dropped_by_reason': progress.get('dropped_by_reason', {}),
                'lost_between_nodes': progress.get('lost', 0),
                'localized': len(mapper.frame_poses()), 'keyframes': len(mapper.keyframes),
                'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),

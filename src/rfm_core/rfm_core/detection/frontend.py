@@ -142,6 +142,16 @@ class DetectorFrontend:
         """Counters for /diagnostics."""
         return dict(self.counts, dropped_unsynchronised=self.sync.stats.dropped if self.sync is not None else 0)
 
+    def dropped(self) -> dict:
+        """Colour frames received but not detected, by reason; ``unsynchronised``: never
+        paired with camera_info (and depth) yet, so a frame waiting for its partner counts
+        until the partner comes."""
+        c = self.counts
+        entered = c['received'] - c['dropped_out_of_order']
+        unsynchronised = max(entered - self._synced, 0) if self.sync is not None else 0
+        return dict(busy=c['dropped_busy'], invalid=c['dropped_invalid'], no_gravity=c['dropped_no_gravity'],
+                    out_of_order=c['dropped_out_of_order'], every_nth=c['skipped_nth'], unsynchronised=unsynchronised)
+
 
 class LatestWorker:
     """Runs ``work(job)`` on its own thread for the newest job submitted: a job submitted
@@ -150,6 +160,7 @@ class LatestWorker:
     def __init__(self, work: Callable, on_replaced: Callable[[], None], name: str = 'worker'):
         self.work, self.on_replaced = work, on_replaced
         self._pending = None
+        self._running = False
         self._stop = False
         self._cv = threading.Condition()
         self._thread = threading.Thread(target=self._run, name=name, daemon=True)
@@ -159,6 +170,12 @@ class LatestWorker:
     def busy(self) -> bool:
         """Whether a job is waiting."""
         return self._pending is not None
+
+    @property
+    def idle(self) -> bool:
+        """No job waiting and none running."""
+        with self._cv:
+            return self._pending is None and not self._running
 
     def submit(self, *job) -> None:
         with self._cv:
@@ -180,4 +197,9 @@ class LatestWorker:
                 if self._stop:
                     return
                 job, self._pending = self._pending, None
-            self.work(*job)
+                self._running = True
+            try:
+                self.work(*job)
+            finally:
+                with self._cv:
+                    self._running = False

@@ -182,6 +182,12 @@ def render_top_down(path, mapper, truth: GroundTruth | None = None, alignment: P
     return path
 
 
+def _reasons(counts: dict | None) -> str:
+    """' (busy 3, no_gravity 1)' for the non-zero drop reasons."""
+    parts = [f'{k.replace("_", " ")} {v}' for k, v in (counts or {}).items() if v]
+    return f' ({", ".join(parts)})' if parts else ''
+
+
 def write_report(path, summary: dict) -> Path:
     """Markdown report of a run: what went in, what came out, timings, accuracy, picture."""
     s = summary
@@ -191,8 +197,8 @@ def write_report(path, summary: dict) -> Path:
     lines = [f'# rfm run: {s.get("input", "")}', '',
              f'- date: {s.get("date", "")}', f'- detector: `{s.get("backend", "")}`, matcher: `{s.get("matcher", "")}`, '
              f'mode: {"posed" if s.get("posed") else "un-posed"}',
-             f'- frames processed by the detector: {processed}{share}; frames dropped while it was busy '
-             f'(newest wins): {s.get("dropped", 0)}'
+             f'- frames processed by the detector: {processed}{share}; frames dropped: {s.get("dropped", 0)}'
+             + _reasons(s.get('dropped_by_reason'))
              + (f'; colour images received: {s["received"]}' if s.get('received') is not None else '')
              + (f'; keyframes, edges and tracked frames lost between matcher and mapper: {s["lost_between_nodes"]}'
                 if s.get('lost_between_nodes') else ''),
