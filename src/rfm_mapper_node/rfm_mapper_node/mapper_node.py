@@ -231,7 +231,11 @@ class MapperNode(Node):
     # ------------------------------------------------------------------ output
 
     def _tick(self) -> None:
+        recovered = len(self.mapper.recovered)
         changed = self.session.tick()
+        for edge in self.mapper.recovered[recovered:]:
+            self.get_logger().info(f'tracking recovered: keyframe {edge.target} matched the map through keyframe '
+                                   f'{edge.source} ({len(edge.inliers)} objects verified)')
         if changed is not False:
             self._map_dirty = True
             self._publish_poses(changed)

@@ -22,7 +22,7 @@ from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.frame_log import FrameLog
-from rfm_core.mapping.relocalization import Relocalization, RelocalizationConfig, relocalize
+from rfm_core.mapping.relocalization import Relocalization, RelocalizationConfig, match_to_map, relocalize
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
@@ -115,6 +115,8 @@ class Mapper:
         self.frames = FrameLog()             # every localized frame (tracked or relocalized)
         self.origins: dict = {}              # id -> (view-graph session, its keyframe id), where numbered
         self.last_update_seconds = 0.0
+        self._recovery_tried: dict = {}      # id -> registered keyframes when it was last matched to the map
+        self.recovered: list = []            # edges that joined a keyframe to the map (tracking recovery)
 
     # ------------------------------------------------------------------ input
 
@@ -233,6 +235,8 @@ class Mapper:
         stats = None
         if not self.config.posed:
             stats = self.averager.update(force_full)
+            if self._recover():
+                stats = self.averager.update(force_full)
             if stats.kind != 'none':
                 self.revision += 1
                 self._tracks = None
@@ -240,6 +244,51 @@ class Mapper:
             self.revision += 1
         self.last_update_seconds = time.perf_counter() - start
         return stats
+
+    def _recover(self) -> bool:
+        """Tracking recovery (``relocalization.recovery``): each keyframe outside the
+        registered map with enough detections is matched against the map's objects
+        (:func:`match_to_map`) when it arrives and again whenever the registered map has
+        doubled since; a match it accepts (:meth:`MapMatch.accepted`) adds its edge. A lost
+        track then continues in the map instead of starting a component that nothing joins.
+        True when an edge was added."""
+        cfg = self.config.relocalization
+        poses = self.averager.poses
+        if not cfg.recovery or self.mode != 'mapping' or not poses:
+            return False
+        due = []
+        for k, obs in self.keyframes.items():
+            if (k in poses or len(obs) < max(cfg.min_explained, 2)
+                    or len(poses) < 2 * self._recovery_tried.get(k, len(poses) / 2)):
+                continue
+            self._recovery_tried[k] = len(poses)
+            gyro = self._gyro_yaw(k, poses)
+            if gyro is not None or cfg.recovery_unaided:
+                due.append((k, gyro))
+        added = False
+        tracks = self.tracks() if due else []
+        for k, gyro in due:
+            match = match_to_map(self.keyframes[k], tracks, self.keyframes, poses, self.config.matching, cfg, gyro)
+            if match is None or not match.accepted(cfg, len(self.keyframes[k]), gyro is not None):
+                continue
+            rel = match.relative
+            edge = EdgeRecord(match.keyframe_id, k, rel.pose, rel.inliers, rel.inlier_scores,
+                              np.asarray(rel.corner_inliers, float).reshape(-1, 5),
+                              float(np.clip(rel.inlier_ratio, 0.0, 1.0)))
+            if self.add_edge(edge):
+                self.recovered.append(edge)
+                added = True
+        return added
+
+    def _gyro_yaw(self, keyframe_id: int, poses: dict) -> float | None:
+        """The yaw of T_map_k as the gyroscope gives it through the registered keyframe
+        nearest in time that shares its integration epoch (None without one)."""
+        obs = self.keyframes[keyframe_id]
+        for k in sorted(poses, key=lambda k: abs(self.keyframes[k].stamp_ns - obs.stamp_ns)):
+            yaw = imu_relative_yaw(self.keyframes[k], obs)                    # of T_r_k
+            if yaw is not None:
+                return (Pose4(yaw, (0.0, 0.0, 0.0)).inverse() @ poses[k]).inverse().yaw
+        return None
 
     # ------------------------------------------------------------------ output
 

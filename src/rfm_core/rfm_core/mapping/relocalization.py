@@ -11,6 +11,10 @@ then checked against the whole map: the query's detections placed by each must o
 map's objects, ``min_explained`` of them (all, for a query with fewer); the pose explaining
 the most wins. No ROS here; the mapper (and its node's ``rfm/relocalize``
 service, and localization mode) call :func:`relocalize`.
+
+:func:`match_to_map` matches a view against the map's objects instead of its keyframes (a
+view may share objects with the map but with no single keyframe): the mapper's tracking
+recovery joins a keyframe that nothing else links to the map with it.
 """
 from __future__ import annotations
 
@@ -18,16 +22,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rfm_core.geometry import Pose4, circular_mean, iou_3d_paired, kabsch_4dof
+from rfm_core.geometry import Pose4, circular_mean, iou_3d_paired, kabsch_4dof, wrap_angle, yaw_matrix
 from rfm_core.mapping.averaging import AveragingConfig, agreement
 from rfm_core.mapping.frame_log import camera_to_map
+from rfm_core.matching.classical import ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import estimate_relative_pose
+from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
 from rfm_core.matching.view_graph import bag_of_objects
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'relocalize', 'refine_on_tracks', 'explained', 'track_boxes']
+__all__ = ['RelocalizationConfig', 'Relocalization', 'MapMatch', 'relocalize', 'match_to_map', 'refine_on_tracks',
+           'explained', 'track_boxes']
 
 
 @dataclass(frozen=True)
@@ -46,6 +52,33 @@ class RelocalizationConfig:
                                  lo=0, hi=100)
     hypotheses: int = setting(3, 'Distinct poses (groups of agreeing keyframes, by support) verified against the '
                               'map per query; the one explaining the most detections wins', lo=1, hi=20)
+    recovery: bool = setting(True, 'Mapping mode (tracking recovery): a keyframe outside the registered map '
+                             '(tracking lost, a view that matched no keyframe) is matched against the map\'s '
+                             'objects, every box correspondence proposing a pose under the gyroscope\'s yaw; a '
+                             'unique, verified match adds the edge that joins it to the map. Tried when the '
+                             'keyframe arrives and again each time the map doubles')
+    recovery_min_inliers: int = setting(3, 'Objects the edge of a recovered keyframe must verify (as '
+                                        'keyframes.min_retrieved_inliers: two verify nothing beyond the sample)',
+                                        lo=2, hi=100)
+    recovery_unaided: bool = setting(False, 'Recover keyframes the gyroscope does not link to the map (another '
+                                     'integration epoch: separate photos, no IMU) too, their yaw from box pairs. '
+                                     'Off: on sparse tuning captures 1 of 17 such edges was 126 deg off and '
+                                     'several 3-4 deg (BENCHMARKS.md)')
+    unaided_explained_share: float = setting(0.5, '... and such a match must also explain this share of the '
+                                             'keyframe\'s detections: a turned pose can explain four of twelve',
+                                             lo=0.0, hi=1.0)
+    map_hypotheses: int = setting(5, 'Distinct poses tried when matching a view to the map\'s objects (from '
+                                  'single box correspondences, most supported first)', lo=1, hi=50)
+    map_yaw_tolerance_deg: float = setting(10.0, 'Matching a view to the map: the yaw a hypothesis proposes '
+                                           '(the gyroscope\'s through the nearest registered keyframe, or a box '
+                                           'pair\'s) is trusted this far', lo=0.5, hi=180.0)
+    map_fallback: bool = setting(False, 'A query no keyframe places is matched against the map\'s objects '
+                                 '(as tracking recovery without the gyroscope: recovery_min_inliers, '
+                                 'unaided_explained_share)')
+    distinct_m: float = setting(0.25, 'Two poses for one view are alternatives (look-alike furniture, a shift '
+                                'by one chair) when their camera centres are this far apart ...', lo=0.01, hi=10.0)
+    distinct_deg: float = setting(5.0, '... or their yaws this far: a match to the map must explain more of '
+                                  'the view than any alternative', lo=0.1, hi=180.0)
 
 
 @dataclass
@@ -81,12 +114,29 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
     """The query's pose in the map, or None (and the reason appended to ``why``).
     ``keyframes``: id -> FrameObservations; ``poses``: id -> T_k_map of the registered ones;
     ``descriptors``: id -> bag of objects; ``tracks``: a callable giving the map's object
-    tracks (only built once a keyframe verified a pose)."""
+    tracks (only built once a keyframe verified a pose). Against keyframes first; with
+    ``map_fallback``, a query no keyframe places is matched against the map's objects
+    (:func:`match_to_map`, no gyroscope: another session)."""
     why = why if why is not None else []
     if len(query) < 2 or not poses:
         why.append(f'the query has {len(query)} detections; need >= 2' if poses else 'the map has no registered '
                    'keyframes')
         return None
+    found = _on_keyframes(query, keyframes, poses, descriptors, tracks, matcher, config, matching, averaging, why)
+    if found is not None or not config.map_fallback:
+        return found
+    match = match_to_map(query, tracks(), keyframes, poses, matching, config)
+    if match is None or not match.accepted(config, len(query), gyroscope=False):
+        why.append('matching the map\'s objects found no unique verified pose' if match is None or match.explained
+                   else 'no pose from the map\'s objects explains the query')
+        return None
+    rel = match.relative
+    return Relocalization(match.pose, match.keyframe_id, len(rel.inliers), rel.inliers[:, ::-1].copy(), 0,
+                          len(rel.inliers), 1, match.explained)
+
+
+def _on_keyframes(query, keyframes, poses, descriptors, tracks, matcher, config, matching, averaging, why):
+    """:func:`relocalize` against the most similar keyframes."""
     candidates = _candidates(query, keyframes, poses, descriptors, config.candidates)
     found = []
     for k in candidates:
@@ -197,3 +247,137 @@ def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: li
     if np.mean(iou_3d_paired(moved, reps) >= matching.inlier_iou) < matching.min_inlier_ratio:
         return pose
     return t_map_q.inverse()
+
+
+# ---------------------------------------------------------------------- matching to the map
+
+
+@dataclass
+class MapMatch:
+    """A view matched against the map's objects (:func:`match_to_map`)."""
+
+    keyframe_id: int                         #: the registered keyframe the edge is measured from
+    relative: RelativePose                   #: T_keyframe_view, inliers as (keyframe, view) detection pairs
+    pose: Pose4                              #: T_view_map
+    explained: int                           #: view detections the pose places on the map's objects
+    runner_up: int                           #: the same for the best distinct alternative pose (0: none)
+
+    def accepted(self, config: RelocalizationConfig, detections: int, gyroscope: bool) -> bool:
+        """Whether to trust the match (of a view with ``detections`` detections; ``gyroscope``:
+        its yaw came from the gyroscope): verified with ``recovery_min_inliers`` objects
+        against a keyframe, explaining ``min_explained`` detections in the whole map and more
+        than any alternative pose, and without the gyroscope also
+        ``unaided_explained_share`` of the view's detections."""
+        return (len(self.relative.inliers) >= config.recovery_min_inliers and self.explained >= config.min_explained
+                and self.explained > self.runner_up
+                and (gyroscope or self.explained >= config.unaided_explained_share * detections))
+
+
+def _hits(query_boxes: np.ndarray, track_boxes_: np.ndarray, compatible: np.ndarray, yaws: np.ndarray,
+          trans: np.ndarray) -> np.ndarray:
+    """(H, N, M) whether view box n lands on track m under pose hypothesis h (T_map_view: yaw,
+    translation): horizontal centres within a quarter of the two footprints' diagonals, heights
+    within a quarter of the two heights, and sizes compatible."""
+    moved = np.einsum('hab,nb->hna', yaw_matrix(yaws), query_boxes[:, :3]) + trans[:, None]
+    reach = 0.25 * (np.linalg.norm(query_boxes[:, None, 3:5], axis=-1)
+                    + np.linalg.norm(track_boxes_[None, :, 3:5], axis=-1))
+    up = 0.25 * (query_boxes[:, None, 5] + track_boxes_[None, :, 5])
+    d = np.linalg.norm(moved[:, :, None, :2] - track_boxes_[None, None, :, :2], axis=-1)
+    dz = np.abs(moved[:, :, None, 2] - track_boxes_[None, None, :, 2])
+    return (d < reach[None]) & (dz < up[None]) & compatible[None]
+
+
+def match_to_map(query: FrameObservations, tracks: list, keyframes: dict, poses: dict, matching: MatchingConfig,
+                 config: RelocalizationConfig, yaw_prior: float | None = None,
+                 why: list | None = None) -> MapMatch | None:
+    """Match a view against the map's object tracks rather than one keyframe (its objects may
+    be in no single keyframe's view). Every box correspondence of compatible size proposes a
+    pose (T_map_view's yaw from ``yaw_prior``, the gyroscope's, or else from the two boxes'
+    yaws up to quarter turns; the translation from their centres); the
+    ``config.map_hypotheses`` distinct poses that land the most view boxes on tracks are each
+    verified with the paper's test against the registered keyframe that saw most of the
+    matched tracks, and scored against the whole map (:func:`explained`). The best is returned
+    with the best distinct alternative's score; the caller decides (None when nothing
+    verifies, the reason in ``why``)."""
+    why = why if why is not None else []
+    if len(query) < 2 or not tracks or not poses:
+        why.append('fewer than two detections, or no map to match')
+        return None
+    qb = np.asarray(query.map_boxes, float)
+    tb = np.array([t.box for t in tracks], float)
+    compatible = size_similarity(qb, tb) >= matching.size_ratio_gate
+    ii, jj = np.nonzero(compatible)
+    if not len(ii):
+        why.append('no detection the size of a mapped object')
+        return None
+    if yaw_prior is not None:
+        yaws = np.full((len(ii), 1), float(yaw_prior))
+    else:                                       # box yaws are known up to quarter turns
+        yaws = (tb[jj, 6] - qb[ii, 6])[:, None] + 0.5 * np.pi * np.arange(4)[None]
+    hi, hj, hy = np.repeat(ii, yaws.shape[1]), np.repeat(jj, yaws.shape[1]), yaws.reshape(-1)
+    trans = tb[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(hy), qb[hi, :3])
+    count = np.concatenate([_hits(qb, tb, compatible, hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
+                            for c in range(0, len(hy), 256)])
+    targets = track_boxes(tracks)
+    observers = {}                              # track index -> [(keyframe, detection)] of registered keyframes
+    for m, t in enumerate(tracks):
+        observers[m] = [(int(k), int(d)) for k, d in t.observations if int(k) in poses and int(k) in keyframes]
+    found = []                                  # (explained, inliers, T_view_map, keyframe, relative)
+    tried = []
+    for h in np.argsort(-count, kind='stable'):
+        if count[h] < 2 or len(tried) >= config.map_hypotheses:
+            break
+        t_map_view = Pose4(float(hy[h]), trans[h])
+        if any(_same(t_map_view, other, config) for other in tried):
+            continue
+        tried.append(t_map_view)
+        result = _verify(query, t_map_view, qb, tb, compatible, observers, keyframes, poses, matching, config)
+        if result is not None:
+            rel, k = result
+            pose = rel.pose.inverse() @ poses[k]                             # T_view_k T_k_map
+            found.append((explained(query, pose, targets, matching), len(rel.inliers), pose, k, rel))
+    if not found:
+        why.append(f'no pose from the map\'s objects verified against a keyframe ({len(tried)} tried)')
+        return None
+    found.sort(key=lambda f: (-f[0], -f[1]))
+    best = found[0]
+    runner_up = max((f[0] for f in found[1:] if not _same(f[2].inverse(), best[2].inverse(), config)), default=0)
+    return MapMatch(best[3], best[4], best[2], best[0], runner_up)
+
+
+def _same(a: Pose4, b: Pose4, config: RelocalizationConfig) -> bool:
+    """Whether two T_map_view poses are one (centres within ``distinct_m``, yaws within ``distinct_deg``)."""
+    return (np.linalg.norm(a.t - b.t) <= config.distinct_m
+            and np.degrees(abs(wrap_angle(a.yaw - b.yaw))) <= config.distinct_deg)
+
+
+def _verify(query, t_map_view: Pose4, qb, tb, compatible, observers, keyframes, poses, matching, config):
+    """The relative pose of the view to the registered keyframe that saw most of the tracks
+    the hypothesis matches (of the three that saw most, the one verified with most inliers):
+    (RelativePose T_keyframe_view with (keyframe, view) inliers, keyframe id), or None."""
+    hit = _hits(qb, tb, compatible, np.array([t_map_view.yaw]), t_map_view.t[None])[0]      # (N, M)
+    moved = t_map_view.transform_points(qb[:, :3])
+    votes = {}
+    for n in np.flatnonzero(hit.any(1)):
+        cols = np.flatnonzero(hit[n])
+        m = cols[np.argmin(np.linalg.norm(moved[n, :2] - tb[cols, :2], axis=1))]
+        for k, d in observers[m]:
+            votes.setdefault(k, {}).setdefault(int(n), d)
+    best = None
+    for k, pairs in sorted(votes.items(), key=lambda kv: -len(kv[1]))[:3]:
+        if len(pairs) < max(matching.min_matches, 2):
+            continue
+        view_idx = np.array(list(pairs), int)
+        kf_idx = np.array([pairs[n] for n in view_idx], int)
+        guess = poses[k] @ t_map_view                                          # T_k_view
+        prior = YawPrior(guess.yaw, np.radians(config.map_yaw_tolerance_deg))
+        rel = estimate_relative_pose(query.boxes, keyframes[k].boxes,
+                                     ObjectMatches(view_idx, kf_idx, np.ones(len(view_idx))), matching, prior)
+        if rel is not None and (best is None or len(rel.inliers) > len(best[0].inliers)):
+            best = (rel, k)
+    if best is None:
+        return None
+    rel, k = best                                           # T_k_view, inliers (view, keyframe)
+    rel.inliers = rel.inliers[:, ::-1].copy()
+    rel.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in rel.corner_inliers]
+    return rel, k
