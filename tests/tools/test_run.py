@@ -215,3 +215,22 @@ def test_camera_sized_messages_all_reach_the_detector(tmp_path):
     assert summary['frames'] + summary['dropped'] == 12 and summary['frames'] >= 8, summary
     reasons = summary['dropped_by_reason']
     assert sum(reasons.values()) == summary['dropped'] and reasons['unsynchronised'] == 0, summary
+
+
+@pytest.mark.slow
+def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
+    """The appendix protocol as a user runs it (`rfm eval-reloc`'s graph path): `rfm run`
+    maps a walk around a room, then `rfm run` replays another walk through it with that map
+    loaded in localization mode; the camera poses it publishes are right in the world."""
+    import os  # noqa: PLC0415
+    import random  # noqa: PLC0415
+
+    from rfm_core.evaluation.suite import relocalization_scene_graph  # noqa: PLC0415
+    config = CaptureConfig(seed=41, frames=60, fps=5, capture='handheld')
+    result = relocalization_scene_graph((config, 'ground_truth:rgbd', 12, tmp_path,
+                                         int(os.environ.get('ROS_DOMAIN_ID', random.randint(100, 200)))))
+    assert 'error' not in result, result
+    assert result['map_registered'] >= 0.9 and result['frames'] == 12, result
+    assert result['registered'] >= 0.6 and result['wrong'] <= 0.1, result
+    assert result['ARE_median'] < 2.0 and result['ATE_median'] < 0.10, result
+    assert (tmp_path / f'{config.seed}_{config.room_style}_handheld' / 'query_run' / 'outputs.mcap').is_dir()

@@ -11,7 +11,7 @@
     rfm train-matcher [--backend depth_clusters|ground_truth] [--scenes 60 --first-seed 3000]
     rfm run --bag BAG | --live [--backend depth_clusters --processes --output DIR ...]
     rfm eval [--scenes 20 --jobs 2]
-    rfm eval-reloc [--detector ground_truth:rgbd --scenes 10]
+    rfm eval-reloc [--detector depth_clusters --scenes 10 --jobs 2 --offline]
 
 `sim` needs no ROS; `play` and `record` start rclpy nodes.
 """
@@ -478,25 +478,47 @@ def cmd_eval(args) -> int:
 
 
 def cmd_eval_reloc(args) -> int:
-    """Relocalization against a saved map (paper appendix) over generated rooms."""
-    from rfm_core.evaluation.suite import eval_configs, relocalization_scene  # noqa: PLC0415
+    """Relocalization against a saved map (paper appendix) over generated rooms: through the
+    node graph by default (rfm run maps one walk, rfm run in localization mode replays
+    another), in-process with --offline."""
+    import random  # noqa: PLC0415
+    import tempfile  # noqa: PLC0415
+
+    from rfm_core.evaluation.suite import (  # noqa: PLC0415
+        eval_configs, relocalization_scene, relocalization_scene_graph)
 
     configs = [replace_capture(c) for c in eval_configs(args.scenes, args.first_seed, args.frames, args.fps,
-                                                        world='boxes')]
-    work = [(c, args.detector, args.query_frames) for c in configs]
+                                                        world=args.world)]
+    temporary = None
+    if args.offline:
+        scene_fn, work = relocalization_scene, [(c, args.detector, args.query_frames) for c in configs]
+    else:
+        temporary = tempfile.TemporaryDirectory(prefix='rfm-eval-reloc-') if args.work is None else None
+        folder = temporary.name if temporary else args.work
+        base = random.SystemRandom().randint(10, 80)
+        # one ROS domain per scene: parallel scenes never see each other's nodes
+        scene_fn = relocalization_scene_graph
+        work = [(c, args.detector, args.query_frames, folder, base + i) for i, c in enumerate(configs)]
     rows = []
-    with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-        for r in pool.map(relocalization_scene, work):
-            rows.append(r)
-            print(f'[rfm eval-reloc] {r["scene"]}: relocalized {100 * r["registered"]:.0f}%, '
-                  f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong {100 * r["wrong"]:.0f}% '
-                  f'(map: {100 * r["map_registered"]:.0f}% of keyframes registered)', flush=True)
+    try:
+        with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
+            for r in pool.map(scene_fn, work):
+                rows.append(r)
+                print(f'[rfm eval-reloc] {r["scene"]}: relocalized {100 * r["registered"]:.0f}%, '
+                      f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong {100 * r["wrong"]:.0f}% '
+                      f'(map: {100 * r["map_registered"]:.0f}% of keyframes registered)'
+                      + (f' [{r["error"]}]' if r.get('error') else ''), flush=True)
+    finally:
+        if temporary is not None:
+            temporary.cleanup()
     reg = float(np.mean([r['registered'] for r in rows]))
     are = float(np.nanmedian([r['ARE_median'] for r in rows]))
     ate = float(np.nanmedian([r['ATE_median'] for r in rows]))
     relocalized = np.array([r['registered'] * r['frames'] for r in rows])
-    wrong = float(np.sum([r['wrong'] for r in rows] * relocalized) / max(relocalized.sum(), 1))
-    print(f'\n| input | rooms | relocalized | ARE median (deg) | ATE median (cm) | wrong (> 5 deg or > 25 cm) |\n'
+    wrong = float(np.nansum(np.array([r['wrong'] for r in rows]) * relocalized) / max(relocalized.sum(), 1))
+    path = 'in-process' if args.offline else 'through the node graph'
+    print(f'\n{path}, {args.world} world:\n'
+          f'| input | rooms | relocalized | ARE median (deg) | ATE median (cm) | wrong (> 5 deg or > 25 cm) |\n'
           f'|---|---|---|---|---|---|\n'
           f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% |')
     return 0
@@ -696,8 +718,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval)
 
     p = sub.add_parser('eval-reloc', help='relocalization against a saved map over generated rooms')
-    p.add_argument('--detector', default='ground_truth:rgbd', help='depth_clusters or ground_truth:PRESET')
+    p.add_argument('--detector', default='depth_clusters', help='depth_clusters or ground_truth:PRESET')
     p.add_argument('--scenes', type=int, default=10)
+    p.add_argument('--world', choices=('realistic', 'boxes'), default='realistic',
+                   help="the rooms (as rfm eval's); boxes: the solid-box world of earlier measurements")
+    p.add_argument('--offline', action='store_true',
+                   help='in-process (every frame detected, true gravity) instead of through the node graph')
+    p.add_argument('--work', help='keep the bags and rfm run outputs here (graph path; default: a temporary folder)')
     p.add_argument('--first-seed', type=int, default=5000)
     p.add_argument('--frames', type=int, default=150, help='frames of the mapping capture (a walk around the room)')
     p.add_argument('--fps', type=float, default=5.0, help='frame rate of the mapping capture (150 at 5 fps: 30 s)')

@@ -350,14 +350,88 @@ def format_tables(summary: dict) -> str:
     return '\n'.join(lines)
 
 
+def query_capture(config, frames: int):
+    """The relocalization protocol's second capture of a room: another handheld walk
+    (trajectory seed 1) at 2 Hz."""
+    from dataclasses import replace  # noqa: PLC0415
+    return replace(config, frames=frames, fps=2.0, capture='handheld', trajectory_seed=1)
+
+
+def camera_poses_of_run(output) -> dict:
+    """{stamp_ns: 4x4 camera-to-map} of every ``rfm/camera_pose`` an ``rfm run`` recorded (its
+    ``outputs.mcap`` bag folder)."""
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415
+
+    from rfm_core.io.bag import rfm_typestore  # noqa: PLC0415
+    from rfm_core.io.messages import pose_to_matrix, stamp_to_ns  # noqa: PLC0415
+
+    poses = {}
+    with AnyReader([Path(output) / 'outputs.mcap'], default_typestore=rfm_typestore()) as reader:
+        conns = [c for c in reader.connections if c.topic == '/rfm/camera_pose']
+        if conns:
+            for conn, _, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                poses[stamp_to_ns(msg.header.stamp)] = pose_to_matrix(msg.pose)
+    return poses
+
+
+def relocalization_scene_graph(args) -> dict:
+    """The appendix protocol through the node graph, as a user runs it: ``rfm run`` maps one
+    capture of a room; a second capture (:func:`query_capture`) is replayed by ``rfm run``
+    with that map loaded in localization mode (``mapper.load_map_on_start``,
+    ``mapper.mode:=localization``), and every ``rfm/camera_pose`` it publishes is scored
+    against the truth in the world frame (the map's alignment to the world from the mapping
+    run's keyframes: the query frames are not re-aligned). ``wrong``: > 5 deg or > 25 cm."""
+    config, detector, query_frames, work, domain = args
+    from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
+    from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
+    from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
+    from rfm_core.sim.capture import Capture  # noqa: PLC0415
+
+    scene = Path(work) / scene_name(config)
+    bags = {'map': (config, scene / 'map_bag'), 'query': (query_capture(config, query_frames), scene / 'query_bag')}
+    for capture_config, bag in bags.values():
+        if not (bag / 'metadata.yaml').is_file():
+            shutil.rmtree(bag, ignore_errors=True)
+            scene.mkdir(parents=True, exist_ok=True)
+            Capture(capture_config).write_bag(bag)
+    rfm = shutil.which('rfm') or 'rfm'
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    backend, _, preset = detector.partition(':')
+    detector_args = ['--backend', backend] + (['--preset', preset] if preset else [])
+    mapped, queried = scene / 'map_run', scene / 'query_run'
+    extra = {'map': [], 'query': ['--param', 'mapper.load_map_on_start:=true', f'mapper.map_path:={mapped / "map.rfm"}',
+                                  'mapper.mode:=localization']}
+    nan = float('nan')
+    failed = {'scene': scene_name(config), 'registered': 0.0, 'wrong': nan, 'ARE_median': nan, 'ATE_median': nan,
+              'frames': query_frames, 'map_registered': 0.0}
+    for name, output in (('map', mapped), ('query', queried)):
+        cmd = [rfm, 'run', '--bag', str(bags[name][1]), '--output', str(output), '--force', '--quiet', *detector_args,
+               *extra[name]]
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
+        if proc.returncode != 0 or not (output / 'summary.json').is_file():
+            tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
+            return {**failed, 'error': f'rfm run ({name}) exited {proc.returncode}: {" / ".join(tail)}'}
+    mapper = Mapper()
+    load_map(mapper, mapped / 'map.rfm')
+    map_truth = read_ground_truth(bags['map'][1]).camera_poses
+    keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
+    world = map_to_truth(keyframes, map_truth).matrix()
+    truth = read_ground_truth(bags['query'][1]).camera_poses
+    estimated = {stamp: world @ pose for stamp, pose in camera_poses_of_run(queried).items() if stamp in truth}
+    errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
+    return {'scene': scene_name(config), **errors, 'frames': len(truth),
+            'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1)}
+
+
 def relocalization_scene(args) -> dict:
     """Paper appendix: map one capture of a room, save the map, load it into a fresh
     mapper, and relocalize every frame of a second capture (another trajectory) of the
     same room. Returns per-scene relocalized share and median errors."""
     config, detector, query_frames = args
     import tempfile  # noqa: PLC0415
-    from dataclasses import replace  # noqa: PLC0415
-    from pathlib import Path  # noqa: PLC0415
 
     import torch  # noqa: PLC0415
 
@@ -375,7 +449,7 @@ def relocalization_scene(args) -> dict:
         load_map(mapper, save_map(mapped.mapper, Path(tmp) / 'map.rfm'))
     mapper.mode = 'localization'
     world = map_to_truth(mapper.camera_poses(), mapped.truth)
-    second = Capture(replace(config, frames=query_frames, fps=2.0, capture='handheld', trajectory_seed=1))
+    second = Capture(query_capture(config, query_frames))
     err = relocalize_capture(mapper, world, second, detector, noise_seed=11)
     return {'scene': f'{config.seed}_{config.room_style}_{config.capture}', **err,
             'map_registered': mapped.localization['registered']}
