@@ -228,7 +228,7 @@ def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
     from rfm_core.evaluation.suite import relocalization_scene_graph  # noqa: PLC0415
     config = CaptureConfig(seed=41, frames=60, fps=5, capture='handheld')
     result = relocalization_scene_graph((config, 'ground_truth:rgbd', 12, tmp_path,
-                                         int(os.environ.get('ROS_DOMAIN_ID', random.randint(100, 200)))))
+                                         int(os.environ.get('ROS_DOMAIN_ID', random.randint(100, 200))), ()))
     assert 'error' not in result, result
     assert result['map_registered'] >= 0.9 and result['frames'] == 12, result
     assert result['registered'] >= 0.6 and result['wrong'] <= 0.1, result

@@ -498,7 +498,8 @@ def cmd_eval_reloc(args) -> int:
         base = random.SystemRandom().randint(10, 80)
         # one ROS domain per scene: parallel scenes never see each other's nodes
         scene_fn = relocalization_scene_graph
-        work = [(c, args.detector, args.query_frames, folder, base + i) for i, c in enumerate(configs)]
+        work = [(c, args.detector, args.query_frames, folder, base + i, args.param or ())
+                for i, c in enumerate(configs)]
     rows = []
     try:
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
@@ -725,6 +726,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--offline', action='store_true',
                    help='in-process (every frame detected, true gravity) instead of through the node graph')
     p.add_argument('--work', help='keep the bags and rfm run outputs here (graph path; default: a temporary folder)')
+    p.add_argument('--param', nargs='+', metavar='NODE.NAME:=VALUE',
+                   help='passed to both rfm runs of each room (graph path), e.g. '
+                        'mapper.relocalization.min_explained:=3')
     p.add_argument('--first-seed', type=int, default=5000)
     p.add_argument('--frames', type=int, default=150, help='frames of the mapping capture (a walk around the room)')
     p.add_argument('--fps', type=float, default=5.0, help='frame rate of the mapping capture (150 at 5 fps: 30 s)')

@@ -381,8 +381,9 @@ def relocalization_scene_graph(args) -> dict:
     with that map loaded in localization mode (``mapper.load_map_on_start``,
     ``mapper.mode:=localization``), and every ``rfm/camera_pose`` it publishes is scored
     against the truth in the world frame (the map's alignment to the world from the mapping
-    run's keyframes: the query frames are not re-aligned). ``wrong``: > 5 deg or > 25 cm."""
-    config, detector, query_frames, work, domain = args
+    run's keyframes: the query frames are not re-aligned). ``wrong``: > 5 deg or > 25 cm.
+    ``params``: extra ``--param`` values for both runs."""
+    config, detector, query_frames, work, domain, params = args
     from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
@@ -410,6 +411,8 @@ def relocalization_scene_graph(args) -> dict:
     for name, output in (('map', mapped), ('query', queried)):
         cmd = [rfm, 'run', '--bag', str(bags[name][1]), '--output', str(output), '--force', '--quiet', *detector_args,
                *extra[name]]
+        if params:
+            cmd += ['--param', *params]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
         if proc.returncode != 0 or not (output / 'summary.json').is_file():
             tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
