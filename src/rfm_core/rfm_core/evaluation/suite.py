@@ -205,23 +205,34 @@ def scene_metrics(summary: dict) -> dict:
     return out
 
 
+def _written_bag(config, bag: Path) -> Path:
+    """``bag``, written from the capture ``config`` unless a complete one is there."""
+    from rfm_core.sim.capture import Capture  # noqa: PLC0415
+
+    if not (bag / 'metadata.yaml').is_file():
+        shutil.rmtree(bag, ignore_errors=True)
+        bag.parent.mkdir(parents=True, exist_ok=True)
+        Capture(config).write_bag(bag)
+    return bag
+
+
+def _rfm_in_domain(domain: int) -> tuple[str, dict]:
+    """The ``rfm`` executable and an environment that keeps its nodes in ROS domain
+    ``domain``, discovering on this machine only."""
+    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
+    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    return shutil.which('rfm') or 'rfm', env
+
+
 def evaluate_scene_graph(args) -> dict:
     """Every setting on one scene through the node graph: the scene is written as a bag (once,
     kept in ``work``) and replayed by ``rfm run`` in ROS domain ``domain`` (with the extra
     ``--param`` values ``params``); scored from the run's outputs. A run that fails counts as
     nothing localized and nothing mapped."""
     config, settings, work, domain, params = args
-    from rfm_core.sim.capture import Capture  # noqa: PLC0415
-
     scene = Path(work) / scene_name(config)
-    bag = scene / 'bag'
-    if not (bag / 'metadata.yaml').is_file():
-        shutil.rmtree(bag, ignore_errors=True)
-        scene.mkdir(parents=True, exist_ok=True)
-        Capture(config).write_bag(bag)
-    rfm = shutil.which('rfm') or 'rfm'
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    bag = _written_bag(config, scene / 'bag')
+    rfm, env = _rfm_in_domain(domain)
     out = {}
     for s in settings:
         run = scene / _slug(s.name)
@@ -388,18 +399,11 @@ def relocalization_scene_graph(args) -> dict:
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
-    from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     scene = Path(work) / scene_name(config)
-    bags = {'map': (config, scene / 'map_bag'), 'query': (query_capture(config, query_frames), scene / 'query_bag')}
-    for capture_config, bag in bags.values():
-        if not (bag / 'metadata.yaml').is_file():
-            shutil.rmtree(bag, ignore_errors=True)
-            scene.mkdir(parents=True, exist_ok=True)
-            Capture(capture_config).write_bag(bag)
-    rfm = shutil.which('rfm') or 'rfm'
-    env = dict(os.environ, ROS_DOMAIN_ID=str(domain))
-    env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
+    bags = {'map': _written_bag(config, scene / 'map_bag'),
+            'query': _written_bag(query_capture(config, query_frames), scene / 'query_bag')}
+    rfm, env = _rfm_in_domain(domain)
     backend, _, preset = detector.partition(':')
     detector_args = ['--backend', backend] + (['--preset', preset] if preset else [])
     mapped, queried = scene / 'map_run', scene / 'query_run'
@@ -409,7 +413,7 @@ def relocalization_scene_graph(args) -> dict:
     failed = {'scene': scene_name(config), 'registered': 0.0, 'wrong': nan, 'ARE_median': nan, 'ATE_median': nan,
               'frames': query_frames, 'map_registered': 0.0}
     for name, output in (('map', mapped), ('query', queried)):
-        cmd = [rfm, 'run', '--bag', str(bags[name][1]), '--output', str(output), '--force', '--quiet', *detector_args,
+        cmd = [rfm, 'run', '--bag', str(bags[name]), '--output', str(output), '--force', '--quiet', *detector_args,
                *extra[name]]
         if params:
             cmd += ['--param', *params]
@@ -419,10 +423,10 @@ def relocalization_scene_graph(args) -> dict:
             return {**failed, 'error': f'rfm run ({name}) exited {proc.returncode}: {" / ".join(tail)}'}
     mapper = Mapper()
     load_map(mapper, mapped / 'map.rfm')
-    map_truth = read_ground_truth(bags['map'][1]).camera_poses
+    map_truth = read_ground_truth(bags['map']).camera_poses
     keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
     world = map_to_truth(keyframes, map_truth).matrix()
-    truth = read_ground_truth(bags['query'][1]).camera_poses
+    truth = read_ground_truth(bags['query']).camera_poses
     estimated = {stamp: world @ pose for stamp, pose in camera_poses_of_run(queried).items() if stamp in truth}
     errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
     return {'scene': scene_name(config), **errors, 'frames': len(truth),
