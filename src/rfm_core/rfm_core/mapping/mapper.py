@@ -27,7 +27,7 @@ from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.view_graph import bag_of_objects
+from rfm_core.matching.view_graph import Edge, bag_of_objects
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import from_dict, section, setting
 
@@ -271,10 +271,7 @@ class Mapper:
             match = match_to_map(self.keyframes[k], tracks, self.keyframes, poses, self.config.matching, cfg, gyro)
             if match is None or not match.accepted(cfg, len(self.keyframes[k]), gyro is not None):
                 continue
-            rel = match.relative
-            edge = EdgeRecord(match.keyframe_id, k, rel.pose, rel.inliers, rel.inlier_scores,
-                              np.asarray(rel.corner_inliers, float).reshape(-1, 5),
-                              float(np.clip(rel.inlier_ratio, 0.0, 1.0)))
+            edge = EdgeRecord.from_edge(Edge(match.keyframe_id, k, match.relative))
             if self.add_edge(edge):
                 self.recovered.append(edge)
                 added = True

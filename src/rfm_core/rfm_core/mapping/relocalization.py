@@ -378,6 +378,4 @@ def _verify(query, t_map_view: Pose4, qb, tb, compatible, observers, keyframes, 
     if best is None:
         return None
     rel, k = best                                           # T_k_view, inliers (view, keyframe)
-    rel.inliers = rel.inliers[:, ::-1].copy()
-    rel.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in rel.corner_inliers]
-    return rel, k
+    return rel.swap_index_order(), k

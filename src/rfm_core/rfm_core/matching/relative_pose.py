@@ -56,6 +56,14 @@ class RelativePose:
     def inlier_ratio(self) -> float:
         return len(self.inliers) / max(self.num_matches, 1)
 
+    def swap_index_order(self) -> 'RelativePose':
+        """Inliers and corner inliers as (b, a) index pairs, in place; the pose stays T_b_a
+        (``estimate_relative_pose(boxes_of_target, boxes_of_source)`` read as the source's
+        pose of the target with (source, target) pairs). Returns self."""
+        self.inliers = self.inliers[:, ::-1].copy()
+        self.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in self.corner_inliers]
+        return self
+
 
 def _best_turn(candidates, yaw):
     """The quarter turn whose implied relative yaw is closest to ``yaw``."""

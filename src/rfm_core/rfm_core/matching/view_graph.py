@@ -235,11 +235,7 @@ class ViewGraphBuilder:
         if measured is not None:
             prior = YawPrior(measured[0], np.radians(measured[1]))
         rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching, prior)
-        if rel is None:
-            return None
-        rel.inliers = rel.inliers[:, ::-1].copy()        # as (source, target) index pairs
-        rel.corner_inliers = [(ib, cb, ia, ca, e) for ia, ca, ib, cb, e in rel.corner_inliers]
-        return rel
+        return None if rel is None else rel.swap_index_order()        # as (source, target) index pairs
 
     def _reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
