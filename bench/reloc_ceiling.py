@@ -34,7 +34,7 @@ def main() -> int:
     from rfm_core.mapping.frame_log import pose_from_camera  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
-    from rfm_core.mapping.relocalization import explained, track_boxes  # noqa: PLC0415
+    from rfm_core.mapping.relocalization import explained  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     rows = []                                           # (detections, explained at the truth, relocalized)
@@ -48,12 +48,12 @@ def main() -> int:
         keyframes = {mapper.keyframes[k].stamp_ns: p for k, p in mapper.camera_poses().items()}
         to_map = np.linalg.inv(map_to_truth(keyframes, read_ground_truth(scene / 'map_bag').camera_poses).matrix())
         relocalized = camera_poses_of_run(scene / 'query_run')
-        targets = track_boxes(mapper.tracks())
+        index = mapper.map_index()
         detect = detections_for('depth_clusters', noise_seed=11)
         for frame in Capture(query_capture(config, args.query_frames)).frames():
             obs = detect(frame)
             pose = pose_from_camera(to_map @ frame.pose_matrix, obs.gravity_cam, atol=0.5)
-            rows.append((len(obs), explained(obs, pose, targets, mapper.config.matching) if len(obs) else 0,
+            rows.append((len(obs), explained(obs, pose, index, mapper.config.matching) if len(obs) else 0,
                          frame.stamp_ns in relocalized))
     rows = np.array(rows, float).reshape(-1, 3)
     print('| detections explained at the true pose | frames | relocalized by the graph | median detections |')

@@ -41,7 +41,7 @@ def score(mapper, truth, align, tracks_config, paper_score: bool = False) -> dic
     """AP25, objects per room object and share of nothing real of the rebuilt tracks
     (``paper_score``: ranked by the paper's score, without the view evidence)."""
     mapper.config = dataclasses.replace(mapper.config, tracks=tracks_config)
-    mapper._tracks = None
+    mapper._changed()
     tracks = mapper.tracks()
     scores = [t.quality if paper_score else t.score for t in tracks]
     boxes = align.transform_boxes(np.array([t.box for t in tracks]).reshape(-1, 7))

@@ -222,7 +222,7 @@ def test_the_map_is_built_from_full_boxes_and_saves_them(mapped, tmp_path):
         full[:, 5] += 0.2
         grown[k] = replace(f, full_boxes=full)
     fresh.keyframes.update(grown)
-    fresh._tracks = None
+    fresh._changed()
     path = save_map(fresh, tmp_path / 'b.rfm')
     again = Mapper()
     load_map(again, path)
@@ -293,7 +293,7 @@ def test_a_pose_must_explain_the_query_in_the_whole_map(mapped, tmp_path):
     two-object test alone accepts a pose for it, here two of the free-space boxes matched to
     real ones)."""
     from dataclasses import replace
-    from rfm_core.mapping.relocalization import explained, track_boxes
+    from rfm_core.mapping.relocalization import explained
     path = save_map(mapped.mapper, tmp_path / 'room.rfm')
     mapper = Mapper()
     load_map(mapper, path)
@@ -303,7 +303,7 @@ def test_a_pose_must_explain_the_query_in_the_whole_map(mapped, tmp_path):
     assert len(view) >= 4
     reloc = mapper.relocalize(view)
     assert reloc is not None and reloc.explained >= 4
-    assert explained(view, mapper.poses[k], track_boxes(mapper.tracks()), mapper.config.matching) == reloc.explained
+    assert explained(view, mapper.poses[k], mapper.map_index(), mapper.config.matching) == reloc.explained
     # two real objects, three boxes in free space (2.5 m up, where the room has nothing)
     rng = np.random.default_rng(0)
     fake = view.boxes[:3].copy()

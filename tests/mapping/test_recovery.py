@@ -71,10 +71,10 @@ def test_a_view_is_matched_to_the_map_without_a_keyframe_or_gyroscope_in_common(
     observations, truth = gap_capture
     before = [o for o in observations if o.stamp_ns < observations[0].stamp_ns + GAP_S[0] * 1e9]
     mapper = _run(before, recovery=False).mapper
-    cfg, tracks = mapper.config.relocalization, mapper.tracks()
+    cfg, index = mapper.config.relocalization, mapper.map_index()
 
     def accepted(obs):
-        match = match_to_map(obs, tracks, mapper.keyframes, mapper.poses, mapper.config.matching, cfg)
+        match = match_to_map(obs, index, mapper.config.matching, cfg)
         return match if match is not None and match.accepted(cfg, len(obs), gyroscope=False) else None
 
     errors = []                                             # (m, deg) of each accepted match's edge

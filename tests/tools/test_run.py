@@ -233,4 +233,5 @@ def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
     assert result['map_registered'] >= 0.9 and result['frames'] == 12, result
     assert result['registered'] >= 0.6 and result['wrong'] <= 0.1, result
     assert result['ARE_median'] < 2.0 and result['ATE_median'] < 0.10, result
+    assert 0 < result['latency_ms'] < 1000, result          # the mapper timed its queries (summary.json)
     assert (tmp_path / f'{config.seed}_{config.room_style}_handheld' / 'query_run' / 'outputs.mcap').is_dir()

@@ -506,7 +506,8 @@ def cmd_eval_reloc(args) -> int:
             for r in pool.map(scene_fn, work):
                 rows.append(r)
                 print(f'[rfm eval-reloc] {r["scene"]}: relocalized {100 * r["registered"]:.0f}%, '
-                      f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong {100 * r["wrong"]:.0f}% '
+                      f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong {100 * r["wrong"]:.0f}%, '
+                      f'{r.get("latency_ms", float("nan")):.0f} ms per query '
                       f'(map: {100 * r["map_registered"]:.0f}% of keyframes registered)'
                       + (f' [{r["error"]}]' if r.get('error') else ''), flush=True)
     finally:
@@ -517,11 +518,15 @@ def cmd_eval_reloc(args) -> int:
     ate = float(np.nanmedian([r['ATE_median'] for r in rows]))
     relocalized = np.array([r['registered'] * r['frames'] for r in rows])
     wrong = float(np.nansum(np.array([r['wrong'] for r in rows]) * relocalized) / max(relocalized.sum(), 1))
+    latency = np.array([r.get('latency_ms', np.nan) for r in rows], float)
+    latency = float(np.median(latency[np.isfinite(latency)])) if np.isfinite(latency).any() else float('nan')
     path = 'in-process' if args.offline else 'through the node graph'
     print(f'\n{path}, {args.world} world:\n'
-          f'| input | rooms | relocalized | ARE median (deg) | ATE median (cm) | wrong (> 5 deg or > 25 cm) |\n'
-          f'|---|---|---|---|---|---|\n'
-          f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% |')
+          f'| input | rooms | relocalized | ARE median (deg) | ATE median (cm) | wrong (> 5 deg or > 25 cm) '
+          f'| ms per query (median) |\n'
+          f'|---|---|---|---|---|---|---|\n'
+          f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% '
+          f'| {latency:.0f} |')
     return 0
 
 

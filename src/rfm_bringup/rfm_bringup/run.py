@@ -215,6 +215,7 @@ class _InProcessGraph:
                 'dropped': sum(dropped.values()), 'dropped_by_reason': dropped,
                 'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
                 'registered': len(mp.poses), 'objects': self.mapper.num_objects, 'lost': self.mapper.num_lost,
+                'relocalization': self.mapper.session.relocalize_latency(),
                 'busy': self.mapper.session.dirty or not self.detector.worker.idle}
 
     def save(self, path) -> bool:
@@ -293,7 +294,10 @@ class _ProcessGraph:
         n = self.detections()
         return {'frames': n, 'dropped': 0, 'detections': n,
                 'keyframes': s.num_keyframes if s else 0, 'registered': s.num_registered if s else 0,
-                'objects': s.num_objects if s else 0, 'lost': s.num_lost if s else 0, 'busy': False}
+                'objects': s.num_objects if s else 0, 'lost': s.num_lost if s else 0, 'busy': False,
+                'relocalization': {'queries': s.num_relocalize_queries, 'relocalized': s.num_relocalized,
+                                   'median_ms': 1e3 * s.relocalize_seconds_median,
+                                   'p95_ms': 1e3 * s.relocalize_seconds_p95} if s else {}}
 
     def save(self, path) -> bool:
         from rfm_msgs.srv import SaveMap  # noqa: PLC0415
@@ -465,6 +469,7 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
                'detections': progress.get('detections', 0), 'dropped': progress.get('dropped', 0),
                'dropped_by_reason': progress.get('dropped_by_reason', {}),
                'lost_between_nodes': progress.get('lost', 0),
+               'relocalization': progress.get('relocalization') or {},
                'localized': len(mapper.frame_poses()), 'keyframes': len(mapper.keyframes),
                'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),
                'edges_rejected': len(mapper.measurements()) - len(mapper.active_edges()), 'objects': len(mapper.tracks()),

@@ -17,6 +17,7 @@ relocalizes in localization mode, and saves and loads maps. Nodes only convert m
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, replace
 from typing import Callable, NamedTuple
 
@@ -36,6 +37,7 @@ PENDING_EDGES = 5000            #: edges (and tracked frames) waiting for their 
 PENDING_EDGE_AGE_S = 30.0       #: ... for at most this long
 PENDING_KEYFRAMES = 100         #: posed keyframes waiting for their poses
 MAX_KEYFRAME_ID = 2 ** 40       #: larger incoming ids get the next free map id (track ids stay in 64 bits)
+RELOCALIZE_TIMES_KEPT = 1000    #: relocalization queries whose wall time is kept (for the latency reported)
 
 
 class SequenceCheck:
@@ -117,6 +119,7 @@ class MapSession:
         self.clock = clock
         self.counts = dict(keyframes=0, edges=0, frames=0, dropped=0, relocalized=0, relocalize_failed=0)
         self.message = ''                     # the last error, for status
+        self.relocalize_seconds = deque(maxlen=RELOCALIZE_TIMES_KEPT)   # wall time of the latest queries
         self._clear()
 
     def _clear(self) -> None:
@@ -339,13 +342,28 @@ class MapSession:
         if not self.mapper.poses:
             return None, 'the map is empty: nothing to relocalize against'
         why = []
+        start = time.perf_counter()
         reloc = self.mapper.relocalize(obs, why)
+        seconds = time.perf_counter() - start
+        self.relocalize_seconds.append(seconds)
+        took = f' ({1e3 * seconds:.0f} ms)'
         if reloc is None:
             self.counts['relocalize_failed'] += 1
-            return None, why[0] if why else 'no pose found'
+            return None, (why[0] if why else 'no pose found') + took
         self.counts['relocalized'] += 1
         return reloc, (f'relocalized against keyframe {reloc.keyframe_id}: {reloc.num_inliers} inliers, '
-                       f'{reloc.agreeing} agreeing keyframes, {reloc.explained} detections explained by the map')
+                       f'{reloc.agreeing} agreeing keyframes, {reloc.explained} detections explained by the '
+                       f'map{took}')
+
+    def relocalize_latency(self) -> dict:
+        """Relocalization queries so far and the wall time of the latest
+        ``RELOCALIZE_TIMES_KEPT``: {'queries', 'relocalized', 'median_ms', 'p95_ms'} (the
+        times 0 before the first query)."""
+        times = np.sort(np.asarray(self.relocalize_seconds, float)) * 1e3
+        return {'queries': self.counts['relocalized'] + self.counts['relocalize_failed'],
+                'relocalized': self.counts['relocalized'],
+                'median_ms': float(np.median(times)) if len(times) else 0.0,
+                'p95_ms': float(times[int(0.95 * (len(times) - 1))]) if len(times) else 0.0}
 
     def localize(self, obs: FrameObservations) -> CameraPose | None:
         """Localization mode: relocalize a frame against the (frozen) map and log it."""

@@ -309,6 +309,11 @@ class MapperNode(Node):
         msg.num_frames = len(mp.frames)
         msg.num_lost = self.num_lost
         msg.last_update_seconds = float(mp.last_update_seconds)
+        latency = self.session.relocalize_latency()
+        msg.num_relocalize_queries = latency['queries']
+        msg.num_relocalized = latency['relocalized']
+        msg.relocalize_seconds_median = latency['median_ms'] / 1e3
+        msg.relocalize_seconds_p95 = latency['p95_ms'] / 1e3
         msg.message = self.session.message
         self.status_pub.publish(msg)
 

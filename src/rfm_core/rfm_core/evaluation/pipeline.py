@@ -108,14 +108,18 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
     """Relocalize every frame of ``capture`` against ``mapper``'s map (paper appendix) and
     score the poses in the world frame (``map_to_world``: T_world_map, e.g. from
     :func:`rfm_core.evaluation.trajectory.map_to_truth`); frames that fail count as not
-    registered. ``wrong``: share of the relocalized frames off by > 5 deg or > 25 cm."""
+    registered. ``wrong``: share of the relocalized frames off by > 5 deg or > 25 cm;
+    ``latency_ms``: the median wall time of one query."""
     detect = detections_for(detector, noise_seed)
     world = map_to_world.matrix()
-    relocalized, truth = {}, {}
+    relocalized, truth, seconds = {}, {}, []
     for frame in capture.frames():
         obs = detect(frame)
         truth[frame.index] = frame.pose_matrix
+        start = time.perf_counter()
         reloc = mapper.relocalize(obs)
+        seconds.append(time.perf_counter() - start)
         if reloc is not None:
             relocalized[frame.index] = world @ reloc.camera_to_map(obs)
-    return trajectory_errors(relocalized, truth, align=False, gross=(5.0, 0.25))
+    return {**trajectory_errors(relocalized, truth, align=False, gross=(5.0, 0.25)),
+            'latency_ms': 1e3 * float(np.median(seconds)) if seconds else float('nan')}

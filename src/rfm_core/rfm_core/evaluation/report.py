@@ -206,6 +206,9 @@ def write_report(path, summary: dict) -> Path:
              f'- keyframes: {s.get("keyframes", 0)}, registered: {s.get("registered", 0)}, '
              f'edges kept / rejected: {s.get("edges", 0)} / {s.get("edges_rejected", 0)}',
              f'- objects in the map: {s.get("objects", 0)}',
+             *([f'- relocalization queries (localization mode, rfm/relocalize): {r["queries"]}, '
+                f'{r["relocalized"]} placed in the map; wall time per query: median {r["median_ms"]:.0f} ms, '
+                f'95th percentile {r["p95_ms"]:.0f} ms'] if (r := s.get('relocalization') or {}).get('queries') else []),
              f'- processing time: {s.get("wall_s", 0):.1f} s for {s.get("bag_s", 0):.1f} s of data '
              f'({s.get("realtime", 0):.2f}x real time; from the first frame detected until the last change '
              f'of the graph; 0.2 s polling)', '']

@@ -411,7 +411,7 @@ def relocalization_scene_graph(args) -> dict:
                                   'mapper.mode:=localization']}
     nan = float('nan')
     failed = {'scene': scene_name(config), 'registered': 0.0, 'wrong': nan, 'ARE_median': nan, 'ATE_median': nan,
-              'frames': query_frames, 'map_registered': 0.0}
+              'frames': query_frames, 'map_registered': 0.0, 'latency_ms': nan}
     for name, output in (('map', mapped), ('query', queried)):
         cmd = [rfm, 'run', '--bag', str(bags[name]), '--output', str(output), '--force', '--quiet', *detector_args,
                *extra[name]]
@@ -429,8 +429,10 @@ def relocalization_scene_graph(args) -> dict:
     truth = read_ground_truth(bags['query']).camera_poses
     estimated = {stamp: world @ pose for stamp, pose in camera_poses_of_run(queried).items() if stamp in truth}
     errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
+    latency = json.loads((queried / 'summary.json').read_text()).get('relocalization') or {}
     return {'scene': scene_name(config), **errors, 'frames': len(truth),
-            'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1)}
+            'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1),
+            'latency_ms': latency.get('median_ms', nan) if latency.get('queries') else nan}
 
 
 def relocalization_scene(args) -> dict:

@@ -22,7 +22,7 @@ from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.frame_log import FrameLog
-from rfm_core.mapping.relocalization import Relocalization, RelocalizationConfig, match_to_map, relocalize
+from rfm_core.mapping.relocalization import MapIndex, Relocalization, RelocalizationConfig, match_to_map, relocalize
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
@@ -111,6 +111,7 @@ class Mapper:
         self.mode = 'mapping'
         self.revision = 0
         self._tracks = None
+        self._index = None
         self._descriptors: dict = {}
         self.frames = FrameLog()             # every localized frame (tracked or relocalized)
         self.origins: dict = {}              # id -> (view-graph session, its keyframe id), where numbered
@@ -131,7 +132,7 @@ class Mapper:
             self.averager.add_keyframe(keyframe_id)
             if previous is not None and previous < keyframe_id:
                 self._add_gyroscope_edge(previous, keyframe_id)
-        self._tracks = None
+        self._changed()
         return True
 
     def _add_gyroscope_edge(self, source: int, target: int) -> None:
@@ -171,7 +172,7 @@ class Mapper:
             self._averaged[len(self.averager.edges)] = edge
             self.averager.add_edge(edge.source, edge.target, edge.pose,
                                    edge.weight * self.config.averaging.turn_factor(edge.pose.yaw))
-        self._tracks = None
+        self._changed()
         return True
 
     def add_frame(self, track: FrameTrack) -> bool:
@@ -227,7 +228,7 @@ class Mapper:
     def set_keyframe_pose(self, keyframe_id: int, t_k_map: Pose4) -> None:
         """Posed mode: the keyframe's pose from outside."""
         self.external_poses[keyframe_id] = t_k_map
-        self._tracks = None
+        self._changed()
 
     def update(self, force_full: bool = False):
         """Fold new keyframes and edges into the poses; returns the averaging stats."""
@@ -239,7 +240,7 @@ class Mapper:
                 stats = self.averager.update(force_full)
             if stats.kind != 'none':
                 self.revision += 1
-                self._tracks = None
+                self._changed()
         else:
             self.revision += 1
         self.last_update_seconds = time.perf_counter() - start
@@ -266,9 +267,9 @@ class Mapper:
             if gyro is not None or cfg.recovery_unaided:
                 due.append((k, gyro))
         added = False
-        tracks = self.tracks() if due else []
+        index = self.map_index() if due else None
         for k, gyro in due:
-            match = match_to_map(self.keyframes[k], tracks, self.keyframes, poses, self.config.matching, cfg, gyro)
+            match = match_to_map(self.keyframes[k], index, self.config.matching, cfg, gyro)
             if match is None or not match.accepted(cfg, len(self.keyframes[k]), gyro is not None):
                 continue
             edge = EdgeRecord.from_edge(Edge(match.keyframe_id, k, match.relative))
@@ -347,6 +348,17 @@ class Mapper:
             mask[i] = id(e) in kept
         self.averager.restore(poses, mask)
 
+    def _changed(self) -> None:
+        """The map changed: its tracks and index are rebuilt when next needed."""
+        self._tracks = None
+        self._index = None
+
+    def map_index(self) -> MapIndex:
+        """The current map indexed for relocalization (cached until the map changes)."""
+        if self._index is None:
+            self._index = MapIndex(self.keyframes, dict(self.poses), self._descriptors, self.tracks)
+        return self._index
+
     def tracks(self) -> list:
         """Object tracks of the current map (cached until the map changes)."""
         if self._tracks is None:
@@ -372,5 +384,5 @@ class Mapper:
         query objects wins, needs ``relocalization.min_inliers`` of them, is averaged over
         the agreeing keyframes and refitted on the map's tracks. ``keyframe_id`` is the
         agreeing keyframe with the most inliers."""
-        return relocalize(query, self.keyframes, self.poses, self._descriptors, self.tracks, self.matcher,
-                          self.config.relocalization, self.config.matching, self.config.averaging, why)
+        return relocalize(query, self.map_index(), self.matcher, self.config.relocalization, self.config.matching,
+                          self.config.averaging, why)

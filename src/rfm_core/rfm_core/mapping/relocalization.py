@@ -25,15 +25,15 @@ import numpy as np
 from rfm_core.geometry import Pose4, circular_mean, iou_3d_paired, kabsch_4dof, wrap_angle, yaw_matrix
 from rfm_core.mapping.averaging import AveragingConfig, agreement
 from rfm_core.mapping.frame_log import camera_to_map
+from rfm_core.mapping.map_index import MapIndex, track_boxes
 from rfm_core.matching.classical import ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
-from rfm_core.matching.view_graph import bag_of_objects
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'MapMatch', 'relocalize', 'match_to_map', 'refine_on_tracks',
-           'explained', 'track_boxes']
+__all__ = ['RelocalizationConfig', 'Relocalization', 'MapMatch', 'MapIndex', 'relocalize', 'match_to_map',
+           'refine_on_tracks', 'explained', 'track_boxes']
 
 
 @dataclass(frozen=True)
@@ -79,6 +79,10 @@ class RelocalizationConfig:
                                 'by one chair) when their camera centres are this far apart ...', lo=0.01, hi=10.0)
     distinct_deg: float = setting(5.0, '... or their yaws this far: a match to the map must explain more of '
                                   'the view than any alternative', lo=0.1, hi=180.0)
+    map_correspondences: int = setting(24, 'Matching a view to the map\'s objects: each detection proposes '
+                                       'poses from this many tracks of compatible size, the most similar '
+                                       '(embedding, then size): the cost stays bounded in a map of thousands '
+                                       'of objects', lo=1, hi=10000)
 
 
 @dataclass
@@ -97,35 +101,21 @@ class Relocalization:
         return camera_to_map(self.pose, query.gravity_cam)
 
 
-def _candidates(query, keyframes: dict, poses: dict, descriptors: dict, count: int) -> list:
-    """Registered keyframes most similar to the query by bag of objects (the latest ones when
-    descriptors are missing or of another size)."""
-    ids = [k for k in poses if descriptors.get(k) is not None and len(keyframes[k]) >= 2]
-    desc = bag_of_objects(query)
-    if np.any(desc) and ids and all(descriptors[k].size == desc.size for k in ids):
-        sims = np.array([descriptors[k] @ desc for k in ids])
-        return [ids[i] for i in np.argsort(-sims)[:count]]
-    return ids[-count:]
-
-
-def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descriptors: dict, tracks, matcher,
-               config: RelocalizationConfig, matching: MatchingConfig,
-               averaging: AveragingConfig, why: list | None = None) -> Relocalization | None:
-    """The query's pose in the map, or None (and the reason appended to ``why``).
-    ``keyframes``: id -> FrameObservations; ``poses``: id -> T_k_map of the registered ones;
-    ``descriptors``: id -> bag of objects; ``tracks``: a callable giving the map's object
-    tracks (only built once a keyframe verified a pose). Against keyframes first; with
-    ``map_fallback``, a query no keyframe places is matched against the map's objects
-    (:func:`match_to_map`, no gyroscope: another session)."""
+def relocalize(query: FrameObservations, index: MapIndex, matcher, config: RelocalizationConfig,
+               matching: MatchingConfig, averaging: AveragingConfig, why: list | None = None) -> Relocalization | None:
+    """The query's pose in the map (``index``: :class:`MapIndex`, its tracks built only once a
+    keyframe verified a pose), or None (and the reason appended to ``why``). Against
+    keyframes first; with ``map_fallback``, a query no keyframe places is matched against the
+    map's objects (:func:`match_to_map`, no gyroscope: another session)."""
     why = why if why is not None else []
-    if len(query) < 2 or not poses:
-        why.append(f'the query has {len(query)} detections; need >= 2' if poses else 'the map has no registered '
-                   'keyframes')
+    if len(query) < 2 or not index.poses:
+        why.append(f'the query has {len(query)} detections; need >= 2' if index.poses else 'the map has no '
+                   'registered keyframes')
         return None
-    found = _on_keyframes(query, keyframes, poses, descriptors, tracks, matcher, config, matching, averaging, why)
+    found = _on_keyframes(query, index, matcher, config, matching, averaging, why)
     if found is not None or not config.map_fallback:
         return found
-    match = match_to_map(query, tracks(), keyframes, poses, matching, config)
+    match = match_to_map(query, index, matching, config)
     if match is None or not match.accepted(config, len(query), gyroscope=False):
         why.append('matching the map\'s objects found no unique verified pose' if match is None or match.explained
                    else 'no pose from the map\'s objects explains the query')
@@ -135,12 +125,13 @@ def relocalize(query: FrameObservations, keyframes: dict, poses: dict, descripto
                           len(rel.inliers), 1, match.explained)
 
 
-def _on_keyframes(query, keyframes, poses, descriptors, tracks, matcher, config, matching, averaging, why):
+def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, why):
     """:func:`relocalize` against the most similar keyframes."""
-    candidates = _candidates(query, keyframes, poses, descriptors, config.candidates)
+    keyframes, poses = index.keyframes, index.poses
+    candidates = index.candidates(query, config.candidates)
     found = []
-    for k in candidates:
-        rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, matcher.match(query, keyframes[k]), matching)
+    for k, matches in zip(candidates, matcher.match_many(query, [keyframes[k] for k in candidates])):
+        rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, matches, matching)
         if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
             continue
         # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
@@ -156,8 +147,7 @@ def _on_keyframes(query, keyframes, poses, descriptors, tracks, matcher, config,
     support = np.array([len({int(iq) for j in np.flatnonzero(row) for iq in found[j][1].inliers[:, 0]})
                         for row in agree])
     # distinct hypotheses, by support: each a group of agreeing keyframes not in a stronger one
-    hypotheses, used, mapped = [], np.zeros(len(found), bool), tracks()
-    targets = track_boxes(mapped)
+    hypotheses, used = [], np.zeros(len(found), bool)
     for winner in np.argsort(-support, kind='stable'):
         if used[winner] or support[winner] < config.min_inliers or len(hypotheses) >= config.hypotheses:
             continue
@@ -167,8 +157,8 @@ def _on_keyframes(query, keyframes, poses, descriptors, tracks, matcher, config,
         w = np.array([len(found[j][1].inliers) for j in members], float)
         pose = Pose4.from_centre(circular_mean([found[j][2].yaw for j in members], w),
                                  (w[:, None] * centres[members]).sum(0) / w.sum())
-        pose = refine_on_tracks(query, pose, [found[j] for j in members], mapped, matching, keyframes, poses)
-        hypotheses.append((explained(query, pose, targets, matching), int(support[winner]), pose, best, members))
+        pose = refine_on_tracks(query, pose, [found[j] for j in members], index, matching)
+        hypotheses.append((explained(query, pose, index, matching), int(support[winner]), pose, best, members))
     if not hypotheses:
         why.append(f'the verified keyframes agree on no pose with {config.min_inliers} query objects')
         return None
@@ -181,33 +171,18 @@ def _on_keyframes(query, keyframes, poses, descriptors, tracks, matcher, config,
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count)
 
 
-def track_boxes(tracks: list) -> np.ndarray:
-    """(M, 7) the map's object boxes a query is checked against: every track's box and its
-    views lifted into the map."""
-    if not tracks:
-        return np.zeros((0, 7))
-    return np.concatenate([t.boxes for t in tracks] + [np.array([t.box for t in tracks])])
-
-
-def explained(query: FrameObservations, pose: Pose4, targets: np.ndarray, matching: MatchingConfig) -> int:
+def explained(query: FrameObservations, pose: Pose4, index: MapIndex, matching: MatchingConfig) -> int:
     """How many of the query's detections ``pose`` (T_query_map) explains: placed in the
-    map, each overlaps one of ``targets`` (:func:`track_boxes`) by ``matching.inlier_iou``.
-    Only boxes within reach are compared."""
-    if not len(targets) or not len(query):
+    map, each overlaps one of the map's boxes (:func:`track_boxes`: the tracks' boxes and
+    their views) by ``matching.inlier_iou``. Only boxes within reach are compared."""
+    if not len(query):
         return 0
     moved = pose.inverse().transform_boxes(query.map_boxes)                # in the map
-    reach = 0.5 * (np.linalg.norm(moved[:, None, 3:6], axis=-1) + np.linalg.norm(targets[None, :, 3:6], axis=-1))
-    near = np.linalg.norm(moved[:, None, :3] - targets[None, :, :3], axis=-1) < reach
-    rows, cols = np.nonzero(near)
-    hit = np.zeros(len(moved), bool)
-    if len(rows):
-        ok = iou_3d_paired(moved[rows], targets[cols]) >= matching.inlier_iou
-        hit[rows[ok]] = True
-    return int(hit.sum())
+    return int(index.overlapping(moved, matching.inlier_iou).sum())
 
 
-def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: list, matching: MatchingConfig,
-                     keyframes: dict, poses: dict) -> Pose4:
+def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, index: MapIndex,
+                     matching: MatchingConfig) -> Pose4:
     """Refit a relocalized pose on the map's object tracks: each query detection matched (as
     a verified inlier) to an observation of a track is paired with the track's centre — the
     median of all its observations lifted into the map, so much less noisy than one
@@ -216,29 +191,19 @@ def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, tracks: li
     (``FrameObservations.boxes``: fitted ones where the detector also gives full boxes); the
     refit is kept only when the query's full boxes still verify against the tracks' boxes.
     ``verified``: (keyframe id, relative pose, T_query_map) of the agreeing keyframes."""
-    owner = {}
-    for t in tracks:
-        for kf, det in t.observations:
-            owner[(int(kf), int(det))] = t
-    votes = {}
+    votes, by_id = {}, {}
     for k, rel, _ in verified:
         for iq, ik in rel.inliers:
-            t = owner.get((k, int(ik)))
+            t = index.track_of(k, ik)
             if t is not None:
                 votes.setdefault(int(iq), []).append(t.track_id)
-    by_id = {t.track_id: t for t in tracks}
+                by_id[t.track_id] = t
     pairs = [(iq, by_id[max(set(ids), key=ids.count)]) for iq, ids in votes.items()]
     if len(pairs) < 3:
         return pose
     idx = [iq for iq, _ in pairs]
     q = query.boxes[idx]
-
-    def centre(track):
-        lifted = [poses[int(k)].inverse().transform_points(keyframes[int(k)].boxes[int(d), :3][None])[0]
-                  for k, d in track.observations if int(k) in poses and int(k) in keyframes]
-        return np.median(lifted, axis=0)
-
-    target = np.array([centre(t) for _, t in pairs])
+    target = np.array([index.centre(t) for _, t in pairs])
     rng = np.linalg.norm(q[:, :3], axis=1)
     w = 1.0 / (matching.refine_sigma_m + matching.refine_sigma_per_m * rng) ** 2
     t_map_q = kabsch_4dof(q[:, :3], target, w)
@@ -287,26 +252,25 @@ def _hits(query_boxes: np.ndarray, track_boxes_: np.ndarray, compatible: np.ndar
     return (d < reach[None]) & (dz < up[None]) & compatible[None]
 
 
-def match_to_map(query: FrameObservations, tracks: list, keyframes: dict, poses: dict, matching: MatchingConfig,
-                 config: RelocalizationConfig, yaw_prior: float | None = None,
-                 why: list | None = None) -> MapMatch | None:
+def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingConfig, config: RelocalizationConfig,
+                 yaw_prior: float | None = None, why: list | None = None) -> MapMatch | None:
     """Match a view against the map's object tracks rather than one keyframe (its objects may
-    be in no single keyframe's view). Every box correspondence of compatible size proposes a
-    pose (T_map_view's yaw from ``yaw_prior``, the gyroscope's, or else from the two boxes'
-    yaws up to quarter turns; the translation from their centres); the
+    be in no single keyframe's view). Each detection's ``config.map_correspondences`` most
+    similar tracks of compatible size (:meth:`MapIndex.similar`) propose a pose each
+    (T_map_view's yaw from ``yaw_prior``, the gyroscope's, or else from the two boxes' yaws up
+    to quarter turns; the translation from their centres); the
     ``config.map_hypotheses`` distinct poses that land the most view boxes on tracks are each
     verified with the paper's test against the registered keyframe that saw most of the
     matched tracks, and scored against the whole map (:func:`explained`). The best is returned
     with the best distinct alternative's score; the caller decides (None when nothing
     verifies, the reason in ``why``)."""
     why = why if why is not None else []
-    if len(query) < 2 or not tracks or not poses:
+    if len(query) < 2 or not index.poses or not index.tracks:
         why.append('fewer than two detections, or no map to match')
         return None
     qb = np.asarray(query.map_boxes, float)
-    tb = np.array([t.box for t in tracks], float)
-    compatible = size_similarity(qb, tb) >= matching.size_ratio_gate
-    ii, jj = np.nonzero(compatible)
+    tb = index.boxes
+    ii, jj = index.similar(qb, query.embeddings, matching.size_ratio_gate, config.map_correspondences)
     if not len(ii):
         why.append('no detection the size of a mapped object')
         return None
@@ -316,12 +280,12 @@ def match_to_map(query: FrameObservations, tracks: list, keyframes: dict, poses:
         yaws = (tb[jj, 6] - qb[ii, 6])[:, None] + 0.5 * np.pi * np.arange(4)[None]
     hi, hj, hy = np.repeat(ii, yaws.shape[1]), np.repeat(jj, yaws.shape[1]), yaws.reshape(-1)
     trans = tb[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(hy), qb[hi, :3])
-    count = np.concatenate([_hits(qb, tb, compatible, hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
+    # a hypothesis' support: view boxes landing on the tracks some detection proposed
+    play = np.unique(jj)
+    compatible = size_similarity(qb, tb[play]) >= matching.size_ratio_gate
+    count = np.concatenate([_hits(qb, tb[play], compatible, hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
                             for c in range(0, len(hy), 256)])
-    targets = track_boxes(tracks)
-    observers = {}                              # track index -> [(keyframe, detection)] of registered keyframes
-    for m, t in enumerate(tracks):
-        observers[m] = [(int(k), int(d)) for k, d in t.observations if int(k) in poses and int(k) in keyframes]
+    compatible = size_similarity(qb, tb) >= matching.size_ratio_gate
     found = []                                  # (explained, inliers, T_view_map, keyframe, relative)
     tried = []
     for h in np.argsort(-count, kind='stable'):
@@ -331,11 +295,11 @@ def match_to_map(query: FrameObservations, tracks: list, keyframes: dict, poses:
         if any(_same(t_map_view, other, config) for other in tried):
             continue
         tried.append(t_map_view)
-        result = _verify(query, t_map_view, qb, tb, compatible, observers, keyframes, poses, matching, config)
+        result = _verify(query, t_map_view, qb, compatible, index, matching, config)
         if result is not None:
             rel, k = result
-            pose = rel.pose.inverse() @ poses[k]                             # T_view_k T_k_map
-            found.append((explained(query, pose, targets, matching), len(rel.inliers), pose, k, rel))
+            pose = rel.pose.inverse() @ index.poses[k]                       # T_view_k T_k_map
+            found.append((explained(query, pose, index, matching), len(rel.inliers), pose, k, rel))
     if not found:
         why.append(f'no pose from the map\'s objects verified against a keyframe ({len(tried)} tried)')
         return None
@@ -351,17 +315,18 @@ def _same(a: Pose4, b: Pose4, config: RelocalizationConfig) -> bool:
             and np.degrees(abs(wrap_angle(a.yaw - b.yaw))) <= config.distinct_deg)
 
 
-def _verify(query, t_map_view: Pose4, qb, tb, compatible, observers, keyframes, poses, matching, config):
+def _verify(query, t_map_view: Pose4, qb, compatible, index: MapIndex, matching, config):
     """The relative pose of the view to the registered keyframe that saw most of the tracks
     the hypothesis matches (of the three that saw most, the one verified with most inliers):
     (RelativePose T_keyframe_view with (keyframe, view) inliers, keyframe id), or None."""
+    tb, keyframes, poses = index.boxes, index.keyframes, index.poses
     hit = _hits(qb, tb, compatible, np.array([t_map_view.yaw]), t_map_view.t[None])[0]      # (N, M)
     moved = t_map_view.transform_points(qb[:, :3])
     votes = {}
     for n in np.flatnonzero(hit.any(1)):
         cols = np.flatnonzero(hit[n])
         m = cols[np.argmin(np.linalg.norm(moved[n, :2] - tb[cols, :2], axis=1))]
-        for k, d in observers[m]:
+        for k, d in index.observers(m):
             votes.setdefault(k, {}).setdefault(int(n), d)
     best = None
     for k, pairs in sorted(votes.items(), key=lambda kv: -len(kv[1]))[:3]:

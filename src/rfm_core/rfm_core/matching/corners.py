@@ -12,7 +12,7 @@ import numpy as np
 
 from rfm_core.geometry import wrap_angle
 
-__all__ = ['relabel', 'corner_permutation', 'quarter_turn_candidates', 'closest_turn']
+__all__ = ['relabel', 'corner_permutation', 'quarter_turn_candidates', 'quarter_turn_table', 'closest_turn']
 
 
 def corner_permutation(k: int) -> np.ndarray:
@@ -34,12 +34,20 @@ def relabel(boxes, k: int) -> np.ndarray:
 def quarter_turn_candidates(box_a, box_b, tolerance: float) -> list:
     """Quarter turns k of box_b whose footprint sizes agree with box_a's within a relative
     ``tolerance``, with the relative yaw each implies: [(k, yaw_b_k - yaw_a), ...]."""
-    out = []
+    return quarter_turn_table(np.asarray(box_a)[None], np.asarray(box_b)[None], tolerance)[0]
+
+
+def quarter_turn_table(boxes_a, boxes_b, tolerance: float) -> list:
+    """:func:`quarter_turn_candidates` of each pair of rows of ``boxes_a`` and ``boxes_b``
+    (n, 7), computed together: a list of n lists."""
+    a = np.asarray(boxes_a, dtype=np.float64).reshape(-1, 7)
+    out = [[] for _ in range(len(a))]
     for k in range(4):
-        b = relabel(box_b, k)
-        err = np.abs(b[3:5] - box_a[3:5]) / np.maximum(np.maximum(b[3:5], box_a[3:5]), 1e-6)
-        if np.all(err <= tolerance):
-            out.append((k, float(wrap_angle(b[6] - box_a[6]))))
+        b = relabel(np.asarray(boxes_b, dtype=np.float64).reshape(-1, 7), k)
+        err = np.abs(b[:, 3:5] - a[:, 3:5]) / np.maximum(np.maximum(b[:, 3:5], a[:, 3:5]), 1e-6)
+        yaw = wrap_angle(b[:, 6] - a[:, 6])
+        for m in np.flatnonzero(np.all(err <= tolerance, axis=1)):
+            out[m].append((k, float(yaw[m])))
     return out
 
 

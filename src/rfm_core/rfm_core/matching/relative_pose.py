@@ -34,7 +34,7 @@ from rfm_core.geometry import (
 )
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_candidates
+from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 
 __all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose']
 
@@ -95,7 +95,7 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
         return None
     a = np.asarray(boxes_a, dtype=np.float64)[matches.a]
     b = np.asarray(boxes_b, dtype=np.float64)[matches.b]
-    turns = [quarter_turn_candidates(a[m], b[m], cfg.size_consistency) for m in range(n)]
+    turns = quarter_turn_table(a, b, cfg.size_consistency)
     corners_a = box_corners(a)                                   # (n, 8, 3)
     corners_b = box_corners(b)
     # Every minimal sample and yaw hypothesis, solved and verified in one batch.

@@ -1,0 +1,173 @@
+"""What relocalization looks up in a map, indexed once per map revision (#20: a map of a
+building holds thousands of objects; a query must cost what its own neighbourhood costs).
+
+- keyframe retrieval: the registered keyframes' bag-of-objects descriptors stacked in one
+  matrix (one product per query);
+- the map's object boxes (every track's box and its views lifted into the map) in a k-d
+  tree over their centres: a query placed in the map is compared with the boxes within
+  reach only;
+- each keyframe detection's track, and each track's centre (the median of its views);
+- per query detection, the tracks most like it (embedding and size), for matching a view
+  against the map's objects without trying every object of the map.
+
+The tracks are built only when first needed (keyframe retrieval does not need them). No ROS
+here.
+"""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from rfm_core.geometry import iou_3d_paired
+from rfm_core.matching.classical import size_similarity
+from rfm_core.matching.view_graph import bag_of_objects
+
+__all__ = ['MapIndex', 'track_boxes']
+
+
+def track_boxes(tracks: list) -> np.ndarray:
+    """(M, 7) the map's object boxes a query is checked against: every track's box and its
+    views lifted into the map."""
+    if not tracks:
+        return np.zeros((0, 7))
+    return np.concatenate([t.boxes for t in tracks] + [np.array([t.box for t in tracks])])
+
+
+class MapIndex:
+    """One revision of a map, indexed for relocalization. ``keyframes``: id ->
+    FrameObservations; ``poses``: id -> T_k_map of the registered ones; ``descriptors``: id ->
+    bag of objects; ``tracks``: the map's object tracks, or a callable giving them (built on
+    first use)."""
+
+    def __init__(self, keyframes: dict, poses: dict, descriptors: dict, tracks):
+        self.keyframes = keyframes
+        self.poses = poses
+        self._descriptors = descriptors
+        self._tracks_source = tracks
+        self._tracks = None if callable(tracks) else list(tracks)
+        self._retrieval = None
+        self._targets = None
+        self._owner = None
+        self._centres: dict = {}
+        self._observers = None
+
+    # ------------------------------------------------------------------ keyframes
+
+    def candidates(self, query, count: int) -> list:
+        """Registered keyframes with two or more detections most similar to ``query`` by bag
+        of objects (the latest ones when descriptors are missing or of another size)."""
+        if self._retrieval is None:
+            ids = [k for k in self.poses if self._descriptors.get(k) is not None and len(self.keyframes[k]) >= 2]
+            sizes = {self._descriptors[k].size for k in ids}
+            matrix = np.stack([self._descriptors[k] for k in ids]) if len(sizes) == 1 else None
+            self._retrieval = (ids, matrix)
+        ids, matrix = self._retrieval
+        desc = bag_of_objects(query)
+        if matrix is None or not np.any(desc) or matrix.shape[1] != desc.size:
+            return ids[-count:]
+        sims = matrix @ desc
+        top = np.argpartition(-sims, count - 1)[:count] if len(ids) > count else np.arange(len(ids))
+        return [ids[i] for i in top[np.lexsort((top, -sims[top]))]]
+
+    # ------------------------------------------------------------------ objects
+
+    @property
+    def tracks(self) -> list:
+        if self._tracks is None:
+            self._tracks = list(self._tracks_source())
+        return self._tracks
+
+    @property
+    def boxes(self) -> np.ndarray:
+        """(T, 7) the tracks' boxes."""
+        return self._objects()[0]
+
+    def _objects(self):
+        if self._targets is None:
+            tracks = self.tracks
+            boxes = np.array([t.box for t in tracks], float).reshape(-1, 7)
+            targets = track_boxes(tracks)
+            tree = cKDTree(targets[:, :3]) if len(targets) else None
+            half = 0.5 * float(np.linalg.norm(targets[:, 3:6], axis=1).max()) if len(targets) else 0.0
+            self._targets = (boxes, targets, tree, half)
+        return self._targets
+
+    @property
+    def targets(self) -> np.ndarray:
+        """(M, 7) :func:`track_boxes` of the map."""
+        return self._objects()[1]
+
+    def near(self, boxes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pairs (rows into ``boxes``, rows into :attr:`targets`) whose centres are within
+        half the sum of the two boxes' diagonals: the only pairs that can overlap."""
+        _, targets, tree, half = self._objects()
+        boxes = np.asarray(boxes, float).reshape(-1, 7)
+        if tree is None or not len(boxes):
+            return np.zeros(0, int), np.zeros(0, int)
+        own = 0.5 * np.linalg.norm(boxes[:, 3:6], axis=1)
+        lists = tree.query_ball_point(boxes[:, :3], own + half)
+        rows = np.repeat(np.arange(len(boxes)), [len(c) for c in lists])
+        cols = np.fromiter((c for cs in lists for c in cs), int, len(rows))
+        if not len(rows):
+            return rows, cols
+        reach = own[rows] + 0.5 * np.linalg.norm(targets[cols, 3:6], axis=1)
+        keep = np.linalg.norm(boxes[rows, :3] - targets[cols, :3], axis=1) < reach
+        return rows[keep], cols[keep]
+
+    def overlapping(self, boxes: np.ndarray, iou: float) -> np.ndarray:
+        """(N,) whether each of ``boxes`` (in the map) overlaps one of the map's boxes by ``iou``."""
+        rows, cols = self.near(boxes)
+        hit = np.zeros(len(boxes), bool)
+        if len(rows):
+            ok = iou_3d_paired(np.asarray(boxes, float)[rows], self.targets[cols]) >= iou
+            hit[rows[ok]] = True
+        return hit
+
+    def track_of(self, keyframe_id: int, detection: int):
+        """The track a keyframe's detection belongs to (None: in none)."""
+        if self._owner is None:
+            self._owner = {(int(k), int(d)): t for t in self.tracks for k, d in t.observations}
+        return self._owner.get((int(keyframe_id), int(detection)))
+
+    def centre(self, track) -> np.ndarray:
+        """A track's centre: the median of the centres of its views in registered keyframes,
+        each lifted into the map by its keyframe's pose (from the boxes relative poses use)."""
+        if track.track_id not in self._centres:
+            lifted = [self.poses[int(k)].inverse().transform_points(self.keyframes[int(k)].boxes[int(d), :3][None])[0]
+                      for k, d in track.observations if int(k) in self.poses and int(k) in self.keyframes]
+            self._centres[track.track_id] = np.median(lifted, axis=0)
+        return self._centres[track.track_id]
+
+    def observers(self, m: int) -> list:
+        """[(keyframe, detection)] of registered keyframes that saw track ``m`` (an index into
+        :attr:`tracks`)."""
+        if self._observers is None:
+            self._observers = [[(int(k), int(d)) for k, d in t.observations
+                                if int(k) in self.poses and int(k) in self.keyframes] for t in self.tracks]
+        return self._observers[m]
+
+    def similar(self, boxes: np.ndarray, embeddings: np.ndarray, gate: float, count: int):
+        """Candidate correspondences of a view with the map's objects: for each view box,
+        the ``count`` tracks of compatible size (``size_similarity`` >= ``gate``) most like
+        it: by embedding where the view's and the tracks' agree in size, then by size.
+        Returns (view rows, track rows), each view's best first."""
+        tb = self.boxes
+        boxes = np.asarray(boxes, float).reshape(-1, 7)
+        if not len(tb) or not len(boxes):
+            return np.zeros(0, int), np.zeros(0, int)
+        sizes = size_similarity(boxes, tb)                                    # (N, T)
+        score = sizes.copy()
+        dim = embeddings.shape[1] if embeddings is not None and embeddings.ndim == 2 else 0
+        if dim and all(t.embedding.size == dim for t in self.tracks):
+            track_emb = np.stack([t.embedding for t in self.tracks]).astype(np.float64)
+            emb = embeddings.astype(np.float64)
+            emb = emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-9)
+            score = score + emb @ track_emb.T
+        score = np.where(sizes >= gate, score, -np.inf)
+        rows, cols = [], []
+        for n in range(len(boxes)):
+            ok = np.flatnonzero(np.isfinite(score[n]))
+            best = ok[np.argsort(-score[n, ok], kind='stable')[:count]]
+            rows.append(np.full(len(best), n))
+            cols.append(best)
+        return np.concatenate(rows), np.concatenate(cols)
