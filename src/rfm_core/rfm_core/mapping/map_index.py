@@ -114,14 +114,18 @@ class MapIndex:
         keep = np.linalg.norm(boxes[rows, :3] - targets[cols, :3], axis=1) < reach
         return rows[keep], cols[keep]
 
+    def best_iou(self, boxes: np.ndarray) -> np.ndarray:
+        """(N,) each of ``boxes``' (in the map) largest IoU with one of the map's boxes (0:
+        none within reach)."""
+        rows, cols = self.near(boxes)
+        best = np.zeros(len(boxes))
+        if len(rows):
+            np.maximum.at(best, rows, iou_3d_paired(np.asarray(boxes, float)[rows], self.targets[cols]))
+        return best
+
     def overlapping(self, boxes: np.ndarray, iou: float) -> np.ndarray:
         """(N,) whether each of ``boxes`` (in the map) overlaps one of the map's boxes by ``iou``."""
-        rows, cols = self.near(boxes)
-        hit = np.zeros(len(boxes), bool)
-        if len(rows):
-            ok = iou_3d_paired(np.asarray(boxes, float)[rows], self.targets[cols]) >= iou
-            hit[rows[ok]] = True
-        return hit
+        return self.best_iou(boxes) >= iou
 
     def track_of(self, keyframe_id: int, detection: int):
         """The track a keyframe's detection belongs to (None: in none)."""

@@ -189,8 +189,12 @@ def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, index: Map
     keyframe's detection — and the 4-DoF pose is refitted on those centres, weighted by range
     like the relative-pose refit. Centres come from the boxes relative poses use
     (``FrameObservations.boxes``: fitted ones where the detector also gives full boxes); the
-    refit is kept only when the query's full boxes still verify against the tracks' boxes.
-    ``verified``: (keyframe id, relative pose, T_query_map) of the agreeing keyframes."""
+    refit is kept only when the query's full boxes still verify against the tracks' boxes
+    and lie on the map's boxes better than under ``pose`` (the sum of each detection's
+    largest IoU): partial boxes' centres move with the viewpoint, so in rooms of furniture
+    made of parts a refit on the tracks' centres often turned a right pose wrong
+    (BENCHMARKS.md). ``verified``: (keyframe id, relative pose, T_query_map) of the agreeing
+    keyframes."""
     votes, by_id = {}, {}
     for k, rel, _ in verified:
         for iq, ik in rel.inliers:
@@ -211,7 +215,14 @@ def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, index: Map
     reps = np.array([t.box for _, t in pairs])
     if np.mean(iou_3d_paired(moved, reps) >= matching.inlier_iou) < matching.min_inlier_ratio:
         return pose
-    return t_map_q.inverse()
+    refit = t_map_q.inverse()
+    return refit if _overlap(query, refit, index) > _overlap(query, pose, index) else pose
+
+
+def _overlap(query: FrameObservations, pose: Pose4, index: MapIndex) -> float:
+    """How well ``pose`` (T_query_map) lays the query's detections on the map: the sum over
+    them of each one's largest IoU with the map's boxes."""
+    return float(index.best_iou(pose.inverse().transform_boxes(query.map_boxes)).sum())
 
 
 # ---------------------------------------------------------------------- matching to the map
