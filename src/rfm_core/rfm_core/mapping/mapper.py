@@ -382,7 +382,8 @@ class Mapper:
         ``relocalization.min_keyframe_inliers`` objects votes for its pose; the pose whose
         agreeing keyframes (within the averaging outlier thresholds) verify the most distinct
         query objects wins, needs ``relocalization.min_inliers`` of them, is averaged over
-        the agreeing keyframes and refitted on the map's tracks. ``keyframe_id`` is the
-        agreeing keyframe with the most inliers."""
+        the agreeing keyframes and refitted on the map's tracks where that lays the query on
+        the map better. Looked up in :meth:`map_index`. ``keyframe_id`` is the agreeing
+        keyframe with the most inliers."""
         return relocalize(query, self.map_index(), self.matcher, self.config.relocalization, self.config.matching,
                           self.config.averaging, why)
