@@ -50,6 +50,7 @@ class MapIndex:
         self._owner = None
         self._centres: dict = {}
         self._observers = None
+        self._embeddings = None
 
     # ------------------------------------------------------------------ keyframes
 
@@ -162,8 +163,8 @@ class MapIndex:
         sizes = size_similarity(boxes, tb)                                    # (N, T)
         score = sizes.copy()
         dim = embeddings.shape[1] if embeddings is not None and embeddings.ndim == 2 else 0
-        if dim and all(t.embedding.size == dim for t in self.tracks):
-            track_emb = np.stack([t.embedding for t in self.tracks]).astype(np.float64)
+        track_emb = self._track_embeddings()
+        if dim and track_emb is not None and track_emb.shape[1] == dim:
             emb = embeddings.astype(np.float64)
             emb = emb / np.maximum(np.linalg.norm(emb, axis=1, keepdims=True), 1e-9)
             score = score + emb @ track_emb.T
@@ -175,3 +176,11 @@ class MapIndex:
             rows.append(np.full(len(best), n))
             cols.append(best)
         return np.concatenate(rows), np.concatenate(cols)
+
+    def _track_embeddings(self) -> np.ndarray | None:
+        """(T, D) the tracks' embeddings (None when their sizes differ)."""
+        if self._embeddings is None:
+            sizes = {t.embedding.size for t in self.tracks}
+            self._embeddings = (np.stack([t.embedding for t in self.tracks]).astype(np.float64)
+                                if len(sizes) == 1 else False)
+        return self._embeddings if self._embeddings is not False else None

@@ -293,10 +293,9 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
     trans = tb[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(hy), qb[hi, :3])
     # a hypothesis' support: view boxes landing on the tracks some detection proposed
     play = np.unique(jj)
-    compatible = size_similarity(qb, tb[play]) >= matching.size_ratio_gate
-    count = np.concatenate([_hits(qb, tb[play], compatible, hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
-                            for c in range(0, len(hy), 256)])
     compatible = size_similarity(qb, tb) >= matching.size_ratio_gate
+    count = np.concatenate([_hits(qb, tb[play], compatible[:, play], hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
+                            for c in range(0, len(hy), 256)])
     found = []                                  # (explained, inliers, T_view_map, keyframe, relative)
     tried = []
     for h in np.argsort(-count, kind='stable'):
