@@ -167,7 +167,7 @@ def cmd_play(args) -> int:
         old, new = item.split(':=', 1)
         remaps[old] = new
     options = PlayOptions(rate=args.rate, start_offset=args.start_offset, loop=args.loop,
-                          topics=args.topics or [], remaps=remaps, clock=not args.no_clock,
+                          topics=args.topics or [], remaps=remaps, clock=not args.no_clock, clock_hz=args.clock_hz,
                           delay=args.delay, wait_for=args.wait_for or [],
                           progress=None if not args.quiet else False)
     if not Path(args.bag).exists():
@@ -599,6 +599,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--topics', nargs='+', help='play only these topics')
     p.add_argument('--remap', nargs='+', metavar='FROM:=TO', help='publish FROM as TO')
     p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
+    p.add_argument('--clock-hz', type=float, default=40.0,
+                   help='/clock rate (every node with use_sim_time wakes up for each /clock message)')
     p.add_argument('--wait-for', nargs='+', metavar='TOPIC',
                    help='before playing, wait (up to 30 s) until each of these bag topics has a subscriber')
     p.add_argument('--delay', type=float, default=0.0,

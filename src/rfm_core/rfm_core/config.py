@@ -62,6 +62,11 @@ class DetectorNodeConfig:
                                    lo=0.01, hi=60.0)
     imu_wait_s: float = setting(0.05, "Wait up to this long for IMU samples up to a frame's stamp (s)",
                                 lo=0.0, hi=1.0)
+    imu_poll_period_s: float = setting(0.05, 'IMU samples are queued (imu_queue_size) and taken in batches: every '
+                                       'this often and before each frame, instead of waking the node for each '
+                                       'sample (s); 0: a callback per sample', lo=0.0, hi=1.0, read_only=True)
+    imu_queue_size: int = setting(200, 'IMU samples held between two batches (0.5 s of a 400 Hz IMU)',
+                                  lo=1, hi=10000, read_only=True)
     publish_markers: bool = setting(True, 'Publish rfm/detection_markers (boxes as line lists with score labels)',
                                     read_only=True)
     diagnostics_period_s: float = setting(1.0, 'Period of /diagnostics (s)', lo=0.1, hi=60.0, read_only=True)

@@ -39,7 +39,8 @@ class DetectorFrontend:
 
     def __init__(self, detector: Detector, on_frame: Callable, fixed_gravity=None, sync_slop_s: float = 0.05,
                  queue_size: int = 10, every_nth_frame: int = 1, imu_tau_s: float = 1.0, imu_max_age_s: float = 1.0,
-                 imu_wait_s: float = 0.05, warn: Callable[[str], None] | None = None):
+                 imu_wait_s: float = 0.05, warn: Callable[[str], None] | None = None,
+                 poll_imu: Callable[[], None] | None = None):
         self.detector = detector
         self.on_frame = on_frame
         self.fixed_gravity = None if fixed_gravity is None else np.asarray(fixed_gravity, float)
@@ -48,6 +49,8 @@ class DetectorFrontend:
             raise ValueError('gravity parameter must be a non-zero 3-vector')
         self.every_nth, self.imu_max_age_s, self.imu_wait_s = every_nth_frame, imu_max_age_s, imu_wait_s
         self.warn = warn or (lambda text: None)
+        # takes the IMU samples queued so far (into add_imu): before each frame and while waiting for them
+        self.poll_imu = poll_imu or (lambda: None)
         self.gravity_filter = GravityFilter(tau_s=imu_tau_s)
         self.counts = dict(received=0, processed=0, published=0, dropped_busy=0, dropped_invalid=0,
                            dropped_no_gravity=0, dropped_out_of_order=0, skipped_nth=0)
@@ -106,6 +109,7 @@ class DetectorFrontend:
     def detect(self, kind: str, payload) -> FrameObservations | None:
         """Detections of one frame, the gyroscope's orientation attached when the IMU is
         recent; None when it has no gravity. ValueError for a malformed frame."""
+        self.poll_imu()
         if kind == 'ground_truth':
             obs = self.detector.perturb(frame_detections_from_msg(payload))
             obs.imu_rotation, obs.imu_epoch = None, 0        # the simulator's; the IMU's is attached
@@ -131,6 +135,7 @@ class DetectorFrontend:
         deadline = time.monotonic() + self.imu_wait_s
         while time.monotonic() < deadline and (self.gravity_filter.last_stamp_ns or 0) < stamp:
             time.sleep(0.002)
+            self.poll_imu()
         if self.gravity_filter.age_s(stamp) > self.imu_max_age_s:
             self.counts['dropped_no_gravity'] += 1
             self.warn('frame dropped: no recent IMU data on "imu"; remap the IMU topic, '
