@@ -8,6 +8,8 @@ closed cleanly, metadata.yaml included, on Ctrl-C or when :meth:`close` is calle
 """
 from __future__ import annotations
 
+import threading
+
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -19,10 +21,14 @@ __all__ = ['BagRecorder']
 class BagRecorder(Node):
 
     def __init__(self, path, topics=(), node_name: str = 'rfm_recorder',
-                 discovery_period: float = 0.5, compression_level: int = 10, max_bytes: dict | None = None):
+                 discovery_period: float = 0.5, compression_level: int = 10, max_bytes: dict | None = None,
+                 batch_period_s: float = 0.0):
         """``compression_level``: zstd level of the chunks (10: small files; 1-3: cheap on the
         CPU, for recording beside a running graph). ``max_bytes``: {topic: bytes}, a topic
-        stops being recorded (logged once) once its messages add up to that many."""
+        stops being recorded (logged once) once its messages add up to that many.
+        ``batch_period_s``: > 0 queues the messages and writes them in batches this often (their
+        receive time is then the batch's, up to that much late) instead of waking the executor
+        for each one: cheap beside a graph in the same process."""
         super().__init__(node_name)
         from rfm_core.io.bag import BagWriter  # noqa: PLC0415
 
@@ -34,6 +40,13 @@ class BagRecorder(Node):
         self._bag = BagWriter(path, compression_level=compression_level).__enter__()
         self._subscriptions_by_topic = {}
         self._closed = False
+        self._lock = threading.Lock()          # writes, batches and close() from any thread
+        self._polled = None
+        if batch_period_s > 0:
+            from rfm_detector_node.detector_node import PolledGroup  # noqa: PLC0415
+
+            self._polled = PolledGroup()
+            self.create_timer(batch_period_s, self.take_queued)
         self.create_timer(discovery_period, self._discover)
         self._discover()
         what = ', '.join(sorted(self.wanted)) if self.wanted else 'all topics'
@@ -76,10 +89,26 @@ class BagRecorder(Node):
                 continue
             self.counts[topic] = 0
             self._subscriptions_by_topic[topic] = self.create_subscription(
-                msg_type, topic, lambda raw, topic=topic: self._write(topic, raw), qos, raw=True)
+                msg_type, topic, lambda raw, topic=topic: self._write(topic, raw), qos, raw=True,
+                callback_group=self._polled)
             self.get_logger().info(f'subscribed to {topic} [{types[0]}]')
 
+    def take_queued(self) -> None:
+        """Write the messages queued on every topic (``batch_period_s`` > 0)."""
+        if self._polled is None or self._closed:
+            return
+        from rfm_detector_node.detector_node import take_all  # noqa: PLC0415
+
+        with self._lock:
+            for topic, sub in list(self._subscriptions_by_topic.items()):
+                if sub is not None and not self._closed:
+                    take_all(sub, lambda raw, topic=topic: self._write_locked(topic, raw))
+
     def _write(self, topic: str, raw: bytes) -> None:
+        with self._lock:
+            self._write_locked(topic, raw)
+
+    def _write_locked(self, topic: str, raw: bytes) -> None:
         if self._closed:
             return
         size = self.bytes.get(topic, 0) + len(raw)
@@ -95,7 +124,10 @@ class BagRecorder(Node):
 
     def close(self) -> dict:
         """Finish the bag (idempotent); returns messages written per topic."""
-        if not self._closed:
+        self.take_queued()
+        with self._lock:
+            if self._closed:
+                return dict(self.counts)
             self._closed = True
             self._bag.__exit__(None, None, None)
             self.get_logger().info(f'wrote {sum(self.counts.values())} messages to {self.path}')

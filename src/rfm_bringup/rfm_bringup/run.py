@@ -380,6 +380,7 @@ def run_graph(args) -> int:
         images = remaps['rgb/image'] if bag is None and args.record_images else None
         recorder = BagRecorder(str(output / 'outputs.mcap'), topics=OUTPUT_TOPICS + ([images] if images else []),
                                node_name='rfm_run_recorder', compression_level=1,   # beside the graph: cheap
+                               batch_period_s=0.1,
                                max_bytes={images: args.record_images * 1e6} if images else None)
         graph = (_ProcessGraph(params, remaps, output, lambda: recorder.counts.get('/rfm/detections', 0))
                  if args.processes else _InProcessGraph(params, remaps))
