@@ -14,6 +14,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from rfm_core.io.messages import ros_message_class
+from rfm_detector_node.polling import PolledGroup, take_all
 
 __all__ = ['BagRecorder']
 
@@ -43,8 +44,6 @@ class BagRecorder(Node):
         self._lock = threading.Lock()          # writes, batches and close() from any thread
         self._polled = None
         if batch_period_s > 0:
-            from rfm_detector_node.detector_node import PolledGroup  # noqa: PLC0415
-
             self._polled = PolledGroup()
             self.create_timer(batch_period_s, self.take_queued)
         self.create_timer(discovery_period, self._discover)
@@ -97,8 +96,6 @@ class BagRecorder(Node):
         """Write the messages queued on every topic (``batch_period_s`` > 0)."""
         if self._polled is None or self._closed:
             return
-        from rfm_detector_node.detector_node import take_all  # noqa: PLC0415
-
         with self._lock:
             for topic, sub in list(self._subscriptions_by_topic.items()):
                 if sub is not None and not self._closed:

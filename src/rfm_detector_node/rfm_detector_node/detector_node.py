@@ -23,9 +23,7 @@ import time
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from rclpy.callback_groups import CallbackGroup
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidHandle
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -40,36 +38,7 @@ from rfm_core.geometry import box_corners
 from rfm_core.io.messages import box_markers_msg, frame_detections_to_msg
 from rfm_core.io.parameters import declare_config
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
-
-
-class PolledGroup(CallbackGroup):
-    """A callback group that no executor waits on: its subscriptions' messages queue until
-    :func:`take_all` takes them. rclpy's executors rebuild their wait set in Python for every
-    wake-up (about 1 ms on a 2-core machine); a 200-400 Hz IMU woke the detector's executor
-    for every sample, a quarter of a core spent before any detection."""
-
-    def can_execute(self, entity) -> bool:
-        return False
-
-    def beginning_execution(self, entity) -> bool:
-        return False
-
-    def ending_execution(self, entity) -> None:
-        pass
-
-
-def take_all(subscription, callback) -> int:
-    """Pass every message waiting on ``subscription`` to ``callback``, oldest first; the
-    number taken."""
-    taken = 0
-    try:
-        with subscription.handle:
-            while (found := subscription.handle.take_message(subscription.msg_type, subscription.raw)) is not None:
-                callback(found[0])
-                taken += 1
-    except InvalidHandle:                     # destroyed (shutting down)
-        pass
-    return taken
+from rfm_detector_node.polling import PolledGroup, take_all
 
 
 class DetectorNode(Node):
