@@ -286,6 +286,8 @@ class MapSession:
             return None
         self.counts['frames'] += 1
         self._latest_track = track
+        if self.mapper.awaits_recovery(map_id):
+            self.dirty = True                   # the next update tries to recover its keyframe
         return self._latest_camera()
 
     def _latest_camera(self) -> CameraPose | None:
@@ -455,6 +457,8 @@ class Session:
         if keyframe is not None or edges:
             self.map.update()                             # 3.5: incremental pose averaging
         camera = self.map.add_frame(track) if track is not None else None
+        if self.map.dirty:                                # a keyframe outside the map awaits recovery
+            self.map.update()
         self.seconds['match'] += matched - start
         self.seconds['map'] += time.perf_counter() - matched
         return Step(keyframe, edges, track, camera)

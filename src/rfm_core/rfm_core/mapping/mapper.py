@@ -117,6 +117,7 @@ class Mapper:
         self.origins: dict = {}              # id -> (view-graph session, its keyframe id), where numbered
         self.last_update_seconds = 0.0
         self._recovery_tried: dict = {}      # id -> registered keyframes when it was last matched to the map
+        self._newest_stamp_ns = -1           # of any keyframe or tracked frame received
         self.recovered: list = []            # edges that joined a keyframe to the map (tracking recovery)
 
     # ------------------------------------------------------------------ input
@@ -127,6 +128,7 @@ class Mapper:
             return False
         previous = max(self.keyframes, default=None)
         self.keyframes[keyframe_id] = obs
+        self._newest_stamp_ns = max(self._newest_stamp_ns, obs.stamp_ns)
         self._descriptors[keyframe_id] = bag_of_objects(obs)
         if not self.config.posed:
             self.averager.add_keyframe(keyframe_id)
@@ -182,7 +184,17 @@ class Mapper:
         if kf is not None and kf.stamp_ns != track.keyframe_stamp_ns:
             return False
         self.frames.add(track)
+        self._newest_stamp_ns = max(self._newest_stamp_ns, track.stamp_ns)
         return True
+
+    def awaits_recovery(self, keyframe_id: int) -> bool:
+        """Whether tracking recovery has yet to try this keyframe, which is outside the
+        registered map (an update tries it once something newer has arrived)."""
+        cfg = self.config.relocalization
+        obs = self.keyframes.get(keyframe_id)
+        return (cfg.recovery and self.mode == 'mapping' and not self.config.posed and obs is not None
+                and len(obs) >= max(cfg.min_explained, 2) and keyframe_id not in self.averager.poses
+                and keyframe_id not in self._recovery_tried)
 
     def frame_pose(self, track: FrameTrack) -> np.ndarray | None:
         """4x4 camera-to-map pose of a tracked frame now (None while its keyframe has none).
@@ -249,17 +261,22 @@ class Mapper:
     def _recover(self) -> bool:
         """Tracking recovery (``relocalization.recovery``): each keyframe outside the
         registered map with enough detections is matched against the map's objects
-        (:func:`match_to_map`) when it arrives and again whenever the registered map has
-        doubled since; a match it accepts (:meth:`MapMatch.accepted`) adds its edge. A lost
-        track then continues in the map instead of starting a component that nothing joins.
-        True when an edge was added."""
+        (:func:`match_to_map`) once a keyframe or frame newer than it has arrived, and again
+        whenever the registered map has doubled since; a match it accepts
+        (:meth:`MapMatch.accepted`) adds its edge. A lost track then continues in the map
+        instead of starting a component that nothing joins. True when an edge was added.
+
+        Not before something newer: the keyframe's own edges come just after it on another
+        topic, and a pose update between the two (the mapper node's tick) used to match it to
+        the map and, when accepted, add a recovered edge beside the matcher's own, so that the
+        map depended on the messages' timing."""
         cfg = self.config.relocalization
         poses = self.averager.poses
         if not cfg.recovery or self.mode != 'mapping' or not poses:
             return False
         due = []
         for k, obs in self.keyframes.items():
-            if (k in poses or len(obs) < max(cfg.min_explained, 2)
+            if (k in poses or len(obs) < max(cfg.min_explained, 2) or obs.stamp_ns >= self._newest_stamp_ns
                     or len(poses) < 2 * self._recovery_tried.get(k, len(poses) / 2)):
                 continue
             self._recovery_tried[k] = len(poses)
