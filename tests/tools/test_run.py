@@ -205,12 +205,13 @@ def test_camera_sized_messages_all_reach_the_detector(tmp_path):
     Capture(CaptureConfig(seed=5, capture='sparse', frames=12, width=640, height=480)).write_bag(bag)
     out = tmp_path / 'out'
     proc = subprocess.run([shutil.which('rfm'), 'run', '--bag', str(bag), '--output', str(out), '--quiet',
-                           '--rate', '3', '--settle', '2'], capture_output=True, text=True, timeout=300)
+                           '--rate', '2', '--settle', '2'], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     summary = json.loads((out / 'summary.json').read_text())
     # every frame arrives and is either detected or counted with the reason it was not (a
-    # 2-core machine can take longer than the 0.33 s between VGA frames: a newer frame then
-    # replaces the waiting one); nothing is lost to the transport or to synchronisation
+    # 2-core machine can take longer than the 0.5 s between VGA frames: a newer frame then
+    # replaces the waiting one; at 0.33 s a slower 2-core machine kept 6 of 12 under the
+    # suite's load); nothing is lost to the transport or to synchronisation
     assert summary['input_frames'] == 12 and summary['received'] == 12, summary
     assert summary['frames'] + summary['dropped'] == 12 and summary['frames'] >= 8, summary
     reasons = summary['dropped_by_reason']
