@@ -52,14 +52,22 @@ def main() -> int:
     parser.add_argument('--fps', type=float, default=5.0)
     parser.add_argument('--seed', type=int, default=7000)
     parser.add_argument('--cache', type=Path, default=Path('/tmp/rfm_soak_offline.pkl'))
+    parser.add_argument('--cycle-min-loops', type=int, default=None,
+                        help='averaging.cycle_min_loops (default: the shipped one; 0: no cycle check)')
     args = parser.parse_args()
+    from dataclasses import replace  # noqa: PLC0415
+
+    from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
     from rfm_core.session import Session  # noqa: PLC0415
 
     frames = _detections(args)
     truth = {obs.stamp_ns: pose for obs, pose in frames}
     start_ns = frames[0][0].stamp_ns
-    session = Session()
+    config = MapperConfig()
+    if args.cycle_min_loops is not None:
+        config = replace(config, averaging=replace(config.averaging, cycle_min_loops=args.cycle_min_loops))
+    session = Session(config)
     cfg = session.graph.config
     made, near = [], 0                                # (seconds, true pose) of each keyframe
     t0 = time.perf_counter()
@@ -85,6 +93,9 @@ def main() -> int:
           f'{cfg.max_yaw_deg} deg already; revisits {session.graph.stats.reused}, bridges {session.graph.stats.bridged}')
     print(f"frames localized {100 * errors['registered']:.0f}%, ARE {errors['ARE_median']:.2f} deg, "
           f"ATE {100 * errors['ATE_median']:.1f} cm; {len(session.mapper.tracks())} objects; {seconds:.0f} s")
+    averager = session.mapper.averager
+    print(f'edges {len(averager.edges)}, {int((~averager.edges.active).sum())} inactive, of them '
+          f'{averager.cycle_dropped} dropped by the last full solve\'s cycle check')
     return 0
 
 

@@ -4,7 +4,7 @@ import pytest
 
 from rfm_core.evaluation.trajectory import trajectory_errors
 from rfm_core.geometry import Pose4
-from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, average_poses
+from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, average_poses, cycle_inconsistent
 from rfm_core.mapping.synthetic import synthetic_view_graph
 
 
@@ -206,3 +206,42 @@ def test_the_gyroscope_votes_where_the_first_keyframe_is_placed():
     assert (0, 2) not in inc.active_edges() and (0, 1) in inc.active_edges()
     err = _errors(inc.poses, {k: truth[k] for k in range(8)})
     assert err['registered'] == 1.0 and err['ARE_median'] < 1e-6, err
+
+
+@pytest.mark.parametrize('incremental', [False, True])
+def test_cycle_consistency_drops_heavy_wrong_edges(incremental):
+    """Injected wrong edges: in a walk whose keyframes each see the next three, three edges
+    are replaced by ones 8 deg off in yaw, each as heavy as six objects against one for the
+    right edges (as from partial boxes that repeat). The robust solve alone keeps them and
+    drops right edges instead (keyframes turned by up to 8 deg); every triangle through a
+    wrong edge breaks, so the cycle check drops exactly them and the map stays right."""
+    n = 60
+    truth, edges, _ = synthetic_view_graph(n, seed=21, neighbours=3, loops=0.0, yaw_noise_deg=0.3,
+                                           translation_noise_m=0.01)
+    wrong_pairs = {(10, 12), (30, 33), (45, 47)}
+    offset = Pose4(np.radians(8.0), (0.0, 0.0, 0.0))
+    edges = [(s, t, truth[s] @ (offset @ truth[t]).inverse(), 6.0) if (s, t) in wrong_pairs else (s, t, p, 1.0)
+             for s, t, p, _ in edges]
+    src, dst = np.array([e[0] for e in edges]), np.array([e[1] for e in edges])
+    flagged = cycle_inconsistent(src, dst, np.array([e[2].yaw for e in edges]), np.array([e[2].t for e in edges]),
+                                 np.ones(len(edges), bool), AveragingConfig())
+    assert {(s, t) for s, t, f in zip(src, dst, flagged) if f} == wrong_pairs
+
+    def solve(loops):
+        cfg = AveragingConfig(cycle_min_loops=loops)
+        if incremental:
+            inc, _ = _incremental(edges, n, cfg)
+            inc.update(force_full=True)
+            return inc.poses, set(inc.active_edges())
+        result = average_poses(range(n), edges, cfg)
+        return result.poses, {(s, t) for (s, t, _, _), kept in zip(edges, result.inlier_edges) if kept}
+
+    def worst_yaw_deg(poses):
+        return max(np.degrees(poses[k].angle_to(truth[k] @ truth[0].inverse())) for k in poses)
+
+    unchecked, kept = solve(0)
+    assert wrong_pairs <= kept and worst_yaw_deg(unchecked) > 6.0
+    checked, kept = solve(2)
+    assert len(checked) == n and not (wrong_pairs & kept)
+    assert len(kept) == len(edges) - len(wrong_pairs)          # no right edge lost
+    assert worst_yaw_deg(checked) < 1.5

@@ -7,7 +7,9 @@ edge T_s_t (source s, target t) measures
     theta_s - theta_t = yaw_st                      (circular)
     c_t - c_s         = Rz(theta_s)^T t_st          (linear once the yaws are known)
 
-Both start from a spanning tree grown from the anchor, each keyframe placed where most of
+Before a full solve, measurements that the view graph's triangles contradict are dropped
+(:func:`cycle_inconsistent`: a wrong edge breaks every loop through it). Both stages start
+from a spanning tree grown from the anchor, each keyframe placed where most of
 its edges to already placed keyframes agree (a vote, so that an outlier edge on the tree
 cannot throw a whole branch off). Yaw averaging is then Gauss-Newton on wrapped residuals
 with robust (Cauchy) IRLS weights; translation averaging is a sparse linear
@@ -38,7 +40,7 @@ from rfm_core.geometry import Pose4, circular_mean, wrap_angle
 from rfm_core.settings import setting
 
 __all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager', 'agreement',
-           'largest_component']
+           'cycle_inconsistent', 'largest_component']
 
 
 @dataclass(frozen=True)
@@ -67,6 +69,14 @@ class AveragingConfig:
                                           "detector shift towards the camera that saw them, so such edges' "
                                           'yaw is biased (0: every turn counts fully)', lo=0.0, hi=360.0)
 
+    cycle_min_loops: int = setting(2, 'Cycle consistency: before each full solve, drop a measurement that agrees '
+                                   'with none of the triangles of keyframes it closes and disagrees with at least '
+                                   'this many whose other two pairs agree with loops of their own (a wrong edge '
+                                   'breaks every loop through it; 0: no check)', lo=0, hi=100)
+    cycle_tolerance: float = setting(2.0, '... a triangle agrees when its composed yaw and translation are '
+                                     'within this multiple of max_yaw_residual_deg / max_translation_residual_m '
+                                     'of the measurement (three edges add their errors)', lo=0.5, hi=20.0)
+    cycle_max_loops: int = setting(12, '... triangles tried per pair of keyframes (bounded cost)', lo=1, hi=1000)
     max_map_turn_deg: float = setting(0.0, 'A full re-solve may turn each keyframe registered before it by at '
                                       'most this (deg): one that turns any further is re-run without the new '
                                       'edges the previous map contradicts, which are rejected for good when '
@@ -315,7 +325,7 @@ def average_poses(ids, edges, config: AveragingConfig | None = None) -> Averagin
     yaw = np.array([p.yaw for _, _, p, _ in edges], float)
     trans = np.array([p.t for _, _, p, _ in edges], float).reshape(e, 3)
     weight = np.array([w for *_, w in edges], float)
-    theta, centres, active, comp = _solve_all(n, src, dst, yaw, trans, weight, cfg)
+    theta, centres, active, comp, _ = _solve_all(n, src, dst, yaw, trans, weight, cfg)
     yaw_r = np.full(e, np.nan)
     t_r = np.full(e, np.nan)
     inside = comp[src] & comp[dst] if e else np.zeros(0, bool)
@@ -326,18 +336,91 @@ def average_poses(ids, edges, config: AveragingConfig | None = None) -> Averagin
     return AveragingResult(poses, active & inside, yaw_r, t_r, time.perf_counter() - start)
 
 
+def _compose(a, b):
+    """(yaw, t) of T_x_z = T_x_y @ T_y_z for 4-DoF poses a = T_x_y, b = T_y_z as (yaw, (3,) t)."""
+    c, s = np.cos(a[0]), np.sin(a[0])
+    tb = b[1]
+    return a[0] + b[0], np.array([c * tb[0] - s * tb[1] + a[1][0], s * tb[0] + c * tb[1] + a[1][1], tb[2] + a[1][2]])
+
+
+def _invert(a):
+    c, s = np.cos(a[0]), np.sin(a[0])
+    t = a[1]
+    return -a[0], -np.array([c * t[0] + s * t[1], -s * t[0] + c * t[1], t[2]])
+
+
+def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np.ndarray:
+    """(E,) bool: measurements the view graph's triangles contradict (cycle consistency).
+
+    A triangle of keyframes (a, b, k) closes the measurement T_a_b with T_a_k @ T_k_b
+    (any of the measurements of those pairs: a pair may be measured several times). A wrong
+    edge breaks every triangle through it, a right one only those through a wrong partner.
+    So a measurement is dropped when no triangle agrees with it and at least
+    ``cycle_min_loops`` disagree whose two other pairs each close some triangle of their own
+    (they are not the wrong ones). Only ``usable`` measurements take part. Poses are
+    compared within ``cycle_tolerance`` times the averaging's outlier thresholds."""
+    e = len(src)
+    flagged = np.zeros(e, bool)
+    if cfg.cycle_min_loops <= 0 or e < 3:
+        return flagged
+    yaw_tol = np.radians(cfg.cycle_tolerance * cfg.max_yaw_residual_deg)
+    t_tol = cfg.cycle_tolerance * cfg.max_translation_residual_m
+    pairs: dict = {}                       # (a, b), a < b -> [(edge, T_a_b as (yaw, t))]
+    for i in np.flatnonzero(usable):
+        a, b = int(src[i]), int(dst[i])
+        if a == b:
+            continue
+        pose = (float(yaw[i]), np.asarray(trans[i], float))
+        key = (a, b) if a < b else (b, a)
+        pairs.setdefault(key, []).append((int(i), pose if a < b else _invert(pose)))
+    neighbours: dict = {}
+    for a, b in pairs:
+        neighbours.setdefault(a, set()).add(b)
+        neighbours.setdefault(b, set()).add(a)
+
+    def between(x, y):
+        """The measurements of T_x_y."""
+        if x < y:
+            return [p for _, p in pairs[(x, y)][:4]]
+        return [_invert(p) for _, p in pairs[(y, x)][:4]]
+
+    def agrees(p, q):
+        return (abs(wrap_angle(p[0] - q[0])) <= yaw_tol) and np.linalg.norm(p[1] - q[1]) <= t_tol
+
+    closes = {}                            # pair -> whether any triangle through it agrees
+    verdicts = {}                          # edge -> [(agrees, k)]
+    for (a, b), measured in pairs.items():
+        common = sorted(neighbours[a] & neighbours[b])[:cfg.cycle_max_loops]
+        loops = [(k, [_compose(p, q) for p in between(a, k) for q in between(k, b)]) for k in common]
+        for i, pose in measured:
+            verdicts[i] = [(any(agrees(pose, c) for c in closed), k) for k, closed in loops]
+            closes[(a, b)] = closes.get((a, b), False) or any(ok for ok, _ in verdicts[i])
+    for (a, b), measured in pairs.items():
+        for i, _ in measured:
+            loops = verdicts[i]
+            if any(ok for ok, _ in loops):
+                continue
+            confirmed = sum(closes[(min(a, k), max(a, k))] and closes[(min(k, b), max(k, b))] for _, k in loops)
+            flagged[i] = confirmed >= cfg.cycle_min_loops
+    return flagged
+
+
 def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, allowed=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
-    mask, component mask. ``yaw_only`` edges (the gyroscope's) count in the yaw stage only:
-    they neither place nor connect keyframes. Only ``allowed`` edges take part (default all)."""
+    mask, component mask, and the mask of the edges the cycle check dropped. ``yaw_only``
+    edges (the gyroscope's) count in the yaw stage only: they neither place nor connect
+    keyframes. Only ``allowed`` edges take part (default all)."""
     active = np.ones(len(src), bool) if allowed is None else np.asarray(allowed, bool).copy()
     full = ~yaw_only if yaw_only is not None else np.ones(len(src), bool)
     theta = np.full(n, np.nan)
     centres = np.full((n, 3), np.nan)
     comp = np.zeros(n, bool)
+    cycle = np.zeros(len(src), bool)
     if n == 0:
-        return theta, centres, active, comp
+        return theta, centres, active, comp, cycle
     order = np.arange(n) if anchor_order is None else anchor_order
+    cycle = cycle_inconsistent(src, dst, yaw, trans, active & full, cfg)
+    active &= ~cycle
 
     def component():
         c = largest_component(np.arange(n), src[active & full], dst[active & full])
@@ -379,7 +462,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
             comp, root = new_comp, new_root
     theta = np.where(comp, theta, np.nan)
     centres = np.where(comp[:, None], centres, np.nan)
-    return theta, centres, active, comp
+    return theta, centres, active, comp, cycle
 
 
 _EDGE_ARRAYS = ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only', '_blocked')
@@ -452,6 +535,7 @@ class IncrementalAverager:
         self._loop_votes = 0
         self._settled_edges = 0              # edges before this index took part in a full solve
         self.turns_refused = 0               # full solves re-run without new edges (max_map_turn_deg)
+        self.cycle_dropped = 0               # edges the last full solve's cycle check dropped
         self.stats = UpdateStats()
 
     # ------------------------------------------------------------------ input
@@ -568,8 +652,9 @@ class IncrementalAverager:
         src, dst, yaw, trans, weight = self._arrays()
         # anchor: the earliest registered keyframe keeps the map frame stable
         order = np.r_[np.flatnonzero(self._registered), np.flatnonzero(~self._registered)]
-        theta, centres, active, comp = _solve_all(len(self.ids), src, dst, yaw, trans, weight, self.config, order,
-                                                  self.edges.yaw_only, allowed)
+        theta, centres, active, comp, cycle = _solve_all(len(self.ids), src, dst, yaw, trans, weight, self.config,
+                                                         order, self.edges.yaw_only, allowed)
+        self.cycle_dropped = int(np.count_nonzero(cycle))
         if np.any(self._registered & comp):
             # keep the previous gauge: express the new solution relative to the anchor's old pose
             anchor = next(k for k in order if comp[k])
