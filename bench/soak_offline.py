@@ -57,8 +57,8 @@ def main() -> int:
     args = parser.parse_args()
     from dataclasses import replace  # noqa: PLC0415
 
-    from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
+    from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.session import Session  # noqa: PLC0415
 
     frames = _detections(args)
