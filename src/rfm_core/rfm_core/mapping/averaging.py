@@ -336,6 +336,8 @@ def average_poses(ids, edges, config: AveragingConfig | None = None) -> Averagin
     return AveragingResult(poses, active & inside, yaw_r, t_r, time.perf_counter() - start)
 
 
+# Pose4's ``@`` and ``inverse`` on (yaw, (3,) t) tuples: the cycle check composes a few per
+# measurement, and building Pose4s made it 2.2x slower (1000 keyframes: 1.07 -> 2.37 s).
 def _compose(a, b):
     """(yaw, t) of T_x_z = T_x_y @ T_y_z for 4-DoF poses a = T_x_y, b = T_y_z as (yaw, (3,) t)."""
     c, s = np.cos(a[0]), np.sin(a[0])
@@ -347,6 +349,11 @@ def _invert(a):
     c, s = np.cos(a[0]), np.sin(a[0])
     t = a[1]
     return -a[0], -np.array([c * t[0] + s * t[1], -s * t[0] + c * t[1], t[2]])
+
+
+def _pair(a: int, b: int) -> tuple:
+    """The key of an unordered pair of keyframes."""
+    return (a, b) if a < b else (b, a)
 
 
 def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np.ndarray:
@@ -371,8 +378,7 @@ def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np
         if a == b:
             continue
         pose = (float(yaw[i]), np.asarray(trans[i], float))
-        key = (a, b) if a < b else (b, a)
-        pairs.setdefault(key, []).append((int(i), pose if a < b else _invert(pose)))
+        pairs.setdefault(_pair(a, b), []).append((int(i), pose if a < b else _invert(pose)))
     neighbours: dict = {}
     for a, b in pairs:
         neighbours.setdefault(a, set()).add(b)
@@ -380,9 +386,8 @@ def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np
 
     def between(x, y):
         """The measurements of T_x_y."""
-        if x < y:
-            return [p for _, p in pairs[(x, y)][:4]]
-        return [_invert(p) for _, p in pairs[(y, x)][:4]]
+        measured = [p for _, p in pairs[_pair(x, y)][:4]]
+        return measured if x < y else [_invert(p) for p in measured]
 
     def agrees(p, q):
         return (abs(wrap_angle(p[0] - q[0])) <= yaw_tol) and np.linalg.norm(p[1] - q[1]) <= t_tol
@@ -400,7 +405,7 @@ def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np
             loops = verdicts[i]
             if any(ok for ok, _ in loops):
                 continue
-            confirmed = sum(closes[(min(a, k), max(a, k))] and closes[(min(k, b), max(k, b))] for _, k in loops)
+            confirmed = sum(closes[_pair(a, k)] and closes[_pair(k, b)] for _, k in loops)
             flagged[i] = confirmed >= cfg.cycle_min_loops
     return flagged
 

@@ -190,11 +190,14 @@ class Mapper:
     def awaits_recovery(self, keyframe_id: int) -> bool:
         """Whether tracking recovery has yet to try this keyframe, which is outside the
         registered map (an update tries it once something newer has arrived)."""
-        cfg = self.config.relocalization
         obs = self.keyframes.get(keyframe_id)
-        return (cfg.recovery and self.mode == 'mapping' and not self.config.posed and obs is not None
-                and len(obs) >= max(cfg.min_explained, 2) and keyframe_id not in self.averager.poses
-                and keyframe_id not in self._recovery_tried)
+        return (self.config.relocalization.recovery and self.mode == 'mapping' and not self.config.posed
+                and obs is not None and self._recoverable(obs) and keyframe_id not in self._recovery_tried
+                and self.averager.pose(keyframe_id) is None)
+
+    def _recoverable(self, obs: FrameObservations) -> bool:
+        """Whether a keyframe has enough detections for tracking recovery to match it."""
+        return len(obs) >= max(self.config.relocalization.min_explained, 2)
 
     def frame_pose(self, track: FrameTrack) -> np.ndarray | None:
         """4x4 camera-to-map pose of a tracked frame now (None while its keyframe has none).
@@ -276,7 +279,7 @@ class Mapper:
             return False
         due = []
         for k, obs in self.keyframes.items():
-            if (k in poses or len(obs) < max(cfg.min_explained, 2) or obs.stamp_ns >= self._newest_stamp_ns
+            if (k in poses or not self._recoverable(obs) or obs.stamp_ns >= self._newest_stamp_ns
                     or len(poses) < 2 * self._recovery_tried.get(k, len(poses) / 2)):
                 continue
             self._recovery_tried[k] = len(poses)
