@@ -189,3 +189,17 @@ def test_gravity_filter_follows_a_camera_turned_unseen_and_integrates_the_gyrosc
         g.add(stamp, tilted @ up, [0.0, 0.0, 0.0])
     assert g.rest_resets == 1 and g.epoch == 2
     assert np.degrees(np.arccos(np.clip(g.gravity() @ (tilted @ -up) / 9.80665, -1, 1))) < 0.5
+
+
+def test_depth_clusters_measures_the_camera_height_above_the_floor(frames):
+    det = make_detector('depth_clusters')
+    errors = []
+    for cap, f in frames:
+        obs = det.detect(inputs(cap, f))
+        if np.isfinite(obs.camera_height):
+            errors.append(obs.camera_height - f.position[2])     # the simulator's floor is z = 0
+    assert len(errors) >= len(frames) - 2                # the floor is in view almost always
+    assert np.max(np.abs(errors)) < 0.03, errors         # to a few centimetres: depth noise only
+    # a detector that fits no floor measures none
+    cap, f = frames[0]
+    assert np.isnan(make_detector('ground_truth', preset='rgbd').perturb(f.ground_truth).camera_height)

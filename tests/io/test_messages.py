@@ -31,6 +31,7 @@ def make_observations(rng, n=4, gravity=(0.1, 0.95, -0.2)):
         corner_descriptors=rng.normal(size=(n, 8, 3)),
         full_boxes=np.c_[rng.uniform(-2, 2, (n, 3)), rng.uniform(0.2, 2, (n, 3)), rng.uniform(-3, 3, n)],
         backend='ground_truth',
+        camera_height=1.47,
     )
 
 
@@ -67,6 +68,20 @@ def test_frame_detections_round_trip_preserves_everything():
     np.testing.assert_allclose(back.corner_descriptors, obs.corner_descriptors, rtol=1e-6)
     np.testing.assert_allclose(back.boxes_2d, obs.boxes_2d, rtol=1e-6)
     np.testing.assert_array_equal(back.object_ids, obs.object_ids)
+    assert back.camera_height == pytest.approx(1.47)
+
+
+def test_a_camera_height_not_measured_reads_as_unknown():
+    """0 (the message default: older rfm versions, hand-made messages), NaN or a negative
+    height is no measurement."""
+    from dataclasses import replace
+    obs = replace(make_observations(np.random.default_rng(2)), camera_height=float('nan'))
+    msg = frame_detections_to_msg(obs)
+    assert msg.camera_height == 0.0
+    assert np.isnan(frame_detections_from_msg(msg).camera_height)
+    for value in (float('nan'), float('inf'), -1.2):
+        msg.camera_height = value
+        assert np.isnan(frame_detections_from_msg(msg).camera_height)
 
 
 def test_full_boxes_are_optional_but_all_or_none():

@@ -140,7 +140,13 @@ def test_a_track_is_represented_by_the_view_agreeing_most_with_the_others():
 
 def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     mapper = mapped.mapper
-    path = save_map(mapper, tmp_path / 'room.rfm')
+    k0 = min(mapper.keyframes)
+    assert np.isnan(mapper.keyframes[k0].camera_height)        # ground_truth boxes: no floor fit
+    mapper.keyframes[k0].camera_height = 1.53
+    try:
+        path = save_map(mapper, tmp_path / 'room.rfm')
+    finally:
+        mapper.keyframes[k0].camera_height = float('nan')
     assert not list(tmp_path.glob('*.tmp'))
     fresh = Mapper()
     header = load_map(fresh, path)
@@ -152,6 +158,7 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     k0 = min(mapper.keyframes)
     a, b = mapper.keyframes[k0], fresh.keyframes[k0]
     assert a.intrinsics == b.intrinsics and a.stamp_ns == b.stamp_ns and a.frame_id == b.frame_id
+    assert b.camera_height == 1.53 and np.isnan(fresh.keyframes[max(fresh.keyframes)].camera_height)
     np.testing.assert_allclose(a.boxes, b.boxes)
     np.testing.assert_allclose(a.embeddings, b.embeddings)
     t0, t1 = mapper.tracks(), fresh.tracks()

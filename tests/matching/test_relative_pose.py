@@ -206,3 +206,40 @@ def test_the_refit_takes_its_yaw_from_the_box_faces_not_from_biased_centres():
         assert rel is not None and len(rel.inliers) == 3
         errors[mode] = np.degrees(rel.pose.angle_to(truth))
     assert errors['centres'] > 0.4 and errors['faces'] < 0.01, errors
+
+
+def test_camera_heights_replace_the_vertical_translation_where_they_agree():
+    """Frames that both measured their height above the floor take the edge's height from it;
+    an implausible height (another surface taken for the floor) or a missing one leaves the
+    boxes' estimate."""
+    from dataclasses import replace as dc_replace  # noqa: PLC0415
+
+    from rfm_core.matching.relative_pose import with_camera_heights  # noqa: PLC0415
+    from rfm_core.observations import CameraIntrinsics, FrameObservations  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    a = scene_boxes(rng, 6)
+    truth = Pose4(0.4, (1.0, -0.5, 0.08))               # T_b_a: frame a's camera 8 cm higher
+    b = truth.transform_boxes(a)
+    b[:, 2] += rng.normal(0.0, 0.03, len(b))          # box centres' heights are noisy
+    idx = np.arange(len(a))
+    rel = estimate_relative_pose(a, b, ObjectMatches(idx, idx, np.ones(len(a))))
+    assert rel is not None
+    assert abs(rel.pose.t[2] - 0.08) > 0.002              # the boxes alone miss the height a little
+    intr = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+    source = FrameObservations(0, 'c', intr, [0, 0, -1], camera_height=1.50)     # frame b
+    target = FrameObservations(1, 'c', intr, [0, 0, -1], camera_height=1.58)     # frame a
+    fixed = with_camera_heights(dc_replace(rel), source, target)
+    assert fixed.pose.t[2] == pytest.approx(0.08, abs=1e-9)
+    np.testing.assert_allclose(fixed.pose.t[:2], rel.pose.t[:2])
+    assert fixed.pose.yaw == rel.pose.yaw
+    # a table top taken for the floor in one frame: 0.7 m off the boxes, which then decide
+    table = FrameObservations(1, 'c', intr, [0, 0, -1], camera_height=0.88)
+    assert with_camera_heights(dc_replace(rel), source, table).pose.t[2] == rel.pose.t[2]
+    unknown = FrameObservations(1, 'c', intr, [0, 0, -1])
+    assert np.isnan(unknown.camera_height)
+    assert with_camera_heights(dc_replace(rel), source, unknown).pose.t[2] == rel.pose.t[2]
+    off = MatchingConfig(height_tolerance_m=0.0)
+    assert with_camera_heights(dc_replace(rel), source, target, off).pose.t[2] == rel.pose.t[2]
+    # a non-physical height is no measurement
+    assert np.isnan(FrameObservations(1, 'c', intr, [0, 0, -1], camera_height=-1.0).camera_height)

@@ -89,6 +89,9 @@ class FrameObservations:
     backend: str = ''
     imu_rotation: np.ndarray | None = None   #: (3, 3) camera -> the gyroscope's drifting frame
     imu_epoch: int = 0                       #: 0: none; rotations compare within one epoch
+    #: height of the camera above the floor along gravity (m), where the detector measured the
+    #: floor plane; NaN: not measured
+    camera_height: float = float('nan')
 
     def __post_init__(self):
         self.gravity_cam = unit_gravity(self.gravity_cam)
@@ -131,6 +134,9 @@ class FrameObservations:
             self.imu_rotation = r
         elif self.imu_epoch:
             raise ValueError('imu_epoch is set without an imu_rotation')
+        self.camera_height = float(self.camera_height)
+        if not (np.isnan(self.camera_height) or (np.isfinite(self.camera_height) and self.camera_height > 0)):
+            self.camera_height = float('nan')         # 0 / inf / negative: not a measurement
         if self.corner_descriptors is not None:
             cd = np.asarray(self.corner_descriptors, dtype=np.float32)
             if cd.ndim != 3 or cd.shape[:2] != (n, 8):

@@ -64,9 +64,10 @@ class Detector:
 
 
 def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, config: DetectorConfig,
-             backend: str, visibility=None, object_ids=None, full_boxes=None) -> FrameObservations:
+             backend: str, visibility=None, object_ids=None, full_boxes=None,
+             camera_height: float = float('nan')) -> FrameObservations:
     """Threshold by score, keep the best ``max_detections``, package as FrameObservations
-    (``full_boxes``: see :attr:`FrameObservations.full_boxes`)."""
+    (``full_boxes``, ``camera_height``: see :class:`FrameObservations`)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     scores = np.asarray(scores, dtype=np.float32).reshape(-1)
     keep = np.flatnonzero(scores >= config.score_threshold)
@@ -84,4 +85,4 @@ def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, 
         object_ids=(np.asarray(object_ids, np.int64)[keep] if object_ids is not None
                     else np.full(len(keep), -1, np.int64)),
         full_boxes=np.asarray(full_boxes, np.float64).reshape(-1, 7)[keep] if full_boxes is not None else None,
-        backend=backend)
+        backend=backend, camera_height=camera_height)

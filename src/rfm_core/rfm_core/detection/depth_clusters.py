@@ -226,7 +226,8 @@ class DepthClustersDetector(Detector):
                 scores = np.where(raw >= cfg.score_threshold, np.maximum(calibrated, cfg.score_threshold), 0.0)
         embeds = [self._embedding(c.colours, box, found.floor_z) for c, box in zip(items, boxes)]
         return finalize(frame, boxes, scores, labels, np.array(embeds).reshape(len(items), EMBEDDING_DIM),
-                        [c.box_2d for c in items], cfg, self.name, full_boxes=full)
+                        [c.box_2d for c in items], cfg, self.name, full_boxes=full,
+                        camera_height=-found.floor_z if found.floor_z is not None else float('nan'))
 
     def candidates(self, frame: DetectorInput) -> 'Candidates':
         """Steps 1-4: one :class:`Candidate` per cluster with its fitted box and raw score,

@@ -337,6 +337,8 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         corner_descriptors=corner,
         full_boxes=full_boxes,
         backend=msg.backend,
+        # none in messages of older rfm versions; 0, NaN or a non-physical value: not measured
+        camera_height=float(getattr(msg, 'camera_height', 0.0)),
         **_imu_fields(msg),
     )
 
@@ -400,7 +402,9 @@ def frame_detections_to_msg(obs: FrameObservations, make=ROS):
                 backend=obs.backend, fx=float(intr.fx), fy=float(intr.fy), cx=float(intr.cx),
                 cy=float(intr.cy), width=int(intr.width), height=int(intr.height),
                 gravity=_vector3(make, obs.gravity_cam), imu_orientation=_quaternion(make, obs.imu_rotation),
-                imu_epoch=int(obs.imu_epoch) if obs.imu_rotation is not None else 0, detections=detections)
+                imu_epoch=int(obs.imu_epoch) if obs.imu_rotation is not None else 0,
+                camera_height=float(obs.camera_height) if np.isfinite(obs.camera_height) else 0.0,
+                detections=detections)
 
 
 def _quaternion(make, rotation):

@@ -65,6 +65,8 @@ def _keyframe_arrays(mapper: Mapper) -> dict:
         # the map's boxes (FrameObservations.full_boxes) of the keyframes that have them
         'kf_full': np.array([f.full_boxes is not None for f in frames], bool),
         'det_full_boxes': cat(lambda f: f.map_boxes, (7,), np.float64),
+        # FrameObservations.camera_height (NaN: not measured)
+        'kf_camera_height': np.array([f.camera_height for f in frames], float),
         # where each keyframe came from: (view-graph session, its id there); (0, 0) unknown
         'kf_origin': np.array([mapper.origins.get(k, (0, 0)) for k in ids], np.uint64).reshape(-1, 2),
     }, {'kf_frame_ids': [f.frame_id for f in frames],
@@ -226,6 +228,9 @@ def _parse_map(path: Path, data: dict) -> dict:
         full = data.get('det_full_boxes', np.zeros(0))
         checks += [(data.get('kf_full', np.zeros(0)).shape == (n_kf,) and full.shape == (n_det, 7)
                     and np.all(np.isfinite(full)), 'full box arrays')]
+    if 'kf_camera_height' in data:                            # none in maps of older rfm versions
+        checks += [(data['kf_camera_height'].shape == (n_kf,) and data['kf_camera_height'].dtype.kind == 'f',
+                    'keyframe camera heights')]
     for ok, what in checks:
         if not ok:
             raise MapFileError(f'{path}: inconsistent map file ({what})')
@@ -247,7 +252,8 @@ def _parse_map(path: Path, data: dict) -> dict:
                 gravity_cam=data['kf_gravity'][i], boxes=data['det_boxes'][a:b], scores=data['det_scores'][a:b],
                 labels=list(labels[a:b]), embeddings=data['det_embeddings'][a:b],
                 boxes_2d=data['det_boxes_2d'][a:b], backend=header.get('kf_backends', [''] * n_kf)[i],
-                full_boxes=data['det_full_boxes'][a:b] if 'kf_full' in data and data['kf_full'][i] else None)
+                full_boxes=data['det_full_boxes'][a:b] if 'kf_full' in data and data['kf_full'][i] else None,
+                camera_height=float(data['kf_camera_height'][i]) if 'kf_camera_height' in data else float('nan'))
         except ValueError as exc:
             raise MapFileError(f'{path}: keyframe {int(k)}: {exc}') from None
     edges = []

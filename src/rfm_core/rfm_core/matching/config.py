@@ -45,6 +45,12 @@ class MatchingConfig:
     refine_max_error_increase: float = setting(0.0, 'Keep an isotropic refit only if the mean box error (1 - '
                                                'IoU3D) grows by at most this (< 0: always); an along-ray refit '
                                                'is kept whenever it verifies', lo=-1.0, hi=1.0)
+    height_tolerance_m: float = setting(0.2, "A relative pose's vertical translation is the difference of the two "
+                                        "frames' camera heights above the floor where both measured it "
+                                        '(FrameDetections.camera_height: the floor plane fixes a height to about '
+                                        "a centimetre, box centres to several) and it is within this of the boxes' "
+                                        '(m): a larger disagreement means a frame took another surface for the '
+                                        'floor (0: boxes only)', lo=0.0, hi=10.0)
 
     @property
     def along_rays(self) -> bool:

@@ -36,7 +36,7 @@ from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 
-__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose']
+__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'with_camera_heights']
 
 
 @dataclass
@@ -151,6 +151,30 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
         inlier_ious=ious[idx], inlier_scores=np.asarray(matches.scores)[idx],
         mean_error=error, num_matches=n,
         corner_inliers=_corner_inliers(pose, a, b, matches, idx, cfg))
+
+
+def with_camera_heights(rel: RelativePose | None, source, target,
+                        config: MatchingConfig | None = None) -> RelativePose | None:
+    """``rel`` (T_source_target) with its vertical translation replaced by the difference of
+    the two frames' camera heights above the floor (``FrameObservations.camera_height``)
+    where both measured one and it is within ``height_tolerance_m`` of the boxes' (in
+    place; returns ``rel``). In 4-DoF the height decouples from yaw and horizontal
+    translation, so the boxes' fit of those stays optimal. The floor plane fixes a camera's
+    height to about a centimetre; box centres, partial and snapped to different supports from
+    view to view, to several (the vertical part of a depth detector's edge errors). A larger
+    disagreement means one frame took another surface (a table top) for the floor: the boxes
+    then decide."""
+    cfg = config or MatchingConfig()
+    if rel is None or cfg.height_tolerance_m <= 0:
+        return rel
+    hs, ht = float(source.camera_height), float(target.camera_height)
+    if not (np.isfinite(hs) and np.isfinite(ht)):
+        return rel
+    t = np.array(rel.pose.t, dtype=np.float64)
+    if abs(t[2] - (ht - hs)) <= cfg.height_tolerance_m:
+        t[2] = ht - hs
+        rel.pose = Pose4(rel.pose.yaw, t)
+    return rel
 
 
 def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):

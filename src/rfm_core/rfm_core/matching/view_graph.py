@@ -34,7 +34,7 @@ from scipy.optimize import linear_sum_assignment
 
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
+from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_camera_heights
 from rfm_core.geometry import Pose4, wrap_angle
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import setting
@@ -235,7 +235,10 @@ class ViewGraphBuilder:
         if measured is not None:
             prior = YawPrior(measured[0], np.radians(measured[1]))
         rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching, prior)
-        return None if rel is None else rel.swap_index_order()        # as (source, target) index pairs
+        if rel is None:
+            return None
+        rel.swap_index_order()                                       # as (source, target) index pairs
+        return with_camera_heights(rel, source, target, self.matching)
 
     def _reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
@@ -589,7 +592,8 @@ class ViewGraphBuilder:
         if predicted is None or obs.stamp_ns - self._tracking.last_verified_ns > self.config.max_motion_edge_s * 1e9:
             return None
         self.stats.motion_edges += 1
-        return RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
+        rel = RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
+        return with_camera_heights(rel, self.reference.observations, obs, self.matching)
 
     def _new_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None, stream: bool) -> GraphStep:
         start = time.perf_counter()
