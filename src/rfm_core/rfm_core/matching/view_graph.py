@@ -35,7 +35,7 @@ from scipy.optimize import linear_sum_assignment
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_camera_heights
-from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import setting
 
@@ -79,9 +79,15 @@ class KeyframeConfig:
     motion_slack_m: float = setting(0.3, 'Motion prior: motion allowed on top of speed x time (m)',
                                     lo=0.0, hi=10.0)
     max_motion_edge_s: float = setting(1.0, 'A keyframe that verified nothing, at most this long after the '
-                                       "last frame objects placed, is placed by the gyroscope's yaw and the held "
-                                       'position (no object matches, least averaging weight; 0: never)',
+                                       "last frame objects placed, is placed by the gyroscope's yaw and the "
+                                       'predicted position (velocity_window_s; no object matches, least averaging '
+                                       'weight; 0: never)',
                                        lo=0.0, hi=60.0)
+    velocity_window_s: float = setting(1.0, "Motion prediction (tracking's predicted matches, motion edges): the "
+                                       'camera keeps the velocity it had between the last frame objects placed '
+                                       'and the oldest such frame on the same keyframe at most this long before '
+                                       "it (at least 0.2 s: tracked poses jitter by centimetres); 0: the position "
+                                       'is held', lo=0.0, hi=10.0)
     track_gate_m: float = setting(0.3, "Tracking: a box matches the keyframe's box predicted nearest within "
                                   'this (m, detector noise) plus the distance the camera can have moved',
                                   lo=0.01, hi=5.0)
@@ -209,13 +215,48 @@ class ViewGraphBuilder:
         self._next_id = 0
         self._last_stamp = None           # of the previous frame (any frame: the stream's timing)
         self._segment = -1
-        self._tracking: _Tracking | None = None
+        self._track_state: _Tracking | None = None
+        self._placed: list = []           # (keyframe id, stamp, T_keyframe_frame.t) of frames objects placed
+        self._carried = (None, np.zeros(3))   # (motion-placed keyframe id, the velocity carried into it)
         self._motion_placed: set = set()  # keyframes placed by a motion edge alone
         self._neighbours: dict = {}       # keyframe index -> indices it shares a verified edge with
         self._edge_pose: dict = {}        # (index i, index j) -> T_i_j of their verified edge
         self._index: dict = {}            # keyframe id -> index
         self._pair_edges: dict = {}       # (source id, target id) -> measurements of the pair sent
         self._ref = -1                    # index of the reference keyframe frames are tracked against
+
+    @property
+    def _tracking(self) -> _Tracking | None:
+        """The last frame localized (or keyframe made), which predicts the next."""
+        return self._track_state
+
+    @_tracking.setter
+    def _tracking(self, state: _Tracking | None) -> None:
+        self._track_state = state
+        if state is None:
+            self._placed = []
+        elif state.verified_ns is None:               # placed by objects: a sample of the motion
+            window = self.config.velocity_window_s * 1e9
+            self._placed = [p for p in self._placed if p[0] == state.keyframe_id and 0 <= state.stamp_ns - p[1] <= window]
+            self._placed.append((state.keyframe_id, state.stamp_ns, np.asarray(state.pose.t, float)))
+
+    def _velocity(self) -> np.ndarray:
+        """The camera's velocity (m/s) in the reference keyframe's frame over the frames
+        objects placed on it within ``velocity_window_s`` (on a keyframe a motion edge
+        placed: the velocity carried into it); zero when unknown."""
+        prev = self._track_state
+        if prev is not None and prev.verified_ns is not None:     # on a keyframe the motion placed
+            return self._carried[1] if self._carried[0] == prev.keyframe_id else np.zeros(3)
+        if prev is None or len(self._placed) < 2:
+            return np.zeros(3)
+        kid, first_ns, first_t = self._placed[0]
+        last_kid, last_ns, last_t = self._placed[-1]
+        dt = (last_ns - first_ns) / 1e9
+        if kid != prev.keyframe_id or last_kid != kid or dt < 0.2:
+            return np.zeros(3)
+        v = (last_t - first_t) / dt
+        speed = float(np.linalg.norm(v))
+        return v if speed <= self.config.max_speed_m_s else v * (self.config.max_speed_m_s / speed)
 
     @property
     def reference(self) -> Keyframe:
@@ -281,14 +322,17 @@ class ViewGraphBuilder:
         return rel
 
     def _predicted_pose(self, obs: FrameObservations) -> Pose4 | None:
-        """T_keyframe_frame to the last keyframe as the previous tracked frame's position and
-        the gyroscope's yaw predict it; None without a previous frame on that keyframe or
-        without a gyroscope."""
+        """T_keyframe_frame to the last keyframe as the previous tracked frame's position,
+        moved on at the camera's recent velocity (:meth:`_velocity`), and the gyroscope's yaw
+        predict it; None without a previous frame on that keyframe or without a gyroscope."""
         prev, last = self._tracking, self.reference
         if prev is None or prev.keyframe_id != last.keyframe_id:
             return None
         measured = self._imu_yaw(last.observations, obs)
-        return None if measured is None else Pose4(measured[0], prev.pose.t)
+        if measured is None:
+            return None
+        dt = (obs.stamp_ns - prev.stamp_ns) / 1e9
+        return Pose4(measured[0], np.asarray(prev.pose.t) + self._velocity() * max(dt, 0.0))
 
     def _predicted_matches(self, keyframe: FrameObservations, obs: FrameObservations) -> ObjectMatches | None:
         """Matches of the frame's boxes to the last keyframe's where the predicted pose puts
@@ -583,8 +627,8 @@ class ViewGraphBuilder:
 
     def _motion_edge(self, obs: FrameObservations) -> RelativePose | None:
         """Where the camera went while tracking was lost for a moment: the last keyframe to
-        this frame as the gyroscope's yaw and the last tracked frame's position predict it
-        (at most ``max_motion_edge_s`` after the last frame that objects placed: motion edges
+        this frame as the gyroscope's yaw and the last tracked frame's position, moved on at
+        the camera's recent velocity, predict it (at most ``max_motion_edge_s`` after the last frame that objects placed: motion edges
         never chain longer). It has no object matches and the least weight in the averaging:
         it only places a stretch that nothing else links."""
         predicted = self._predicted_pose(obs)
@@ -627,6 +671,8 @@ class ViewGraphBuilder:
             if motion is not None:
                 edges.append(Edge(self.reference.keyframe_id, keyframe.keyframe_id, motion))
                 self._motion_placed.add(keyframe.keyframe_id)
+                # the camera keeps its velocity through the new keyframe (a vector: rotated only)
+                self._carried = (keyframe.keyframe_id, yaw_matrix(motion.pose.yaw).T @ self._velocity())
         n = len(self.keyframes)
         if n == 0:                                                 # first keyframe: sets the length
             self._desc_buffer = np.zeros((64, len(descriptor)))
