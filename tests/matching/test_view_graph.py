@@ -181,13 +181,11 @@ def test_the_gyroscope_checks_tracking_and_predicts_the_boxes(stream):
     assert not graph._imu_agrees(Pose4(true.yaw + np.radians(30.0), true.t), a, b)
 
 
-def test_a_moment_without_objects_is_bridged_by_the_motion(stream):
-    """Frames that see nothing the last keyframe saw (here: their detections moved 5 m
-    away) become keyframes placed by the motion alone: the gyroscope's yaw, the position held,
-    no object matches; so the stream stays one connected graph."""
+def _lost_for_a_moment(graph, stream) -> list:
+    """Feed 16 frames whose 9th and 10th see nothing the others saw (their detections moved
+    5 m away); returns the motion edges made, each with its true relative pose."""
     from dataclasses import replace
     det = make_detector('ground_truth', preset='perfect')
-    graph = ViewGraphBuilder()
     motion = []
     for i, f in enumerate(stream[:16]):
         obs = _with_gyroscope(f, det.perturb(f.ground_truth))
@@ -195,14 +193,21 @@ def test_a_moment_without_objects_is_bridged_by_the_motion(stream):
             boxes = obs.boxes.copy()
             boxes[:, 0] += 5.0
             obs = replace(obs, boxes=boxes)
-        step = graph.add(obs)
-        motion += [e for e in step.edges if len(e.relative.inliers) == 0]
-    assert graph.stats.motion_edges >= 1 and motion
+        motion += [e for e in graph.add(obs).edges if len(e.relative.inliers) == 0]
     kf = {k.keyframe_id: k.observations.stamp_ns for k in graph.keyframes}
     truth = {f.stamp_ns: f for f in stream}
-    for e in motion:
-        a, b = truth[kf[e.source_id]], truth[kf[e.target_id]]
-        true = a.aligned_from_map() @ b.aligned_from_map().inverse()
+    return [(e, truth[kf[e.source_id]].aligned_from_map() @ truth[kf[e.target_id]].aligned_from_map().inverse())
+            for e in motion]
+
+
+def test_a_moment_without_objects_is_bridged_by_the_motion(stream):
+    """Frames that see nothing the last keyframe saw (here: their detections moved 5 m
+    away) become keyframes placed by the motion alone: the gyroscope's yaw, the predicted
+    position, no object matches; so the stream stays one connected graph."""
+    graph = ViewGraphBuilder()
+    motion = _lost_for_a_moment(graph, stream)
+    assert graph.stats.motion_edges >= 1 and motion
+    for e, true in motion:
         assert np.degrees(e.relative.pose.angle_to(true)) < 0.5          # the gyroscope's yaw
         assert np.linalg.norm(e.relative.pose.t - true.t) < 1.5 * 0.25 + 0.1   # moved at most this
 
@@ -262,25 +267,10 @@ def test_motion_edges_carry_the_cameras_velocity_on(stream):
     """Where tracking is lost for a moment, the camera kept moving: the motion edge that
     places the next keyframe extrapolates the velocity of the frames tracked just before
     (``velocity_window_s``), and lands nearer the truth than the held position."""
-    from dataclasses import replace
-    from rfm_core.matching.view_graph import KeyframeConfig
-    det = make_detector('ground_truth', preset='perfect')
-    truth = {f.stamp_ns: f for f in stream}
     errors = {}
     for window in (1.0, 0.0):
         graph = ViewGraphBuilder(keyframes=KeyframeConfig(velocity_window_s=window))
-        motion = []
-        for i, f in enumerate(stream[:16]):
-            obs = _with_gyroscope(f, det.perturb(f.ground_truth))
-            if i in (8, 9):
-                boxes = obs.boxes.copy()
-                boxes[:, 0] += 5.0
-                obs = replace(obs, boxes=boxes)
-            motion += [e for e in graph.add(obs).edges if len(e.relative.inliers) == 0]
-        kf = {k.keyframe_id: k.observations.stamp_ns for k in graph.keyframes}
-        errors[window] = [np.linalg.norm(e.relative.pose.t - (truth[kf[e.source_id]].aligned_from_map()
-                                                            @ truth[kf[e.target_id]].aligned_from_map().inverse()).t)
-                          for e in motion]
+        errors[window] = [np.linalg.norm(e.relative.pose.t - true.t) for e, true in _lost_for_a_moment(graph, stream)]
     assert errors[1.0] and len(errors[1.0]) == len(errors[0.0])
     # the first extrapolates the tracked frames' velocity (later ones carry it through a
     # walk that curves: about as good as holding)
