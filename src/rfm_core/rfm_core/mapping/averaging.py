@@ -653,16 +653,34 @@ class IncrementalAverager:
         return np.count_nonzero(linked & ~self._registered) > np.count_nonzero(self._registered)
 
     def _solve(self, allowed):
-        """A full solve over the ``allowed`` edges, in the previous gauge."""
+        """A full solve over the ``allowed`` edges, in the previous gauge.
+
+        Solved in a canonical order (keyframes by id, edges by their keyframes' ids and
+        measurement), not in arrival order: keyframes and edges come on two topics, and an
+        edge that arrives before its keyframe is filed later, so the order (which breaks the
+        placement vote's ties and picks the cycle check's triangles) would make a stream's
+        map depend on the messages' timing."""
         src, dst, yaw, trans, weight = self._arrays()
-        # anchor: the earliest registered keyframe keeps the map frame stable
-        order = np.r_[np.flatnonzero(self._registered), np.flatnonzero(~self._registered)]
-        theta, centres, active, comp, cycle = _solve_all(len(self.ids), src, dst, yaw, trans, weight, self.config,
-                                                         order, self.edges.yaw_only, allowed)
+        ids = np.asarray(self.ids, np.int64)
+        node = np.argsort(ids, kind='stable')               # canonical position -> index
+        rank = np.empty_like(node)
+        rank[node] = np.arange(len(node))                    # index -> canonical position
+        edge = np.lexsort((weight, trans[:, 2], trans[:, 1], trans[:, 0], yaw, self.edges.yaw_only,
+                           ids[dst], ids[src]))
+        # anchor: the earliest registered keyframe (by id) keeps the map frame stable
+        reg = self._registered[node]
+        order = np.r_[np.flatnonzero(reg), np.flatnonzero(~reg)]
+        theta, centres, active, comp, cycle = _solve_all(
+            len(self.ids), rank[src][edge], rank[dst][edge], yaw[edge], trans[edge], weight[edge], self.config,
+            order, self.edges.yaw_only[edge], np.asarray(allowed, bool)[edge])
+        anchor = next((node[k] for k in order if comp[k]), None)
+        back = np.empty_like(edge)
+        back[edge] = np.arange(len(edge))                    # store index -> canonical position
+        theta, centres, comp = theta[rank], centres[rank], comp[rank]
+        active, cycle = active[back], cycle[back]
         self.cycle_dropped = int(np.count_nonzero(cycle))
         if np.any(self._registered & comp):
             # keep the previous gauge: express the new solution relative to the anchor's old pose
-            anchor = next(k for k in order if comp[k])
             if self._registered[anchor]:
                 theta, centres = _regauge(theta, centres, anchor, self._theta[anchor], self._centres[anchor])
         return theta, centres, active, comp
