@@ -82,7 +82,8 @@ def main():
     print('|---|' + '---|' * len(variants))
     results = {k: [] for k in variants}
     for n in range(args.subsets):
-        keep = np.sort(rng.choice(len(frames), int(args.keep * len(frames)), replace=False)) if n else np.arange(len(frames))
+        keep = (np.sort(rng.choice(len(frames), int(args.keep * len(frames)), replace=False)) if n
+                else np.arange(len(frames)))
         cells = []
         for name, config in variants.items():
             results[name].append(run(keep, config))

@@ -657,9 +657,9 @@ class IncrementalAverager:
 
         Solved in a canonical order (keyframes by id, edges by their keyframes' ids and
         measurement), not in arrival order: keyframes and edges come on two topics, and an
-        edge that arrives before its keyframe is filed later, so the order (which breaks the
-        placement vote's ties and picks the cycle check's triangles) would make a stream's
-        map depend on the messages' timing."""
+        edge that arrives before its keyframe adds it, so the order (which breaks the
+        placement vote's ties and picks the cycle check's triangles) made the map of the same
+        messages depend on their timing."""
         src, dst, yaw, trans, weight = self._arrays()
         ids = np.asarray(self.ids, np.int64)
         node = np.argsort(ids, kind='stable')               # canonical position -> index

@@ -237,7 +237,8 @@ class ViewGraphBuilder:
             self._placed = []
         elif state.verified_ns is None:               # placed by objects: a sample of the motion
             window = self.config.velocity_window_s * 1e9
-            self._placed = [p for p in self._placed if p[0] == state.keyframe_id and 0 <= state.stamp_ns - p[1] <= window]
+            self._placed = [p for p in self._placed
+                            if p[0] == state.keyframe_id and 0 <= state.stamp_ns - p[1] <= window]
             self._placed.append((state.keyframe_id, state.stamp_ns, np.asarray(state.pose.t, float)))
 
     def _velocity(self) -> np.ndarray:
@@ -628,9 +629,10 @@ class ViewGraphBuilder:
     def _motion_edge(self, obs: FrameObservations) -> RelativePose | None:
         """Where the camera went while tracking was lost for a moment: the last keyframe to
         this frame as the gyroscope's yaw and the last tracked frame's position, moved on at
-        the camera's recent velocity, predict it (at most ``max_motion_edge_s`` after the last frame that objects placed: motion edges
-        never chain longer). It has no object matches and the least weight in the averaging:
-        it only places a stretch that nothing else links."""
+        the camera's recent velocity, predict it (at most ``max_motion_edge_s`` after the
+        last frame that objects placed: motion edges never chain longer). It has no object
+        matches and the least weight in the averaging: it only places a stretch that nothing
+        else links."""
         predicted = self._predicted_pose(obs)
         # measured from the last frame objects placed: motion edges never chain past it
         if predicted is None or obs.stamp_ns - self._tracking.last_verified_ns > self.config.max_motion_edge_s * 1e9:
