@@ -40,7 +40,8 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('--subsets', type=int, default=10)
     parser.add_argument('--keep', type=float, default=0.6)
-    parser.add_argument('--set', required=True, help='FIELD.PATH=VALUE of MapperConfig for the second column')
+    parser.add_argument('--set', required=True, help='FIELD.PATH=VALUE for the second column: of MapperConfig, '
+                        'or keyframes.NAME=VALUE of KeyframeConfig')
     parser.add_argument('--cache', default='/tmp/rfm_demo_subsets.pkl')
     args = parser.parse_args()
     capture = Capture(CaptureConfig(seed=11, room_style='plain', capture='handheld', frames=100, fps=10))

@@ -250,10 +250,11 @@ class ViewGraphBuilder:
             return self._carried[1] if self._carried[0] == prev.keyframe_id else np.zeros(3)
         if prev is None or len(self._placed) < 2:
             return np.zeros(3)
-        kid, first_ns, first_t = self._placed[0]
-        last_kid, last_ns, last_t = self._placed[-1]
+        # (the setter keeps only samples on prev's keyframe, prev's the last)
+        _, first_ns, first_t = self._placed[0]
+        _, last_ns, last_t = self._placed[-1]
         dt = (last_ns - first_ns) / 1e9
-        if kid != prev.keyframe_id or last_kid != kid or dt < 0.2:
+        if dt < 0.2:
             return np.zeros(3)
         v = (last_t - first_t) / dt
         speed = float(np.linalg.norm(v))
