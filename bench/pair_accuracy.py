@@ -1,0 +1,89 @@
+"""Relative-pose accuracy of the view graph on frame pairs (an ablation; the product is `rfm run`).
+
+For the demo bag's scene and the handheld / robot scenes among the tuning seeds 40-51 (the
+realistic world of `rfm eval`), every frame is detected once with ``depth_clusters`` (cached;
+the simulator's gyroscope), and frames 0.4, 0.8 and 1.6 s apart (one pair start every 0.2 s)
+are matched and verified the way the view graph relates a frame to a keyframe
+(``ViewGraphBuilder._relative``, stream: the gyroscope bounds the yaw). Printed per scene: how
+many pairs verified a relative pose and its horizontal translation / yaw error against the
+truth (p50 / p75 / p90).
+
+    ros_ws/env.sh python bench/pair_accuracy.py [--cache /tmp/rfm_pair_accuracy]
+"""
+import argparse
+import copy
+import pickle
+from pathlib import Path
+
+import numpy as np
+
+from rfm_core.evaluation.pipeline import detections_for
+from rfm_core.evaluation.suite import eval_configs
+from rfm_core.geometry import wrap_angle
+from rfm_core.mapping.frame_log import pose_from_camera
+from rfm_core.mapping.mapper import MapperConfig
+from rfm_core.matching.view_graph import KeyframeConfig
+from rfm_core.session import Session
+from rfm_core.sim.capture import Capture, CaptureConfig
+
+
+def scenes():
+    out = [('demo', CaptureConfig(seed=11, room_style='plain', capture='handheld', frames=100, fps=10))]
+    return out + [(f'{c.seed}_{c.capture}', c) for c in eval_configs(12, first_seed=40) if c.capture != 'sparse']
+
+
+def frames_of(name, config, cache: Path):
+    path = cache / f'{name}.pkl'
+    if path.exists():
+        return pickle.loads(path.read_bytes())
+    detect, out = detections_for('depth_clusters'), []
+    for f in Capture(config).frames():
+        obs = detect(f)
+        obs.imu_rotation, obs.imu_epoch = f.rotation, 1
+        out.append((f.pose_matrix, obs))
+    cache.mkdir(parents=True, exist_ok=True)
+    path.write_bytes(pickle.dumps(out))
+    return out
+
+
+def row(name, verified, pairs, dxy, dyaw):
+    q = lambda v, p: np.percentile(v, p) if len(v) else float('nan')  # noqa: E731
+    return (f'| {name} | {verified}/{pairs} | {100 * q(dxy, 50):.1f} / {100 * q(dxy, 75):.1f} / '
+            f'{100 * q(dxy, 90):.1f} | {q(dyaw, 50):.2f} / {q(dyaw, 90):.2f} |')
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument('--cache', default='/tmp/rfm_pair_accuracy', help='detections per scene are kept here')
+    args = parser.parse_args()
+    graph = Session(MapperConfig(), KeyframeConfig()).graph
+    print('| scene | verified / pairs | horizontal error p50 / p75 / p90 (cm) | yaw error p50 / p90 (deg) |')
+    print('|---|---|---|---|')
+    total = [0, 0, [], []]
+    for name, config in scenes():
+        frames = frames_of(name, config, Path(args.cache))
+        step = max(int(round(config.fps / 5)), 1)
+        verified, pairs, dxy, dyaw = 0, 0, [], []
+        for gap_s in (0.4, 0.8, 1.6):
+            gap = max(int(round(gap_s * config.fps)), 1)
+            for i in range(0, len(frames) - gap, step):
+                (pose_a, a), (pose_b, b) = frames[i], frames[i + gap]
+                if len(a) < 2 or len(b) < 2:
+                    continue
+                pairs += 1
+                rel = graph._relative(copy.deepcopy(a), copy.deepcopy(b), stream=True)   # T_a_b
+                if rel is None:
+                    continue
+                verified += 1
+                truth = (pose_from_camera(pose_a, a.gravity_cam, atol=0.2)
+                         @ pose_from_camera(pose_b, b.gravity_cam, atol=0.2).inverse())
+                d = np.asarray(rel.pose.t) - truth.t
+                dxy.append(float(np.hypot(d[0], d[1])))
+                dyaw.append(abs(float(np.degrees(wrap_angle(rel.pose.yaw - truth.yaw)))))
+        print(row(name, verified, pairs, dxy, dyaw), flush=True)
+        total = [total[0] + verified, total[1] + pairs, total[2] + dxy, total[3] + dyaw]
+    print(row('all', *total))
+
+
+if __name__ == '__main__':
+    main()
