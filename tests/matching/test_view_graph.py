@@ -276,3 +276,35 @@ def test_motion_edges_carry_the_cameras_velocity_on(stream):
     # walk that curves: about as good as holding)
     assert errors[1.0][0] < 0.6 * errors[0.0][0], errors
     assert max(errors[1.0]) < 1.5 * 0.25 + 0.1, errors
+
+
+def test_a_new_keyframe_is_measured_again_through_frames_tracked_since_the_reference(stream):
+    """Within a stream, a new keyframe's edge to its reference is measured again through
+    frames tracked on the reference (their tracked pose, then their own verified pose to the
+    keyframe): further measurements of the pair, each agreeing with the truth; none with
+    ``through_frames=0``."""
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    obs = [_with_gyroscope(f, det.perturb(f.ground_truth)) for f in stream]
+    truth = {f.stamp_ns: f for f in stream}
+
+    def pairs(config):
+        graph, measured = ViewGraphBuilder(keyframes=config), {}
+        for o in obs:
+            for e in graph.add(o).edges:
+                measured.setdefault((e.source_id, e.target_id), []).append(e)
+        return graph, measured
+
+    graph, measured = pairs(KeyframeConfig(through_frames=2))
+    stamp = {k.keyframe_id: k.observations.stamp_ns for k in graph.keyframes}
+    repeated = [m for m in measured.values() if len(m) > 1]
+    assert len(repeated) >= 2 and graph.stats.through >= len(repeated)
+    assert all(len(m) <= 3 for m in measured.values())              # the direct edge + at most 2
+    for m in repeated:
+        for e in m:
+            true = (truth[stamp[e.source_id]].aligned_from_map()
+                    @ truth[stamp[e.target_id]].aligned_from_map().inverse())
+            assert np.degrees(e.relative.pose.angle_to(true)) < 3.0
+            assert np.linalg.norm(e.relative.pose.t - true.t) < 0.2
+            assert len(e.relative.inliers) >= 2
+    _, direct = pairs(KeyframeConfig(through_frames=0))
+    assert all(len(m) == 1 for m in direct.values())

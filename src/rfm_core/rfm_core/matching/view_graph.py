@@ -39,6 +39,9 @@ from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import setting
 
+#: frames tracked on the reference kept for :meth:`ViewGraphBuilder._through_tracked`
+_THROUGH_BUFFER = 64
+
 __all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'GraphStep', 'ViewGraphBuilder', 'bag_of_objects']
 
 
@@ -110,6 +113,13 @@ class KeyframeConfig:
                                  'against (edges measured through the frame); at most this many measurements of one '
                                  'keyframe pair (0: none). Without them a map that stops growing keeps its first '
                                  'edges unchallenged', lo=0, hi=16)
+    through_frames: int = setting(0, 'A new keyframe of a stream is linked to the reference again through this '
+                                  'many frames tracked on the reference since it (the latest and ones '
+                                  'between: each measures T_reference_keyframe as its tracked pose and its own '
+                                  'verified pose to the keyframe, weighted as the two legs in series). Off: '
+                                  'on tuning scenes 2 localized more frames and lowered ARE but left ATE and '
+                                  'AP25 where they were (BENCHMARKS.md, session 20)',
+                                  lo=0, hi=8)
     min_retrieved_inliers: int = setting(3, 'Verified objects an edge needs where the motion prior cannot check '
                                          'it (separate views, retrieved keyframes): two verify nothing beyond '
                                          'the minimal sample, and repeated furniture aliases', lo=2, hi=100)
@@ -132,11 +142,13 @@ class Edge:
     source_id: int
     target_id: int
     relative: RelativePose
+    trust: float = 1.0                #: in (0, 1]: below 1 for a pose composed of several measured ones
 
     @property
     def score(self) -> float:
-        """Confidence in [0, 1]: the share of matched objects that verified the pose."""
-        return float(np.clip(self.relative.inlier_ratio, 0.0, 1.0))
+        """Confidence in [0, 1]: the share of matched objects that verified the pose (times
+        :attr:`trust`)."""
+        return float(np.clip(self.relative.inlier_ratio * self.trust, 0.0, 1.0))
 
 
 def _reversed(rel: RelativePose) -> RelativePose:
@@ -224,6 +236,7 @@ class ViewGraphBuilder:
         self._index: dict = {}            # keyframe id -> index
         self._pair_edges: dict = {}       # (source id, target id) -> measurements of the pair sent
         self._ref = -1                    # index of the reference keyframe frames are tracked against
+        self._since_ref: list = []        # (_Tracking) frames tracked on the reference since it became one
 
     @property
     def _tracking(self) -> _Tracking | None:
@@ -460,6 +473,7 @@ class ViewGraphBuilder:
             last = self.reference
             self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel,
                                        verified_ns=self._verified_through(last.keyframe_id))
+            self._remember(self._tracking)
             self.stats.tracked += 1
             return GraphStep(None, [], FrameTrack(
                 obs.stamp_ns, obs.frame_id, obs.gravity_cam, last.keyframe_id, last.observations.stamp_ns, last_rel.pose,
@@ -540,6 +554,8 @@ class ViewGraphBuilder:
         kf = self.keyframes[i]
         self._tracking = _Tracking(kf.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
                                    verified_ns=self._verified_through(kf.keyframe_id))
+        self._since_ref = []
+        self._remember(self._tracking)
         self.stats.tracked += 1
         self.stats.reused += 1
         return GraphStep(None, edges, FrameTrack(
@@ -591,6 +607,36 @@ class ViewGraphBuilder:
             pose, inliers, np.ones(len(inliers)), scores, max(leg.mean_error for leg in legs),
             max(len(inliers), int(np.ceil(len(inliers) / max(ratio, 1e-3))))))
 
+    def _remember(self, state: _Tracking) -> None:
+        """Keep a frame tracked on the reference (for :meth:`_through_tracked`; bounded)."""
+        if self.config.through_frames and state.relative is not None and state.verified_ns is None:
+            self._since_ref.append(state)
+            del self._since_ref[:-_THROUGH_BUFFER]
+
+    def _through_tracked(self, obs: FrameObservations, keyframe_id: int) -> list:
+        """Edges from the reference to a new keyframe of the stream (``obs``) measured
+        through frames tracked on the reference since it (:attr:`KeyframeConfig.through_frames`:
+        the latest and ones spread back towards the reference), each where the frame's own
+        pose to the keyframe verifies and is plausible."""
+        n = self.config.through_frames
+        frames = [f for f in self._since_ref if f.observations is not obs]
+        if not n or not frames:
+            return []
+        ref = self.reference
+        picks = sorted({int(round(x)) for x in np.linspace(len(frames) - 1, 0, n + 1)[:n]}, reverse=True)
+        edges = []
+        for f in (frames[i] for i in picks):
+            step = self._plausible(self._relative(f.observations, obs, stream=True), f.observations, obs)
+            if step is None:
+                continue
+            edge = self._through(ref.keyframe_id, keyframe_id, f.pose @ step.pose, [f.relative, step])
+            if edge is not None:
+                # two measured legs add their errors: the weight of each leg's objects in series
+                n1, n2 = len(f.relative.inliers), len(step.inliers)
+                edge.trust = float(min(1.0, n1 * n2 / (n1 + n2) / len(edge.relative.inliers)))
+                edges.append(edge)
+        return edges
+
     def _count_pair(self, edge: Edge) -> int:
         """Count a measurement of the edge's keyframe pair; returns the pair's count."""
         key = (edge.source_id, edge.target_id)
@@ -614,6 +660,7 @@ class ViewGraphBuilder:
         keyframe = step.keyframe
         self._tracking = _Tracking(keyframe.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
                                    verified_ns=self._verified_through(keyframe.keyframe_id))
+        self._remember(self._tracking)
         self.stats.bridged += 1
         return GraphStep(keyframe, step.edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, keyframe.observations.stamp_ns,
@@ -669,6 +716,8 @@ class ViewGraphBuilder:
             if rel is not None and ((same and (i >= recent_from or i == last))
                                     or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
+        if stream and self.keyframes:
+            edges += self._through_tracked(obs, keyframe.keyframe_id)
         if not edges and stream and self.keyframes:
             motion = self._motion_edge(obs)
             if motion is not None:
@@ -700,6 +749,7 @@ class ViewGraphBuilder:
         self.stats.keyframe_s += time.perf_counter() - start
         self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns, None,
                                    verified_ns=self._verified_through(keyframe.keyframe_id))
+        self._since_ref = []
         return GraphStep(keyframe, edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, obs.stamp_ns,
             Pose4(0.0, (0.0, 0.0, 0.0)), 0, is_keyframe=True, continuous=stream))
