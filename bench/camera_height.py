@@ -11,29 +11,21 @@ import argparse
 
 import numpy as np
 
-from rfm_core.detection.base import DetectorInput
 from rfm_core.detection.depth_clusters import DepthClustersDetector
-from rfm_core.detection.gravity import GravityFilter
+from rfm_core.evaluation.detection_bags import detector_inputs
 from rfm_core.evaluation.report import read_ground_truth
-from rfm_core.io.bag import iter_camera_frames
-from rfm_core.io.images import depth_to_meters, image_to_rgb
-from rfm_core.io.messages import camera_info_intrinsics, imu_reading
-from rfm_core.io.topics import CAMERA_TOPICS as T
 
 
 def heights(bag: str, every: int):
     """(frames detected, [measured - true height (m)] of the frames with a floor)."""
     truth = read_ground_truth(bag).camera_poses
-    detector, gravity = DepthClustersDetector(), GravityFilter(tau_s=1.0)
+    detector = DepthClustersDetector()
     errors, frames = [], 0
-    for i, f in enumerate(iter_camera_frames(bag, T['color'], T['depth'], T['color_info'], T['imu'])):
-        for m in f['imu']:
-            gravity.add(*imu_reading(m))
-        if i % every or not gravity.ready or f['stamp_ns'] not in truth:
+    for f, inp in detector_inputs(bag, every=every):
+        if inp is None or f['stamp_ns'] not in truth:
             continue
         frames += 1
-        obs = detector.detect(DetectorInput(f['stamp_ns'], '', camera_info_intrinsics(f['info']), gravity.gravity(),
-                                            image_to_rgb(f['color']), depth_to_meters(f['depth'])))
+        obs = detector.detect(inp)
         if np.isfinite(obs.camera_height):
             errors.append(obs.camera_height - truth[f['stamp_ns']][2, 3])
     return frames, np.array(errors)

@@ -17,10 +17,32 @@ from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_msg, imu_reading
 from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
 
-__all__ = ['evaluate_bag', 'TOPICS']
+__all__ = ['evaluate_bag', 'detector_inputs', 'TOPICS']
 
 TOPICS = dict(color=CAMERA_TOPICS['color'], depth=CAMERA_TOPICS['depth'], info=CAMERA_TOPICS['color_info'],
               imu=CAMERA_TOPICS['imu'], ground_truth=GROUND_TRUTH_TOPICS['gt_detections'])
+
+
+def detector_inputs(path, topics: dict | None = None, every: int = 1, imu_tau_s: float = 1.0,
+                    with_depth: bool = True, extra_topics: tuple = ()):
+    """Every ``every``-th frame of a bag as the detector node would see it: yields (the
+    synchronised frame dict of :func:`iter_camera_frames`, its DetectorInput, gravity from
+    the IMU low-pass), or (frame, None) while the filter is not yet ready or without
+    ``with_depth``."""
+    t = dict(TOPICS, **(topics or {}))
+    gravity = GravityFilter(tau_s=imu_tau_s)
+    for i, frame in enumerate(iter_camera_frames(path, t['color'], t['depth'] if with_depth else None, t['info'],
+                                                 t['imu'], extra_topics=extra_topics)):
+        for imu in frame['imu']:
+            gravity.add(*imu_reading(imu))
+        if i % every:
+            continue
+        if not (with_depth and gravity.ready):
+            yield frame, None
+            continue
+        yield frame, DetectorInput(frame['stamp_ns'], frame['color'].header.frame_id,
+                                   camera_info_intrinsics(frame['info']), gravity.gravity(),
+                                   image_to_rgb(frame['color']), depth_to_meters(frame['depth']))
 
 
 def evaluate_bag(path, detector, evaluator: DetectionEvaluator | None = None, every: int = 1,
@@ -30,29 +52,17 @@ def evaluate_bag(path, detector, evaluator: DetectionEvaluator | None = None, ev
     plus the median per-frame latency (ms) and frame count."""
     t = dict(TOPICS, **(topics or {}))
     evaluator = evaluator or DetectionEvaluator()
-    gravity = GravityFilter(tau_s=imu_tau_s)
     latencies = []
     ground_truth_only = detector.name == 'ground_truth'
-    for i, frame in enumerate(iter_camera_frames(
-            path, t['color'], None if ground_truth_only else t['depth'], t['info'], t['imu'],
-            extra_topics=(t['ground_truth'],))):
-        for imu in frame['imu']:
-            gravity.add(*imu_reading(imu))
-        if i % every:
-            continue
+    for frame, inp in detector_inputs(path, t, every, imu_tau_s, with_depth=not ground_truth_only,
+                                      extra_topics=(t['ground_truth'],)):
         if max_frames is not None and len(latencies) >= max_frames:
             break
+        if inp is None and not ground_truth_only:
+            continue
         truth = frame_detections_from_msg(frame[t['ground_truth']])
         start = time.perf_counter()
-        if ground_truth_only:
-            pred = detector.perturb(truth)
-        else:
-            if not gravity.ready:
-                continue
-            inp = DetectorInput(frame['stamp_ns'], frame['color'].header.frame_id,
-                                camera_info_intrinsics(frame['info']), gravity.gravity(),
-                                image_to_rgb(frame['color']), depth_to_meters(frame['depth']))
-            pred = detector.detect(inp)
+        pred = detector.perturb(truth) if ground_truth_only else detector.detect(inp)
         latencies.append(time.perf_counter() - start)
         evaluator.add(pred, truth)
     out = evaluator.summary()
