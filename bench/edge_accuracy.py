@@ -4,9 +4,9 @@ product is `rfm run`).
 For the scenes of `bench/pair_accuracy.py` (the demo bag's scene and the handheld / robot
 scenes among the tuning seeds 40-51; every frame detected once with ``depth_clusters``,
 cached; the simulator's gyroscope), every frame goes through the view graph in-process with
-the default settings and ``keyframes.through_frames`` 2 (default 0). Each keyframe pair measured both directly (the new keyframe matched
-against its reference) and through frames tracked on the reference
-(``keyframes.through_frames``) is printed per scene: the horizontal translation error
+the default settings and ``keyframes.through_frames`` 2 (default 0). Of the keyframe pairs
+measured both directly (the new keyframe matched against its reference) and through frames
+tracked on the reference, printed per scene: the horizontal translation error
 against the truth of the direct measurement and of the through ones (p50 / p75 / p90), and
 how often the through measurements' median is nearer the truth than the direct one.
 

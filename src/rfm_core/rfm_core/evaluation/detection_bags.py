@@ -25,10 +25,10 @@ TOPICS = dict(color=CAMERA_TOPICS['color'], depth=CAMERA_TOPICS['depth'], info=C
 
 def detector_inputs(path, topics: dict | None = None, every: int = 1, imu_tau_s: float = 1.0,
                     with_depth: bool = True, extra_topics: tuple = ()):
-    """Every ``every``-th frame of a bag as the detector node would see it: yields (the
-    synchronised frame dict of :func:`iter_camera_frames`, its DetectorInput, gravity from
-    the IMU low-pass), or (frame, None) while the filter is not yet ready or without
-    ``with_depth``."""
+    """Every ``every``-th frame of a bag as the detector node would see it: yields pairs of
+    the synchronised frame (a dict of :func:`iter_camera_frames`) and its DetectorInput
+    (gravity from the IMU low-pass, depth in metres), the input None while the filter is not
+    yet ready or without ``with_depth``."""
     t = dict(TOPICS, **(topics or {}))
     gravity = GravityFilter(tau_s=imu_tau_s)
     for i, frame in enumerate(iter_camera_frames(path, t['color'], t['depth'] if with_depth else None, t['info'],
