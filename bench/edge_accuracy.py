@@ -31,8 +31,10 @@ def error(edge, truth_of) -> float:
     return float(np.hypot(d[0], d[1]))
 
 
-def q(v, p):
-    return 100 * np.percentile(v, p) if len(v) else float('nan')
+def row(name, pairs, direct, through, nearer) -> str:
+    q = lambda v, p: 100 * np.percentile(v, p) if len(v) else float('nan')  # noqa: E731
+    return (f'| {name} | {pairs} | {q(direct, 50):.1f} / {q(direct, 75):.1f} / {q(direct, 90):.1f} | '
+            f'{q(through, 50):.1f} / {q(through, 75):.1f} / {q(through, 90):.1f} | {nearer}/{pairs} |')
 
 
 def main():
@@ -64,12 +66,10 @@ def main():
                 direct.append(d)
                 through += t
                 nearer += float(np.median(t)) < d
-        print(f'| {name} | {pairs} | {q(direct, 50):.1f} / {q(direct, 75):.1f} / {q(direct, 90):.1f} | '
-              f'{q(through, 50):.1f} / {q(through, 75):.1f} / {q(through, 90):.1f} | {nearer}/{pairs} |', flush=True)
+        print(row(name, pairs, direct, through, nearer), flush=True)
         total = [total[0] + direct, total[1] + through, total[2] + nearer, total[3] + pairs]
     direct, through, nearer, pairs = total
-    print(f'| all | {pairs} | {q(direct, 50):.1f} / {q(direct, 75):.1f} / {q(direct, 90):.1f} | '
-          f'{q(through, 50):.1f} / {q(through, 75):.1f} / {q(through, 90):.1f} | {nearer}/{pairs} |')
+    print(row('all', pairs, direct, through, nearer))
 
 
 if __name__ == '__main__':

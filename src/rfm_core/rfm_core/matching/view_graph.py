@@ -619,8 +619,8 @@ class ViewGraphBuilder:
         the latest and ones spread back towards the reference), each where the frame's own
         pose to the keyframe verifies and is plausible."""
         n = self.config.through_frames
-        frames = [f for f in self._since_ref if f.observations is not obs]
-        if not n or not frames:
+        frames = [f for f in self._since_ref if f.observations is not obs] if n else []
+        if not frames:
             return []
         ref = self.reference
         picks = sorted({int(round(x)) for x in np.linspace(len(frames) - 1, 0, n + 1)[:n]}, reverse=True)
