@@ -308,3 +308,44 @@ def test_a_new_keyframe_is_measured_again_through_frames_tracked_since_the_refer
             assert len(e.relative.inliers) >= 2
     _, direct = pairs(KeyframeConfig(through_frames=0))
     assert all(len(m) == 1 for m in direct.values())
+
+
+def test_a_keyframe_is_made_at_the_last_frame_that_tracked_well(stream):
+    """Within a stream, a frame that would become a keyframe while it tracks on fewer objects
+    than the previous frame makes that frame the keyframe (``keyframe_at_previous``) and is
+    tracked against it: the keyframes' edges to their reference rest on more objects, and
+    each promoted keyframe is a frame already tracked (the step's track is the current frame
+    on the new keyframe)."""
+    det = make_detector('ground_truth', preset='rgbd', seed=4)
+    obs = [_with_gyroscope(f, det.perturb(f.ground_truth)) for f in stream]
+    truth = {f.stamp_ns: f for f in stream}
+
+    def run(config):
+        graph, steps = ViewGraphBuilder(keyframes=config), []
+        for o in obs:
+            steps.append(graph.add(o))
+        return graph, steps
+
+    def reference_inliers(graph, steps):
+        """Objects of each new keyframe's edge from the keyframe before it."""
+        out = []
+        for s in steps:
+            if s.keyframe is not None and s.keyframe.keyframe_id > 0:
+                e = [e for e in s.edges if e.source_id == s.keyframe.keyframe_id - 1]
+                out += [len(e[0].relative.inliers)] if e else []
+        return out
+
+    graph, steps = run(KeyframeConfig(keyframe_at_previous=True))
+    tracked = {s.track.stamp_ns for s in steps if s.track is not None}
+    promoted = [s for s in steps if s.keyframe is not None and s.track is not None and not s.track.is_keyframe]
+    assert promoted, 'no keyframe was made at the previous frame'
+    for s, before in ((s, steps[i - 1]) for i, s in enumerate(steps) if s in promoted):
+        assert s.keyframe.observations.stamp_ns == before.track.stamp_ns      # the previous frame, tracked
+        assert s.track.keyframe_id == s.keyframe.keyframe_id                    # this frame tracked on it
+        true = (truth[s.keyframe.observations.stamp_ns].aligned_from_map()
+                @ truth[s.track.stamp_ns].aligned_from_map().inverse())
+        assert np.degrees(s.track.pose.angle_to(true)) < 3.0 and np.linalg.norm(s.track.pose.t - true.t) < 0.2
+    assert all(s.keyframe.observations.stamp_ns in tracked for s in promoted)
+    off_graph, off_steps = run(KeyframeConfig(keyframe_at_previous=False))
+    assert off_graph.stats.bridged < graph.stats.bridged
+    assert np.mean(reference_inliers(graph, steps)) > np.mean(reference_inliers(off_graph, off_steps))

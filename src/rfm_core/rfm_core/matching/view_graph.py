@@ -120,6 +120,13 @@ class KeyframeConfig:
                                   'on tuning scenes 2 localized more frames and lowered ARE but left ATE and '
                                   'AP25 where they were (BENCHMARKS.md, session 20)',
                                   lo=0, hi=8)
+    keyframe_at_previous: bool = setting(False, 'Within a stream, a frame that would become a keyframe while '
+                                         'tracked on fewer objects than the previous frame makes that frame '
+                                         'the keyframe instead (it is then tracked against it), so that a new '
+                                         "keyframe's edge to the reference rests on more objects (as a keyframe "
+                                         'made when tracking fails). Off: on tuning scenes it lowered ARE and '
+                                         'localized more frames but cost AP25, and on the demo bag it traded '
+                                         'ATE for ARE (BENCHMARKS.md, session 21)')
     min_retrieved_inliers: int = setting(3, 'Verified objects an edge needs where the motion prior cannot check '
                                          'it (separate views, retrieved keyframes): two verify nothing beyond '
                                          'the minimal sample, and repeated furniture aliases', lo=2, hi=100)
@@ -482,7 +489,8 @@ class ViewGraphBuilder:
             revisit = self._revisit(obs, stream, last_rel)
             if revisit is not None:
                 return revisit
-        if last_rel is None and stream and self._tracking is not None and self._tracking.observations is not None:
+        if stream and self._tracking is not None and self._tracking.observations is not None and (
+                last_rel is None or self._promotes_previous(last_rel)):
             bridged = self._bridge(obs)
             if bridged is not None:
                 return bridged
@@ -643,10 +651,22 @@ class ViewGraphBuilder:
         self._pair_edges[key] = self._pair_edges.get(key, 0) + 1
         return self._pair_edges[key]
 
+    def _promotes_previous(self, last_rel: RelativePose) -> bool:
+        """Whether a frame of a stream that would become a keyframe (tracked, but sharing too
+        few objects with the reference or too far from it) should instead make the previous
+        tracked frame the keyframe (:attr:`KeyframeConfig.keyframe_at_previous`): that frame
+        verified more objects against the reference, so the new keyframe's edge to it rests on
+        more of them."""
+        prev = self._tracking
+        return (self.config.keyframe_at_previous and prev.relative is not None and prev.verified_ns is None
+                and prev.keyframe_id == self.reference.keyframe_id
+                and len(prev.relative.inliers) > len(last_rel.inliers))
+
     def _bridge(self, obs: FrameObservations) -> GraphStep | None:
-        """Tracking failed against the last keyframe: if the frame verifies against the last
-        frame that was tracked (moments earlier), that frame becomes the keyframe (it is linked
-        to the last keyframe by its tracked pose) and this frame is tracked against it."""
+        """Tracking failed against the last keyframe, or tracked on fewer objects than the
+        previous frame where this frame would become a keyframe: if the frame verifies against
+        the last frame that was tracked (moments earlier), that frame becomes the keyframe (it
+        is linked to the last keyframe by its tracked pose) and this frame is tracked against it."""
         prev = self._tracking
         if prev.keyframe_id == self.reference.keyframe_id and self._weak(prev.observations, True, prev.pose):
             return None
