@@ -96,3 +96,18 @@ def test_suite_tables_pool_the_map_object_kinds_over_scenes():
     assert m['share_real'] == 10 / 40 and m['share_phantom'] == 26 / 40 and m['share_duplicate'] == 2 / 40
     assert m['objects_per_object'] == 2.0                 # median of 1.0 and 3.0
     assert '| 25% | 5% | 5% | 65% |' in format_tables({name: m})
+
+
+def test_the_offline_suite_counts_the_map_object_kinds_too():
+    """``rfm eval --offline`` scores a scene in-process: its table breaks the map objects down
+    by kind as the graph path's does (it printed 0% for every kind before)."""
+    from rfm_core.evaluation.suite import SETTINGS, evaluate_scene, summarize
+    from rfm_core.sim.capture import CaptureConfig
+
+    setting = next(s for s in SETTINGS if s.detector == 'ground_truth:rgbd' and not s.posed)
+    scene = evaluate_scene((CaptureConfig(seed=31, frames=12, fps=4), [setting]))
+    counts = scene['results'][setting.name]
+    assert sum(counts[f'objects_{k}'] for k in ('real', 'duplicate', 'poor_fit', 'phantom')) == counts['objects'] > 0
+    m = summarize([scene], [setting])[setting.name]
+    assert m['share_real'] > 0.5
+    assert m['share_real'] + m['share_duplicate'] + m['share_poor_fit'] + m['share_phantom'] == pytest.approx(1.0)

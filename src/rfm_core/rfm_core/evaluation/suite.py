@@ -163,8 +163,8 @@ def evaluate_scene(args) -> dict:
     for s in settings:
         r = run_capture(config, s.detector, matcher=make_matcher('learned'), posed=s.posed,
                         bundle_adjustment=s.bundle_adjustment, capture=capture, frames=frames)
-        out[s.name] = {**r.localization, **r.mapping, 'keyframes': r.keyframes, 'processed': 1.0,
-                       'seconds': r.seconds}
+        out[s.name] = {**r.localization, **r.mapping, **kind_counts(r.mapping), 'keyframes': r.keyframes,
+                       'processed': 1.0, 'seconds': r.seconds}
     return {'scene': scene_name(config), **scene_info(config), 'results': out}
 
 
@@ -200,9 +200,15 @@ def scene_metrics(summary: dict) -> dict:
                realtime=summary.get('realtime', nan),
                objects=mapping.get('objects', summary.get('objects', 0)), ground_truth=mapping.get('ground_truth', 0),
                **{k: mapping.get(k, nan) for k in ('AP15', 'AR15', 'AP25', 'AR25')})
-    kinds = mapping.get('kinds') or {}
-    out.update({f'objects_{k}': kinds.get(k, nan) for k in OBJECT_KINDS})
+    out.update(kind_counts(mapping))
     return out
+
+
+def kind_counts(mapping: dict) -> dict:
+    """``objects_<kind>``: how many map objects :func:`rfm_core.evaluation.mapping.object_kinds`
+    put in each kind (NaN when the mapping was not scored), as :func:`summarize` pools them."""
+    kinds = mapping.get('kinds') or {}
+    return {f'objects_{k}': kinds.get(k, float('nan')) for k in OBJECT_KINDS}
 
 
 def _written_bag(config, bag: Path) -> Path:
