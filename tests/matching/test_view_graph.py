@@ -336,16 +336,17 @@ def test_a_keyframe_is_made_at_the_last_frame_that_tracked_well(stream):
         return out
 
     graph, steps = run(KeyframeConfig(keyframe_at_previous=True))
-    tracked = {s.track.stamp_ns for s in steps if s.track is not None}
-    promoted = [s for s in steps if s.keyframe is not None and s.track is not None and not s.track.is_keyframe]
+    promoted = [i for i, s in enumerate(steps)
+                if s.keyframe is not None and s.track is not None and not s.track.is_keyframe]
     assert promoted, 'no keyframe was made at the previous frame'
-    for s, before in ((s, steps[i - 1]) for i, s in enumerate(steps) if s in promoted):
+    for i in promoted:
+        s, before = steps[i], steps[i - 1]
         assert s.keyframe.observations.stamp_ns == before.track.stamp_ns      # the previous frame, tracked
         assert s.track.keyframe_id == s.keyframe.keyframe_id                    # this frame tracked on it
         true = (truth[s.keyframe.observations.stamp_ns].aligned_from_map()
                 @ truth[s.track.stamp_ns].aligned_from_map().inverse())
         assert np.degrees(s.track.pose.angle_to(true)) < 3.0 and np.linalg.norm(s.track.pose.t - true.t) < 0.2
-    assert all(s.keyframe.observations.stamp_ns in tracked for s in promoted)
     off_graph, off_steps = run(KeyframeConfig(keyframe_at_previous=False))
     assert off_graph.stats.bridged < graph.stats.bridged
-    assert np.mean(reference_inliers(graph, steps)) > np.mean(reference_inliers(off_graph, off_steps))
+    on, off = np.mean(reference_inliers(graph, steps)), np.mean(reference_inliers(off_graph, off_steps))
+    assert on > off, f'objects per edge to the previous keyframe: {on:.2f} with, {off:.2f} without'   # 6.6 vs 4.9
