@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from cut_boxes import border_cuts
+from keyframe_edges import turned_deg
 from rfm_core.evaluation.report import read_ground_truth
 from rfm_core.evaluation.trajectory import align_4dof
 from rfm_core.geometry import wrap_angle
@@ -56,10 +57,14 @@ def alignment_yaws(mapper: Mapper, truth) -> tuple:
     return tuple(float(np.degrees(v)) for v in (orient, pos, np.arctan2(r[1, 0], r[0, 0])))
 
 
-def edge_errors(mapper: Mapper, truth) -> np.ndarray:
-    """(E, 3): translation angle error (deg), length ratio, yaw error (deg) per edge measurement."""
-    true = {k: pose_from_camera(truth.camera_poses[o.stamp_ns], o.gravity_cam, atol=0.3)
+def keyframe_truth(mapper: Mapper, truth) -> dict:
+    """{keyframe id: true Pose4 T_k_map} of the keyframes the bag's truth has a pose for."""
+    return {k: pose_from_camera(truth.camera_poses[o.stamp_ns], o.gravity_cam, atol=0.3)
             for k, o in mapper.keyframes.items() if o.stamp_ns in truth.camera_poses}
+
+
+def edge_errors(mapper: Mapper, true: dict) -> np.ndarray:
+    """(E, 3): translation angle error (deg), length ratio, yaw error (deg) per edge measurement."""
     rows = []
     for e in mapper.measurements():
         if not len(e.inliers) or e.source not in true or e.target not in true:
@@ -68,8 +73,7 @@ def edge_errors(mapper: Mapper, truth) -> np.ndarray:
         measured, actual = np.asarray(e.pose.t)[:2], np.asarray(rel.t)[:2]
         if np.linalg.norm(actual) < 0.15:
             continue
-        angle = np.arctan2(actual[0] * measured[1] - actual[1] * measured[0], actual @ measured)
-        rows.append((np.degrees(angle), np.linalg.norm(measured) / np.linalg.norm(actual),
+        rows.append((turned_deg(measured, actual), np.linalg.norm(measured) / np.linalg.norm(actual),
                      np.degrees(wrap_angle(e.pose.yaw - rel.yaw))))
     return np.array(rows).reshape(-1, 3)
 
@@ -78,11 +82,9 @@ def median_cm(values) -> float:
     return 100 * float(np.median(values)) if len(values) else float('nan')
 
 
-def cut_residuals(mapper: Mapper, truth) -> tuple:
+def cut_residuals(mapper: Mapper, true: dict) -> tuple:
     """Horizontal residuals (m) under the true relative pose of the edges' inlier matches
     whose boxes the border cuts alike in both keyframes, and of those it cuts differently."""
-    true = {k: pose_from_camera(truth.camera_poses[o.stamp_ns], o.gravity_cam, atol=0.3)
-            for k, o in mapper.keyframes.items() if o.stamp_ns in truth.camera_poses}
     cuts = {k: border_cuts(o.boxes_2d, o.intrinsics.width, o.intrinsics.height)
             for k, o in mapper.keyframes.items() if o.intrinsics is not None}
     alike, differently = [], []
@@ -110,8 +112,9 @@ def main():
     for run in map(Path, args.runs):
         mapper = load(run)
         orient, pos, both = alignment_yaws(mapper, truth)
-        err = edge_errors(mapper, truth)
-        alike, differently = cut_residuals(mapper, truth)
+        true = keyframe_truth(mapper, truth)
+        err = edge_errors(mapper, true)
+        alike, differently = cut_residuals(mapper, true)
         q = np.percentile(err[:, 0], [50, 25, 75]) if len(err) else [float('nan')] * 3
         print(f'| {run.name} | {orient:.2f} / {pos:.2f} / {both:.2f} | {wrap_angle(np.radians(pos - orient)) * 180 / np.pi:+.2f} '
               f'| {len(err)} | {q[0]:+.2f} [{q[1]:+.2f} to {q[2]:+.2f}] | '
