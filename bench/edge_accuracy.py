@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pair_accuracy import frames_of, scenes
+from pair_accuracy import cm_percentiles, frames_of, scenes
 from rfm_core.mapping.frame_log import pose_from_camera
 from rfm_core.mapping.mapper import MapperConfig
 from rfm_core.matching.view_graph import KeyframeConfig
@@ -32,9 +32,7 @@ def error(edge, truth_of) -> float:
 
 
 def row(name, pairs, direct, through, nearer) -> str:
-    q = lambda v, p: 100 * np.percentile(v, p) if len(v) else float('nan')  # noqa: E731
-    return (f'| {name} | {pairs} | {q(direct, 50):.1f} / {q(direct, 75):.1f} / {q(direct, 90):.1f} | '
-            f'{q(through, 50):.1f} / {q(through, 75):.1f} / {q(through, 90):.1f} | {nearer}/{pairs} |')
+    return f'| {name} | {pairs} | {cm_percentiles(direct)} | {cm_percentiles(through)} | {nearer}/{pairs} |'
 
 
 def main():

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pair_accuracy import frames_of, scenes
+from pair_accuracy import cm_percentiles, frames_of, scenes
 from rfm_core.evaluation.trajectory import trajectory_errors
 from rfm_core.mapping.frame_log import pose_from_camera
 from rfm_core.mapping.mapper import MapperConfig
@@ -59,11 +59,10 @@ def main():
         loc = trajectory_errors(session.mapper.frame_poses(), frame_truth)
         every_error += errors
         every_turn += turns
-        print(f'| {name} | {len(errors)} | {100 * np.median(errors):.1f} / {100 * np.percentile(errors, 90):.1f} | '
+        print(f'| {name} | {len(errors)} | {cm_percentiles(errors, (50, 90))} | '
               f'{np.median(turns):+.2f} | {loc["ARE_median"]:.2f} deg / {100 * loc["ATE_median"]:.1f} cm, '
               f'{100 * loc["registered"]:.0f}% |', flush=True)
-    print(f'| all | {len(every_error)} | {100 * np.median(every_error):.1f} / {100 * np.percentile(every_error, 90):.1f} '
-          f'| {np.median(every_turn):+.2f} | |')
+    print(f'| all | {len(every_error)} | {cm_percentiles(every_error, (50, 90))} | {np.median(every_turn):+.2f} | |')
 
 
 if __name__ == '__main__':

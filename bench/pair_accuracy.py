@@ -46,10 +46,15 @@ def frames_of(name, config, cache: Path):
     return out
 
 
+def cm_percentiles(distances, percents=(50, 75, 90)) -> str:
+    """Percentiles of distances (m) in cm, as 'p50 / p75 / p90' ('nan' without any)."""
+    return ' / '.join(f'{100 * np.percentile(distances, p) if len(distances) else float("nan"):.1f}'
+                      for p in percents)
+
+
 def row(name, verified, pairs, dxy, dyaw):
     q = lambda v, p: np.percentile(v, p) if len(v) else float('nan')  # noqa: E731
-    return (f'| {name} | {verified}/{pairs} | {100 * q(dxy, 50):.1f} / {100 * q(dxy, 75):.1f} / '
-            f'{100 * q(dxy, 90):.1f} | {q(dyaw, 50):.2f} / {q(dyaw, 90):.2f} |')
+    return f'| {name} | {verified}/{pairs} | {cm_percentiles(dxy)} | {q(dyaw, 50):.2f} / {q(dyaw, 90):.2f} |'
 
 
 def main():
