@@ -54,10 +54,14 @@ def main() -> int:
     parser.add_argument('--cache', type=Path, default=Path('/tmp/rfm_soak_offline.pkl'))
     parser.add_argument('--cycle-min-loops', type=int, default=None,
                         help='averaging.cycle_min_loops (default: the shipped one; 0: no cycle check)')
+    parser.add_argument('--no-culling', action='store_true', help='culling.enabled:=false (keyframes are never culled)')
+    parser.add_argument('--cull-min-views', type=int, default=None, help='culling.min_views (default: the shipped one)')
     args = parser.parse_args()
     from dataclasses import replace  # noqa: PLC0415
 
-    from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.mapping import evaluate_map  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
+    from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.session import Session  # noqa: PLC0415
 
@@ -67,12 +71,22 @@ def main() -> int:
     config = MapperConfig()
     if args.cycle_min_loops is not None:
         config = replace(config, averaging=replace(config.averaging, cycle_min_loops=args.cycle_min_loops))
+    if args.no_culling:
+        config = replace(config, culling=replace(config.culling, enabled=False))
+    if args.cull_min_views is not None:
+        config = replace(config, culling=replace(config.culling, min_views=args.cull_min_views))
     session = Session(config)
     cfg = session.graph.config
     made, near = [], 0                                # (seconds, true pose) of each keyframe
+    in_map = {}                                       # seconds -> keyframes in the map (after culling)
+    objects = {}                                      # seconds -> objects in the map, at the marks
     t0 = time.perf_counter()
     for obs, _ in frames:
         step = session.step(obs)
+        t = (obs.stamp_ns - start_ns) / 1e9
+        in_map[t] = len(session.mapper.keyframes)
+        if any(t_prev < mark <= t for mark in (10, 30, 60, 120, 300) for t_prev in [max(objects, default=-1)]):
+            objects[t] = len(session.mapper.tracks())
         if step.keyframe is None:
             continue
         kf = step.keyframe.observations
@@ -88,11 +102,23 @@ def main() -> int:
     times = np.array([s for s, _ in made])
     print('keyframes made by ' + ', '.join(f'{t} s: {int((times <= t).sum())}' for t in (10, 30, 60, 120, 300)
                                            if t <= times.max(initial=0) + 60))
+    marks = [t for t in (10, 30, 60, 120, 300) if t <= max(in_map)]
+    print('keyframes in the map at ' + ', '.join(
+        f'{t} s: {in_map[max(s for s in in_map if s <= t)]}' for t in marks)
+        + f' (end: {len(session.mapper.keyframes)}, culled {len(session.mapper.merged)}); objects at '
+        + ', '.join(f'{t:.0f} s: {n}' for t, n in objects.items()))
     late = int((times > 30).sum())
     print(f'after 30 s: {late} keyframes, {near} of them with a keyframe within {cfg.max_translation_m} m and '
           f'{cfg.max_yaw_deg} deg already; revisits {session.graph.stats.reused}, bridges {session.graph.stats.bridged}')
+    tracks = session.mapper.tracks()
+    room = Capture(CaptureConfig(seed=args.seed, capture='handheld', frames=len(frames), fps=args.fps,
+                                 furniture='parts', clutter=True)).room
+    boxes = map_to_truth(session.mapper.frame_poses(), truth).transform_boxes(
+        np.array([t.box for t in tracks]).reshape(-1, 7))
+    ap = evaluate_map(boxes, np.array([t.score for t in tracks]), room.boxes)
     print(f"frames localized {100 * errors['registered']:.0f}%, ARE {errors['ARE_median']:.2f} deg, "
-          f"ATE {100 * errors['ATE_median']:.1f} cm; {len(session.mapper.tracks())} objects; {seconds:.0f} s")
+          f"ATE {100 * errors['ATE_median']:.1f} cm; {len(tracks)} objects ({len(room.boxes)} in the room), "
+          f"AP25 {ap['AP25']:.3f}, AR25 {ap['AR25']:.3f}; {seconds:.0f} s")
     averager = session.mapper.averager
     print(f'edges {len(averager.edges)}, {int((~averager.edges.active).sum())} inactive, of them '
           f'{averager.cycle_dropped} dropped by the last full solve\'s cycle check')

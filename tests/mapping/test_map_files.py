@@ -34,6 +34,15 @@ def _with_header(arrays, **changes):
     return dict(arrays, header=np.frombuffer(json.dumps(header).encode(), np.uint8))
 
 
+def _culled(good, culled=999_999, into=None, detection=0):
+    """Arrays of one keyframe culled into another (keyframe culling), with one part crafted."""
+    into = int(good['kf_ids'][-1]) if into is None else into
+    return dict(merged_ids=np.array([culled]), merged_into=np.array([into]), merged_poses=np.zeros((1, 4)),
+                merged_stamps=np.array([1]), merged_counts=np.array([1]), merged_detections=np.array([detection]),
+                merged_origin=np.zeros((1, 2), np.uint64), carried_keys=np.zeros((0, 2), np.int64),
+                carried_views=np.zeros(0, np.int64))
+
+
 def test_crafted_map_files_are_refused_and_the_map_is_kept(saved, tmp_path):
     mapper = Mapper()
     load_map(mapper, saved)
@@ -47,6 +56,11 @@ def test_crafted_map_files_are_refused_and_the_map_is_kept(saved, tmp_path):
         'a revision that is not a number': _with_header(good, revision='seven'),
         'a keyframe count that is not a number': _with_header(good, keyframes=[1]),
         'inliers beyond the detections': dict(good, edge_inliers=good['edge_inliers'] + 10_000),
+        'a culled keyframe carried by an unknown one': dict(good, **_culled(good, into=10_000)),
+        'a culled keyframe that is also kept': dict(good, **_culled(good, culled=int(good['kf_ids'][0]))),
+        'a culled detection beyond the carrier\'s': dict(good, **_culled(good, detection=10_000)),
+        'carried views of an unknown detection': dict(good, carried_keys=np.array([[10_000, 0]]),
+                                                      carried_views=np.array([2])),
     }
     for what, arrays in crafted.items():
         with pytest.raises(MapFileError):
@@ -54,6 +68,9 @@ def test_crafted_map_files_are_refused_and_the_map_is_kept(saved, tmp_path):
         assert mapper.keyframes.keys() == keyframes.keys(), what
         assert mapper.poses.keys() == poses.keys() and mapper.revision == revision, what
     assert len(mapper.tracks()) == n_tracks
+    # the same arrays, not crafted, load: a map with a culled keyframe
+    load_map(mapper, _write(tmp_path / 'culled.npz', dict(good, **_culled(good))))
+    assert mapper.merged.keys() == {999_999} and mapper.knows(999_999) and len(mapper.tracks()) == n_tracks
 
 
 def test_an_array_declaring_more_data_than_the_file_holds_is_refused_before_reading(saved, tmp_path):

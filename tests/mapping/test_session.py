@@ -149,17 +149,11 @@ def test_a_restored_map_recognises_the_keyframes_it_gets_again(observations, tmp
     assert made <= expected and len(made) >= 0.9 * len(expected)
 
 
-def test_revisits_measure_edges_and_the_walk_stops_adding_keyframes():
+@pytest.fixture(scope='module')
+def round_walk():
     """A handheld walk going round one room about five times (the soak's room, #19 item 4):
-    frames that revisit older keyframes add no keyframe but measure the edges a keyframe
-    would have (the reference they leave to the one they revisit, and the latter to every
-    other keyframe they verify): as accurate as the keyframes' own edges. After two loops
-    the walk adds at most two thirds as many keyframes as in them, and the map stays
-    within centimetres of the truth."""
+    (detections, {stamp: true camera pose})."""
     from rfm_core.evaluation.pipeline import detections_for
-    from rfm_core.evaluation.trajectory import trajectory_errors
-    from rfm_core.mapping.frame_log import camera_to_map
-    from rfm_core.session import Session
     from rfm_core.sim.capture import Capture, CaptureConfig
     detect = detections_for('ground_truth:rgbd', noise_seed=2)
     frames, truth = [], {}
@@ -168,6 +162,19 @@ def test_revisits_measure_edges_and_the_walk_stops_adding_keyframes():
         obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
         frames.append(obs)
         truth[obs.stamp_ns] = frame.pose_matrix
+    return frames, truth
+
+
+def test_revisits_measure_edges_and_the_walk_stops_adding_keyframes(round_walk):
+    """Frames that revisit older keyframes add no keyframe but measure the edges a keyframe
+    would have (the reference they leave to the one they revisit, and the latter to every
+    other keyframe they verify): as accurate as the keyframes' own edges. After two loops
+    the walk adds at most two thirds as many keyframes as in them, and the map stays
+    within centimetres of the truth."""
+    from rfm_core.evaluation.trajectory import trajectory_errors
+    from rfm_core.mapping.frame_log import camera_to_map
+    from rfm_core.session import Session
+    frames, truth = round_walk
     session = Session()
     steps = [session.step(obs) for obs in frames]
     session.finish()
@@ -191,3 +198,66 @@ def test_revisits_measure_edges_and_the_walk_stops_adding_keyframes():
     assert later <= first * 2 // 3, (first, later)
     errors = trajectory_errors(mapper.frame_poses(), truth, align='4dof')
     assert errors['registered'] >= 0.9 and errors['ATE_median'] <= 0.05 and errors['ARE_median'] <= 1.5, errors
+
+
+def test_redundant_keyframes_are_culled_and_carried_by_their_neighbours(round_walk, tmp_path):
+    """Keyframe culling (#19 item 4): on the walk round one room, keyframes whose objects
+    other keyframes see are merged into a neighbour, so the map grows less after the second
+    loop than the view graph does, as accurately; a culled keyframe's frames keep their
+    poses, and messages that still name it (the matcher does not know) are carried over to
+    the keyframe that holds it, also after the map is saved and loaded. (The simulator's
+    boxes see each object from three or four keyframes of a loop: the default, three other
+    views per object, culls a few here; two views, as below, culls more.)"""
+    from dataclasses import replace
+
+    from rfm_core.evaluation.trajectory import trajectory_errors
+    from rfm_core.mapping.mapper import MapperConfig
+    from rfm_core.observations import FrameTrack
+    from rfm_core.session import Session
+    frames, truth = round_walk
+    runs = {}
+    for cull, views in ((False, 3), (True, 3), ('two views', 2)):
+        config = MapperConfig()
+        session = Session(replace(config, culling=replace(config.culling, enabled=bool(cull), min_views=views)))
+        in_map = []                                           # keyframes in the map after each frame
+        for obs in frames:
+            session.step(obs)
+            in_map.append(len(session.mapper.keyframes))
+        session.finish()
+        runs[cull] = (session, in_map, trajectory_errors(session.mapper.frame_poses(), truth, align='4dof'))
+    (kept, kept_in_map, kept_errors) = runs[False]
+    assert 0 < len(runs[True][0].mapper.merged) < len(runs['two views'][0].mapper.merged)
+    two_loops = len(frames) * 2 // 5
+    for culled, in_map, errors in (runs[True], runs['two views']):
+        assert in_map[-1] - in_map[two_loops] < kept_in_map[-1] - kept_in_map[two_loops], (in_map, kept_in_map)
+        assert errors['registered'] >= kept_errors['registered'] - 0.02, (errors, kept_errors)
+        assert errors['ATE_median'] <= max(1.3 * kept_errors['ATE_median'], 0.05), (errors, kept_errors)
+        assert errors['ARE_median'] <= max(1.3 * kept_errors['ARE_median'], 1.5), (errors, kept_errors)
+        assert len(culled.mapper.tracks()) >= 0.8 * len(kept.mapper.tracks())
+    mapper = runs['two views'][0].mapper
+    # the frames tracked against culled keyframes are tracked against the keyframes that hold them
+    assert not set(mapper.frames.arrays()['keyframes'].tolist()) & set(mapper.merged)
+    k = next(k for k, m in mapper.merged.items() if m.into in mapper.poses)
+    merged = mapper.merged[k]
+    into_pose = mapper.poses[merged.into]
+    # a frame tracked against the culled keyframe: placed through the keyframe that holds it
+    moved = Pose4(0.1, (0.2, -0.1, 0.0))
+    track = FrameTrack(merged.stamp_ns + 1, 'camera', np.array([0.0, 1.0, 0.0]), k, merged.stamp_ns, moved)
+    expected = mapper.frame_pose(FrameTrack(merged.stamp_ns + 1, 'camera', np.array([0.0, 1.0, 0.0]), merged.into,
+                                            mapper.keyframes[merged.into].stamp_ns, merged.pose @ moved))
+    np.testing.assert_allclose(mapper.frame_pose(track), expected, atol=1e-9)
+    # an edge that names it becomes an edge of the keyframe that holds it, also after a reload
+    other = next(j for j in sorted(mapper.poses) if j != merged.into)
+    t_other_k = mapper.poses[other] @ into_pose.inverse() @ merged.pose
+    edge = EdgeRecord(other, k, t_other_k, np.zeros((0, 2), int), np.zeros(0), np.zeros((0, 5)))
+    path = save_map(mapper, tmp_path / 'culled.rfm')
+    loaded = Mapper()
+    load_map(loaded, path)
+    assert loaded.merged.keys() == mapper.merged.keys() and loaded.carried == mapper.carried
+    assert len(loaded.tracks()) == len(mapper.tracks())
+    for target in (mapper, loaded):
+        assert target.add_edge(edge)
+        measured = target.measurements()[-1]
+        assert (measured.source, measured.target) == (other, merged.into)
+        np.testing.assert_allclose(measured.pose.matrix(), (mapper.poses[other] @ into_pose.inverse()).matrix(),
+                                   atol=1e-9)

@@ -175,7 +175,8 @@ class MapSession:
         known = self._incoming.get((source, incoming))
         if known is not None:
             obs = self.mapper.keyframes.get(known) or dict(self.pending_keyframes).get(known)
-            if obs is not None and obs.stamp_ns == stamp_ns:
+            culled = self.mapper.merged.get(known)
+            if (obs is not None and obs.stamp_ns == stamp_ns) or (culled is not None and culled.stamp_ns == stamp_ns):
                 return None                                   # the same keyframe again
         if not source and (known is not None or (self._incoming_last is not None and incoming < self._incoming_last)):
             if any(not s for s, _ in self._incoming):
@@ -196,7 +197,7 @@ class MapSession:
     def _translate_edge(self, edge: EdgeRecord, source: int) -> EdgeRecord | None:
         """The edge between map ids; None while one of its keyframes is not in the map."""
         a, b = self._incoming.get((source, edge.source)), self._incoming.get((source, edge.target))
-        if a is None or b is None or a not in self.mapper.keyframes or b not in self.mapper.keyframes:
+        if a is None or b is None or not self.mapper.knows(a) or not self.mapper.knows(b):
             return None
         return replace(edge, source=a, target=b)
 

@@ -93,7 +93,10 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     # every frame of the capture counts (the paper's registration); keyframes beside it
     estimated = mapper.frame_poses()
     loc = trajectory_errors(estimated, frame_truth, align=False if posed else '4dof')
-    kf = trajectory_errors(mapper.camera_poses(), truth, align=False if posed else '4dof')
+    # keyframes culled from the map count with their own frame's pose (through the keyframe that holds them)
+    keyframe_poses = mapper.camera_poses()
+    keyframe_poses.update({k: estimated[m.stamp_ns] for k, m in mapper.merged.items() if m.stamp_ns in estimated})
+    kf = trajectory_errors(keyframe_poses, truth, align=False if posed else '4dof')
     loc.update({f'keyframe_{k}': v for k, v in kf.items()})
     # express the map in the world frame: identity when posed, else the 4-DoF alignment
     align = Pose4(0.0, (0, 0, 0)) if posed else map_to_truth(estimated, frame_truth)

@@ -621,11 +621,14 @@ class IncrementalAverager:
                                  int(np.count_nonzero(~self.edges.active)))
         return self.stats
 
-    def restore(self, poses: dict, active) -> None:
+    def restore(self, poses: dict, active, fold: bool = True) -> None:
         """Set the solution (e.g. from a map file) without solving: ``poses`` {id: Pose4
         T_k_map} of the registered keyframes, ``active`` whether each edge (in the order
-        added) is kept; yaw-only edges always are. Keyframes and edges must have been added."""
-        self.update()                            # fold pending input first, then overwrite
+        added) is kept; yaw-only edges always are. Keyframes and edges must have been added
+        (``fold``: solved first, as pending input; else taken as solved by ``poses``)."""
+        if fold:
+            self.update()                        # fold pending input first, then overwrite
+        self._new, self._new_edges = [], False
         e = self.edges
         e.active[:] = np.asarray(active, bool).reshape(len(e)) | e.yaw_only
         self._registered[:] = False

@@ -47,6 +47,17 @@ class FrameLog:
             track.num_inliers, track.is_keyframe, track.continuous)
         self._n += 1
 
+    def merge(self, keyframe_id: int, keyframe_stamp_ns: int, into: int, into_stamp_ns: int, t_into_keyframe: Pose4):
+        """Frames localized against a keyframe culled from the map, now against the keyframe
+        ``into`` it was merged into (``t_into_keyframe``: T_into_keyframe)."""
+        d = self.arrays()
+        rows = np.flatnonzero((d['keyframes'] == keyframe_id) & (d['keyframe_stamps'] == keyframe_stamp_ns))
+        for i in rows:
+            yaw, *t = d['poses'][i]
+            p = t_into_keyframe @ Pose4(yaw, t)
+            d['poses'][i] = (p.yaw, *p.t)
+        d['keyframes'][rows], d['keyframe_stamps'][rows], d['is_keyframe'][rows] = into, into_stamp_ns, False
+
     def arrays(self) -> dict:
         """The log as arrays (views, length ``len(self)``), keyed as in the map file."""
         return {k: v[:self._n] for k, v in self._data.items()}

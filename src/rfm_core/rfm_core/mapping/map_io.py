@@ -6,7 +6,8 @@ rebuilds its tracks as the mapper that made it did) and flat arrays: every keyfr
 detections (boxes, scores, labels, embeddings, 2D boxes, gravity, intrinsics, stamp, frame
 id), every edge with its verified object and corner matches, the keyframe poses, and every
 localized frame (its pose relative to a keyframe: the full-rate trajectory) and where each
-keyframe came from (the matcher session and its id there). Object tracks
+keyframe came from (the matcher session and its id there), and the keyframes culled from the
+map (which kept keyframe carries each, and the views they add to objects). Object tracks
 are derived data and are rebuilt on load. Files written before the configuration and the
 frames were stored load with the loading mapper's configuration and no frames.
 
@@ -28,7 +29,7 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.frame_log import FrameLog
-from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig
+from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig, Merged
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 
 __all__ = ['FORMAT', 'VERSION', 'MapFileError', 'save_map', 'load_map', 'read_map']
@@ -93,12 +94,70 @@ def _edge_arrays(mapper: Mapper) -> dict:
     }
 
 
+def _culled_arrays(mapper: Mapper) -> dict:
+    """Keyframes culled from the map (each carried by a kept keyframe) and the views they add."""
+    ids = sorted(mapper.merged)
+    merged = [mapper.merged[k] for k in ids]
+    carried = sorted(mapper.carried)
+    return {
+        'merged_ids': np.array(ids, np.int64),
+        'merged_into': np.array([m.into for m in merged], np.int64),
+        'merged_poses': np.array([[m.pose.yaw, *m.pose.t] for m in merged], float).reshape(-1, 4),
+        'merged_stamps': np.array([m.stamp_ns for m in merged], np.int64),
+        'merged_counts': np.array([len(m.detections) for m in merged], np.int64),
+        'merged_detections': (np.concatenate([m.detections for m in merged]).astype(np.int64) if merged
+                              else np.zeros(0, np.int64)),
+        'merged_origin': np.array([mapper.origins.get(k, (0, 0)) for k in ids], np.uint64).reshape(-1, 2),
+        'carried_keys': np.array(carried, np.int64).reshape(-1, 2),
+        'carried_views': np.array([mapper.carried[k] for k in carried], np.int64),
+    }
+
+
+def _parse_culled(data: dict, keyframes: dict) -> tuple[dict, dict, dict]:
+    """({culled id: Merged}, {(keyframe, detection): views}, {culled id: origin}) of a map
+    file; ValueError where they do not fit its keyframes. None in maps of older versions."""
+    if 'merged_ids' not in data:
+        return {}, {}, {}
+    ids, into, counts = data['merged_ids'], data['merged_into'], data['merged_counts']
+    n = len(ids)
+    if not (ids.ndim == 1 and into.shape == (n,) and counts.shape == (n,) and data['merged_poses'].shape == (n, 4)
+            and data['merged_stamps'].shape == (n,) and data['merged_origin'].shape == (n, 2)
+            and all(data[k].dtype.kind in 'iu' for k in ('merged_ids', 'merged_into', 'merged_counts',
+                                                          'merged_detections', 'merged_stamps', 'carried_keys',
+                                                          'carried_views'))
+            and np.all(counts >= 0) and int(counts.sum()) == len(data['merged_detections'])
+            and np.all(np.isfinite(data['merged_poses']))):
+        raise ValueError('culled keyframe arrays')
+    if len(np.unique(ids)) != n or any(int(k) in keyframes for k in ids) or any(int(k) not in keyframes for k in into):
+        raise ValueError('culled keyframes must be distinct from the kept ones and carried by them')
+    merged, origins = {}, {}
+    offsets = np.r_[0, np.cumsum(counts)]
+    for i, k in enumerate(ids):
+        det = data['merged_detections'][offsets[i]:offsets[i + 1]]
+        if len(det) and (det.min() < -1 or det.max() >= len(keyframes[int(into[i])])):
+            raise ValueError(f'culled keyframe {int(k)}: detection index out of range')
+        yaw, *t = data['merged_poses'][i]
+        merged[int(k)] = Merged(int(into[i]), Pose4(float(yaw), t), int(data['merged_stamps'][i]), det.astype(int))
+        if data['merged_origin'][i][0]:
+            origins[int(k)] = tuple(int(v) for v in data['merged_origin'][i])
+    keys, views = data['carried_keys'], data['carried_views']
+    if keys.ndim != 2 or keys.shape[1:] != (2,) or views.shape != (len(keys),) or np.any(views <= 0):
+        raise ValueError('carried view arrays')
+    carried = {}
+    for (k, d), v in zip(keys, views):
+        if int(k) not in keyframes or not 0 <= d < len(keyframes[int(k)]):
+            raise ValueError(f'carried views of an unknown detection ({int(k)}, {int(d)})')
+        carried[int(k), int(d)] = int(v)
+    return merged, carried, origins
+
+
 def save_map(mapper: Mapper, path) -> Path:
     """Write the mapper's map to ``path`` atomically. Returns the path."""
     path = Path(path).expanduser()
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays, lists = _keyframe_arrays(mapper)
     arrays.update(_edge_arrays(mapper))
+    arrays.update(_culled_arrays(mapper))
     poses = mapper.poses
     pose_ids = sorted(poses)
     arrays['pose_ids'] = np.array(pose_ids, np.int64)
@@ -269,9 +328,14 @@ def _parse_map(path: Path, data: dict) -> dict:
                                 data['edge_corners'][ic[i]:ic[i + 1]], float(data['edge_scores'][i])))
     poses = {int(k): Pose4(float(v[0]), v[1:]) for k, v in zip(data['pose_ids'], data['pose_values'])}
     origins = {int(k): (int(s), int(i)) for k, (s, i) in zip(data['kf_ids'], data.get('kf_origin', ())) if s}
+    try:
+        merged, carried, culled_origins = _parse_culled(data, keyframes)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise MapFileError(f'{path}: inconsistent map file ({exc})') from None
+    origins.update(culled_origins)
     return {'header': header, 'keyframes': keyframes, 'edges': edges, 'poses': poses,
             'edge_active': [bool(a) for a in data['edge_active']],
-            'config': config, 'frames': frames, 'origins': origins}
+            'config': config, 'frames': frames, 'origins': origins, 'merged': merged, 'carried': carried}
 
 
 def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
@@ -294,6 +358,7 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
     except (ValueError, TypeError, IndexError, KeyError) as exc:
         raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
     fresh.origins = content['origins']
+    fresh.merged, fresh.carried = content['merged'], content['carried']
     fresh.revision = content['header'].get('revision', 0) + 1
     fresh.mode = mapper.mode
     mapper.__dict__.update(fresh.__dict__)

@@ -12,7 +12,7 @@ frozen; frames are only relocalized). ``posed`` mode takes keyframe poses from o
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -31,13 +31,41 @@ from rfm_core.matching.view_graph import Edge, bag_of_objects
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import from_dict, section, setting
 
-__all__ = ['MapperConfig', 'RelocalizationConfig', 'EdgeRecord', 'Relocalization', 'Mapper', 'MODES']
+__all__ = ['MapperConfig', 'CullingConfig', 'RelocalizationConfig', 'EdgeRecord', 'Relocalization', 'Merged', 'Mapper',
+           'MODES']
 
 MODES = ('mapping', 'localization')
 
 #: measurements of one keyframe pair kept at most (the first and its repeats, from frames that
 #: revisit the pair): the map's edges grow with its keyframes, not with time
 MAX_PAIR_MEASUREMENTS = 16
+
+
+@dataclass(frozen=True)
+class CullingConfig:
+    enabled: bool = setting(True, 'Cull redundant keyframes of a stream (as ORB-SLAM and RTAB-Map do): a keyframe '
+                            'whose objects other keyframes see (each by min_views of them), or that shares no '
+                            'object with the map and adds none to it, is merged into a neighbour: its edges and '
+                            'tracked frames are carried over through its pose relative to it, and its views still '
+                            'count for its objects. Revisits then stop growing the map')
+    min_views: int = setting(3, 'Other keyframes that must see each object of a keyframe culled', lo=1, hi=1000)
+    keep_newest: int = setting(3, 'The newest keyframes (by id) are never culled: their edges are still arriving',
+                               lo=1, hi=1000)
+
+
+@dataclass(frozen=True)
+class Merged:
+    """A culled keyframe, carried by the keyframe it was merged into."""
+
+    into: int                                #: the keyframe that carries it
+    pose: Pose4                              #: T_into_culled (the averaged poses when it was culled)
+    stamp_ns: int                            #: the culled keyframe's stamp
+    detections: np.ndarray                   #: (N,) its detection index -> ``into``'s (-1: none)
+
+    def then(self, outer: 'Merged') -> 'Merged':
+        """This merge followed by ``outer`` (``into`` itself culled into ``outer.into``)."""
+        d = np.where(self.detections >= 0, outer.detections[np.maximum(self.detections, 0)], -1)
+        return Merged(outer.into, outer.pose @ self.pose, self.stamp_ns, d)
 
 
 @dataclass(frozen=True)
@@ -52,6 +80,7 @@ class MapperConfig:
                                       'projected corners (paper 3.6; helps monocular RGB detectors when '
                                       'poses are good)')
     bundle: BundleConfig = section(BundleConfig, 'bundle adjustment')
+    culling: CullingConfig = section(CullingConfig, 'keyframe culling (mapping mode)')
 
     def to_dict(self) -> dict:
         """Every setting, nested by stage (stored in map files)."""
@@ -87,6 +116,24 @@ class EdgeRecord:
                    np.asarray(rel.corner_inliers, float).reshape(-1, 5), edge.score)
 
 
+def _connected(nodes: set, links, moved: dict) -> bool:
+    """Whether ``nodes`` (detections of one object) stay linked by ``links`` (pairs of
+    detections) once each detection in ``moved`` is replaced by its value (None: removed)."""
+    parent = {v: v for v in nodes}
+
+    def find(v):
+        while parent[v] != v:
+            parent[v] = parent[parent[v]]
+            v = parent[v]
+        return v
+
+    for a, b in links:
+        a, b = moved.get(a, a), moved.get(b, b)
+        if a in parent and b in parent:
+            parent[find(a)] = find(b)
+    return len({find(v) for v in nodes}) <= 1
+
+
 def camera_to_map(t_k_map: Pose4, obs: FrameObservations) -> np.ndarray:
     """4x4 pose of a frame's camera optical frame in the map frame."""
     return _camera_to_map(t_k_map, obs.gravity_cam)
@@ -119,12 +166,15 @@ class Mapper:
         self._recovery_tried: dict = {}      # id -> registered keyframes when it was last matched to the map
         self._newest_stamp_ns = -1           # of any keyframe or tracked frame received
         self.recovered: list = []            # edges that joined a keyframe to the map (tracking recovery)
+        self.merged: dict = {}               # culled keyframe id -> Merged (keyframe culling)
+        self._cull_due: set = set()          # keyframes new edges touched since the last culling pass
+        self.carried: dict = {}              # (keyframe, detection) -> views of culled keyframes it stands for
 
     # ------------------------------------------------------------------ input
 
     def add_keyframe(self, keyframe_id: int, obs: FrameObservations) -> bool:
         """Add a keyframe; False (ignored) in localization mode or when already known."""
-        if self.mode != 'mapping' or keyframe_id in self.keyframes:
+        if self.mode != 'mapping' or keyframe_id in self.keyframes or keyframe_id in self.merged:
             return False
         previous = max(self.keyframes, default=None)
         self.keyframes[keyframe_id] = obs
@@ -154,19 +204,27 @@ class Mapper:
         vote in pose averaging."""
         if self.mode != 'mapping':
             return False
+        for k, col in ((edge.source, 0), (edge.target, 1)):
+            size = self._size(k)
+            if size is None:
+                return False
+            if len(edge.inliers) and (edge.inliers[:, col].max() >= size or edge.inliers[:, col].min() < 0):
+                raise ValueError(f'edge {(edge.source, edge.target)}: inlier index out of range for keyframe {k}')
+        edge = self._resolved(edge)
         key = (edge.source, edge.target)
         if edge.source == edge.target or len(self._pairs.get(key, ())) >= MAX_PAIR_MEASUREMENTS:
             return False
-        for k, col in ((edge.source, 0), (edge.target, 1)):
-            if k not in self.keyframes:
-                return False
-            if len(edge.inliers) and (edge.inliers[:, col].max() >= len(self.keyframes[k])
-                                      or edge.inliers[:, col].min() < 0):
-                raise ValueError(f'edge {key}: inlier index out of range for keyframe {k}')
-        if key in self.edges:
-            if any(e.pose == edge.pose for e in self._pairs[key]):          # the same message again
-                return False
-        else:
+        if key in self.edges and any(e.pose == edge.pose for e in self._pairs[key]):    # the same message again
+            return False
+        self._record(edge)
+        self._changed()
+        return True
+
+    def _record(self, edge: EdgeRecord) -> None:
+        """Keep a measurement between two keyframes of the map and hand it to the averaging."""
+        key = (edge.source, edge.target)
+        self._cull_due.update(key)
+        if key not in self.edges:
             self.edges[key] = edge
             self._edges_to.setdefault(edge.target, []).append(key)
         self._pairs.setdefault(key, []).append(edge)
@@ -174,18 +232,64 @@ class Mapper:
             self._averaged[len(self.averager.edges)] = edge
             self.averager.add_edge(edge.source, edge.target, edge.pose,
                                    edge.weight * self.config.averaging.turn_factor(edge.pose.yaw))
-        self._changed()
-        return True
+
+    def _size(self, keyframe_id: int) -> int | None:
+        """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
+        if keyframe_id in self.keyframes:
+            return len(self.keyframes[keyframe_id])
+        merged = self.merged.get(keyframe_id)
+        return None if merged is None else len(merged.detections)
+
+    def knows(self, keyframe_id: int) -> bool:
+        """Whether a keyframe is in the map or was culled into a keyframe of it."""
+        return keyframe_id in self.keyframes or keyframe_id in self.merged
+
+    def _resolved(self, edge: EdgeRecord) -> EdgeRecord:
+        """The edge between the keyframes of the map that carry its ends (culled keyframes
+        replaced by the keyframes they were merged into; matches of detections those do not
+        hold are dropped)."""
+        ms, mt = self.merged.get(edge.source), self.merged.get(edge.target)
+        if ms is None and mt is None:
+            return edge
+        pose, inliers, corners = edge.pose, np.asarray(edge.inliers, int).reshape(-1, 2), edge.corner_inliers
+        inliers, scores, corners = inliers.copy(), np.asarray(edge.scores, float), corners.copy()
+        keep, keep_c = np.ones(len(inliers), bool), np.ones(len(corners), bool)
+        for m, col, ccol in ((ms, 0, 0), (mt, 1, 2)):
+            if m is None:
+                continue
+            inliers[:, col] = m.detections[inliers[:, col]]
+            keep &= inliers[:, col] >= 0
+            if len(corners):
+                idx = corners[:, ccol].astype(int)
+                ok = (idx >= 0) & (idx < len(m.detections))
+                corners[ok, ccol] = m.detections[idx[ok]]
+                keep_c &= ok & (corners[:, ccol] >= 0)
+        if ms is not None:
+            pose = ms.pose @ pose
+        if mt is not None:
+            pose = pose @ mt.pose.inverse()
+        return EdgeRecord(ms.into if ms is not None else edge.source, mt.into if mt is not None else edge.target,
+                          pose, inliers[keep], scores[keep] if len(scores) == len(keep) else scores,
+                          corners[keep_c], edge.score)
 
     def add_frame(self, track: FrameTrack) -> bool:
         """Log a localized frame (its pose relative to a keyframe); False (ignored) when that
         keyframe id is known with another stamp (an id reused by a restarted matcher)."""
+        track = self._resolved_track(track)
         kf = self.keyframes.get(track.keyframe_id)
         if kf is not None and kf.stamp_ns != track.keyframe_stamp_ns:
             return False
         self.frames.add(track)
         self._newest_stamp_ns = max(self._newest_stamp_ns, track.stamp_ns)
         return True
+
+    def _resolved_track(self, track: FrameTrack) -> FrameTrack:
+        """A frame tracked against a culled keyframe, relative to the keyframe that carries it."""
+        m = self.merged.get(track.keyframe_id)
+        if m is None or m.stamp_ns != track.keyframe_stamp_ns:
+            return track
+        return replace(track, keyframe_id=m.into, keyframe_stamp_ns=self.keyframes[m.into].stamp_ns,
+                       pose=m.pose @ track.pose, is_keyframe=False)
 
     def awaits_recovery(self, keyframe_id: int) -> bool:
         """Whether tracking recovery has yet to try this keyframe, which is outside the
@@ -203,6 +307,7 @@ class Mapper:
         """4x4 camera-to-map pose of a tracked frame now (None while its keyframe has none).
         A keyframe that arrived since the last :meth:`update` is placed provisionally by its
         best-supported edge from a registered keyframe."""
+        track = self._resolved_track(track)
         k = track.keyframe_id
         kf = self.keyframes.get(k)
         if kf is None or kf.stamp_ns != track.keyframe_stamp_ns:
@@ -253,6 +358,8 @@ class Mapper:
             stats = self.averager.update(force_full)
             if self._recover():
                 stats = self.averager.update(force_full)
+            if self._cull() and stats.kind == 'none':
+                stats.kind = 'local'
             if stats.kind != 'none':
                 self.revision += 1
                 self._changed()
@@ -297,6 +404,163 @@ class Mapper:
                 self.recovered.append(edge)
                 added = True
         return added
+
+    def _cull(self) -> bool:
+        """Keyframe culling (:class:`CullingConfig`): merge each redundant registered keyframe
+        into the keyframe that shares most of its objects; True when one was culled.
+
+        An object here is a set of detections linked by the kept edges' verified matches (a
+        track before merging and the evidence check). A keyframe K is redundant when it sees
+        at least two objects that other keyframes see too, each of them seen by ``min_views``
+        keyframes other than K and still one object without K's detections, and a registered
+        keyframe A that a kept edge links to K sees at least one of them; or when it shares no
+        object with any keyframe (an isolated view of a revisit, with too few detections to
+        verify one) and none of its detections is in the published map, A being the neighbour
+        of its strongest kept edge.
+        Only keyframes of a stream are culled (the
+        view graph followed the camera into them; separate photos each keep their view, as
+        keyframe reuse leaves them alone). K is then merged into A: T_A_K from the current
+        poses, K's detections mapped to A's of the same objects; K's edges become A's
+        (matches of K's other detections are dropped), frames tracked against K are tracked
+        against A, and later messages naming K are carried over the same way
+        (:attr:`merged`). Only keyframes that new edges touched since the last pass are
+        checked; the first registered keyframe (the map's anchor) and the ``keep_newest``
+        newest are kept; nothing is solved again (the kept keyframes keep their poses)."""
+        cfg = self.config.culling
+        poses = self.averager.poses
+        if not cfg.enabled or self.mode != 'mapping' or self.config.posed or len(poses) <= cfg.keep_newest + 1:
+            return False
+        ids = sorted(self.keyframes)
+        protected = set(ids[-cfg.keep_newest:]) | {min(poses)}
+        log = self.frames.arrays()
+        # keyframes of a stream: frames of one were tracked against it, or it was one of them
+        streamed = set(log['keyframes'][log['continuous']].tolist())
+        stream_stamps = set(log['stamps'][log['continuous']].tolist())
+        streamed |= {k for k, f in self.keyframes.items() if f.stamp_ns in stream_stamps}
+        due = sorted((self._cull_due & set(poses) & streamed) - protected, reverse=True)
+        self._cull_due &= protected
+        if not due:
+            return False
+        offset = dict(zip(ids, np.cumsum([0] + [len(self.keyframes[k]) for k in ids[:-1]]).tolist()))
+        n = sum(len(f) for f in self.keyframes.values())
+        owner = np.repeat(np.array(ids), [len(self.keyframes[k]) for k in ids])      # node -> keyframe
+        pairs = np.array([(offset[e.source] + a, offset[e.target] + b)
+                          for e in self.active_edges() for a, b in e.inliers], int).reshape(-1, 2)
+        if not len(pairs):
+            return False
+        label = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)),
+                                     directed=False)[1]
+        members: dict = {}                                   # object -> {node}
+        for node, c in enumerate(label):
+            members.setdefault(int(c), set()).add(node)
+        links: dict = {}                                     # object -> [(node, node)] (its matches)
+        for a, b in pairs:
+            links.setdefault(int(label[a]), []).append((int(a), int(b)))
+        linked: dict = {}                                    # keyframe -> keyframes a kept edge links it to
+        for e in self.active_edges():
+            linked.setdefault(e.source, set()).add(e.target)
+            linked.setdefault(e.target, set()).add(e.source)
+        published = None                                     # keyframes with an object in the map (when needed)
+        culled, anchors, gone = {}, set(), set()
+        for k in due:
+            if k in anchors:
+                continue
+            nodes = range(offset[k], offset[k] + len(self.keyframes[k]))
+            objects = {int(label[v]) for v in nodes if len({owner[u] for u in members[int(label[v])]} - gone) > 1}
+            views = {c: {int(owner[u]) for u in members[c]} - gone - {k} for c in objects}
+            if not objects:                                  # a view that shares no object with the map
+                if published is None:
+                    published = {int(j) for t in self.tracks() for j in t.observations[:, 0]}
+                into = self._isolated_into(k, poses, published, gone | set(culled))
+                if into is not None:
+                    culled[k] = Merged(into, poses[into] @ poses[k].inverse(), self.keyframes[k].stamp_ns,
+                                       np.full(len(self.keyframes[k]), -1))
+                    anchors.add(into)
+                    gone.add(k)
+                continue
+            if len(objects) < 2 or any(len(v) < cfg.min_views for v in views.values()):
+                continue
+            share = {}                                       # K's neighbours (a kept edge) -> objects shared
+            for c in objects:
+                for j in views[c]:
+                    if j in poses and j in linked.get(k, ()):
+                        share[j] = share.get(j, 0) + 1
+            if not share:
+                continue
+            into = min(share, key=lambda j: (-share[j], float(np.linalg.norm(poses[j].t - poses[k].t))))
+            first = {}                                       # object -> into's first detection of it
+            for u in range(offset[into], offset[into] + len(self.keyframes[into])):
+                first.setdefault(int(label[u]), u)
+            moved = {v: first.get(int(label[v])) for v in nodes}          # K's node -> into's (or None)
+            if not all(_connected(members[c] - set(nodes), links.get(c, ()), moved) for c in objects):
+                continue
+            detections = np.array([moved[v] - offset[into] if moved[v] is not None and int(label[v]) in objects
+                                   else -1 for v in nodes], int)
+            culled[k] = Merged(into, poses[into] @ poses[k].inverse(), self.keyframes[k].stamp_ns, detections)
+            anchors.add(into)
+            gone.add(k)
+            for c in objects:                                # K's matches now end at into's detection
+                members[c] -= set(nodes)
+                links[c] = [(moved.get(a, a), moved.get(b, b)) for a, b in links.get(c, ())
+                            if moved.get(a, a) is not None and moved.get(b, b) is not None]
+        if culled:
+            self._merge(culled)
+        return bool(culled)
+
+    def _isolated_into(self, keyframe_id: int, poses: dict, published: set, gone: set) -> int | None:
+        """The keyframe an isolated keyframe (none of its detections matched in another
+        keyframe, none in the published map) is merged into: the registered neighbour of its
+        strongest kept edge (None: it has none, or it holds a published object)."""
+        if keyframe_id in published:
+            return None
+        best, into = 0.0, None
+        for e in self.active_edges():
+            if keyframe_id in (e.source, e.target):
+                other = e.target if e.source == keyframe_id else e.source
+                if other in poses and other not in gone and e.weight > best:
+                    best, into = e.weight, other
+        return into
+
+    def _merge(self, culled: dict) -> None:
+        """Take the ``culled`` keyframes ({id: Merged}) out of the map (see :meth:`_cull`)."""
+        for k, m in list(self.merged.items()):
+            if m.into in culled:
+                self.merged[k] = m.then(culled[m.into])
+        self.merged.update(culled)
+        poses = self.averager.poses
+        old, store = self._averaged, self.averager.edges
+        kept = [(self._resolved(old[i]), bool(store.active[i]), bool(store.blocked[i]))
+                for i in range(len(store)) if i in old]
+        for k, m in culled.items():
+            # the views of K (and of the keyframes culled into it) stay in the objects' evidence
+            for d, into_d in enumerate(m.detections):
+                views = 1 + self.carried.pop((k, d), 0)
+                if into_d >= 0:
+                    key = (m.into, int(into_d))
+                    self.carried[key] = self.carried.get(key, 0) + views
+            del self.keyframes[k]
+            self._descriptors.pop(k, None)
+            self._recovery_tried.pop(k, None)
+            self.frames.merge(k, m.stamp_ns, m.into, self.keyframes[m.into].stamp_ns, m.pose)
+        self.edges, self._pairs, self._averaged, self._edges_to = {}, {}, {}, {}
+        self.averager = IncrementalAverager(self.config.averaging)
+        ids = sorted(self.keyframes)
+        for i, k in enumerate(ids):
+            self.averager.add_keyframe(k)
+            if i:
+                self._add_gyroscope_edge(ids[i - 1], k)
+        active, blocked = {}, {}
+        for edge, was_active, was_blocked in kept:
+            key = (edge.source, edge.target)
+            if edge.source == edge.target or len(self._pairs.get(key, ())) >= MAX_PAIR_MEASUREMENTS:
+                continue
+            active[len(self.averager.edges)], blocked[len(self.averager.edges)] = was_active, was_blocked
+            self._record(edge)
+        mask = np.array([active.get(i, True) for i in range(len(self.averager.edges))], bool)
+        self.averager.restore({k: p for k, p in poses.items() if k in self.keyframes}, mask, fold=False)
+        for i, b in blocked.items():
+            self.averager.edges.blocked[i] = b
+        self._changed()
 
     def _gyro_yaw(self, keyframe_id: int, poses: dict) -> float | None:
         """The yaw of T_map_k as the gyroscope gives it through the registered keyframe
@@ -386,7 +650,7 @@ class Mapper:
             for e in self.active_edges():
                 for ia, ib in e.inliers:
                     matches.append((e.source, int(ia), e.target, int(ib)))
-            tracks = build_tracks(self.keyframes, self.poses, matches, self.config.tracks)
+            tracks = build_tracks(self.keyframes, self.poses, matches, self.config.tracks, self.carried)
             if self.config.bundle_adjustment:
                 tracks = refine_tracks(tracks, self.keyframes, self.poses, self.config.bundle)
             self._tracks = tracks

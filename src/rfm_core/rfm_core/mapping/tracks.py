@@ -124,12 +124,15 @@ def _make_track(obs, boxes, scores, labels, embeds, cfg) -> Track:
                  obs, boxes, scores, emb.astype(np.float32), quality=quality)
 
 
-def build_tracks(keyframes: dict, poses: dict, matches, config: TrackConfig | None = None) -> list:
+def build_tracks(keyframes: dict, poses: dict, matches, config: TrackConfig | None = None,
+                 carried: dict | None = None) -> list:
     """Tracks of the registered keyframes.
 
     ``keyframes``: {keyframe id: FrameObservations}; ``poses``: {keyframe id: Pose4 T_k_map}
     (registered keyframes only); ``matches``: iterable of (keyframe a, index a, keyframe b,
-    index b) inlier object matches of the surviving edges.
+    index b) inlier object matches of the surviving edges; ``carried``: {(keyframe, index):
+    views} of culled keyframes whose detection of the same object that detection stands for
+    (:func:`view_evidence`).
     """
     cfg = config or TrackConfig()
     kf_ids = [k for k in keyframes if k in poses and len(keyframes[k])]
@@ -168,13 +171,14 @@ def build_tracks(keyframes: dict, poses: dict, matches, config: TrackConfig | No
     tracks = [_make_track(obs[g], boxes[g], scores[g], [labels[i] for i in g], embeds[g] if dim else embeds[:0], cfg)
               for g in groups if len(g)]
     tracks = _merge_and_suppress(tracks, cfg)
-    view_evidence(tracks, keyframes, poses, cfg)
+    view_evidence(tracks, keyframes, poses, cfg, carried)
     tracks = [t for t in tracks if t.num_observations >= cfg.min_observations and t.evidence >= cfg.min_evidence]
     tracks.sort(key=lambda t: t.track_id)
     return tracks
 
 
-def view_evidence(tracks: list, keyframes: dict, poses: dict, config: TrackConfig | None = None) -> None:
+def view_evidence(tracks: list, keyframes: dict, poses: dict, config: TrackConfig | None = None,
+                  carried: dict | None = None) -> None:
     """Set each track's ``evidence``: the probability that it is a real object, from the
     keyframes that saw it and those that should have.
 
@@ -190,7 +194,9 @@ def view_evidence(tracks: list, keyframes: dict, poses: dict, config: TrackConfi
 
     So a box seen once from a place that twenty keyframes looked at is a phantom, and one seen
     once from the only view there is keeps its score. The track's ``score`` becomes the
-    geometric mean of its quality and this evidence."""
+    geometric mean of its quality and this evidence. A keyframe culled from the map
+    (``carried``: {(keyframe, index): views} of the detections that stand for culled
+    keyframes' detections of the same object) still counts as a view that saw the object."""
     cfg = config or TrackConfig()
     ids = [k for k in poses if k in keyframes and len(keyframes[k])]
     if not tracks or not ids:
@@ -217,9 +223,10 @@ def view_evidence(tracks: list, keyframes: dict, poses: dict, config: TrackConfi
     for j, t in enumerate(tracks):
         seen = np.unique(t.observations[:, 0])
         rows = [row[k] for k in seen if k in row]
-        expected = np.count_nonzero(should[:, j]) + np.count_nonzero(~should[rows, j])
+        extra = sum(carried.get((int(k), int(d)), 0) for k, d in t.observations) if carried else 0
+        expected = np.count_nonzero(should[:, j]) + np.count_nonzero(~should[rows, j]) + extra
         prior = float(np.clip(np.max(t.scores), 0.01, 0.99))
-        logit = np.log(prior / (1 - prior)) + (len(seen) - 1) * hit + (expected - len(seen)) * miss
+        logit = np.log(prior / (1 - prior)) + (len(seen) + extra - 1) * hit + (expected - len(seen) - extra) * miss
         t.evidence = float(1.0 / (1.0 + np.exp(-np.clip(logit, -50, 50))))
         t.expected_views = int(expected)
         t.score = float(np.sqrt(t.quality * t.evidence))
