@@ -169,6 +169,7 @@ class Mapper:
         self.merged: dict = {}               # culled keyframe id -> Merged (keyframe culling)
         self._cull_due: set = set()          # keyframes new edges touched since the last culling pass
         self.carried: dict = {}              # (keyframe, detection) -> views of culled keyframes it stands for
+        self.streamed: set = set()           # keyframes that frames of a stream were tracked against
 
     # ------------------------------------------------------------------ input
 
@@ -280,6 +281,8 @@ class Mapper:
         if kf is not None and kf.stamp_ns != track.keyframe_stamp_ns:
             return False
         self.frames.add(track)
+        if track.continuous:
+            self.streamed.add(track.keyframe_id)
         self._newest_stamp_ns = max(self._newest_stamp_ns, track.stamp_ns)
         return True
 
@@ -416,9 +419,8 @@ class Mapper:
         keyframe A that a kept edge links to K sees at least one of them; or when it shares no
         object with any keyframe (an isolated view of a revisit, with too few detections to
         verify one) and none of its detections is in the published map, A being the neighbour
-        of its strongest kept edge.
-        Only keyframes of a stream are culled (the
-        view graph followed the camera into them; separate photos each keep their view, as
+        of its strongest kept edge. Only keyframes of a stream are culled (frames the view
+        graph followed were tracked against them; separate photos each keep their view, as
         keyframe reuse leaves them alone). K is then merged into A: T_A_K from the current
         poses, K's detections mapped to A's of the same objects; K's edges become A's
         (matches of K's other detections are dropped), frames tracked against K are tracked
@@ -432,12 +434,7 @@ class Mapper:
             return False
         ids = sorted(self.keyframes)
         protected = set(ids[-cfg.keep_newest:]) | {min(poses)}
-        log = self.frames.arrays()
-        # keyframes of a stream: frames of one were tracked against it, or it was one of them
-        streamed = set(log['keyframes'][log['continuous']].tolist())
-        stream_stamps = set(log['stamps'][log['continuous']].tolist())
-        streamed |= {k for k, f in self.keyframes.items() if f.stamp_ns in stream_stamps}
-        due = sorted((self._cull_due & set(poses) & streamed) - protected, reverse=True)
+        due = sorted((self._cull_due & set(poses) & self.streamed) - protected, reverse=True)
         self._cull_due &= protected
         if not due:
             return False
@@ -539,6 +536,9 @@ class Mapper:
                     key = (m.into, int(into_d))
                     self.carried[key] = self.carried.get(key, 0) + views
             del self.keyframes[k]
+            if k in self.streamed:
+                self.streamed.discard(k)
+                self.streamed.add(m.into)
             self._descriptors.pop(k, None)
             self._recovery_tried.pop(k, None)
             self.frames.merge(k, m.stamp_ns, m.into, self.keyframes[m.into].stamp_ns, m.pose)
