@@ -231,11 +231,16 @@ class MapperNode(Node):
     # ------------------------------------------------------------------ output
 
     def _tick(self) -> None:
-        recovered = len(self.mapper.recovered)
+        recovered, culled = len(self.mapper.recovered), len(self.mapper.merged)
         changed = self.session.tick()
         for edge in self.mapper.recovered[recovered:]:
             self.get_logger().info(f'tracking recovered: keyframe {edge.target} matched the map through keyframe '
                                    f'{edge.source} ({len(edge.inliers)} objects verified)')
+        if len(self.mapper.merged) > culled:                # (culled keyframes are added at the end)
+            merged = {k: m.into for k, m in list(self.mapper.merged.items())[culled:]}
+            self.get_logger().info(f'culled {len(merged)} redundant keyframe(s) ('
+                                   + ', '.join(f'{k} into {a}' for k, a in sorted(merged.items()))
+                                   + f'); the map holds {len(self.mapper.keyframes)}, {len(self.mapper.merged)} culled')
         if changed is not False:
             self._map_dirty = True
             self._publish_poses(changed)
