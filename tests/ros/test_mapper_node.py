@@ -103,6 +103,11 @@ class _Harness:
         self.executors = None
 
 
+def _held(mapper) -> int:
+    """Keyframes a mapper holds: in its map, or culled into one of them (keyframe culling)."""
+    return len(mapper.keyframes) + len(mapper.merged)
+
+
 @pytest.mark.slow
 def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
     from rfm_mapper_node.mapper_node import MapperNode
@@ -133,20 +138,22 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         n_edges = sum(isinstance(m, ViewGraphEdge) for m in messages)
         n_tracked = sum(isinstance(m, TrackedFrame) for m in messages)
         # ... and once the input has been idle for idle_full_solve_s, all poses re-solved at once
-        done = h.wait(lambda: len(mapper.mapper.keyframes) == n_kf and not mapper.session.pending_edges
+        # (every keyframe is in the map, or was culled into one of it: keyframe culling)
+        done = h.wait(lambda: _held(mapper.mapper) == n_kf and not mapper.session.pending_edges
                       and mapper.session.counts['edges'] == n_edges and not mapper.session.dirty
                       and not mapper.session.full_solve_pending and mapper.mapper.averager.stats.kind == 'full'
-                      and h.poses and len(h.poses[-1].poses) == n_kf)
-        assert done, (len(mapper.mapper.keyframes), n_kf, len(mapper.session.pending_edges),
+                      and h.poses and len(h.poses[-1].poses) == len(mapper.mapper.keyframes))
+        assert done, (_held(mapper.mapper), n_kf, len(mapper.session.pending_edges),
                       len(h.poses[-1].poses) if h.poses else None, mapper.session.counts, mapper.session.message)
         assert mapper.session.counts['dropped'] >= 1
         assert h.wait(lambda: h.maps and len(h.maps[-1].objects) >= 5)
         assert h.wait(lambda: mapper.num_objects == len(h.maps[-1].objects))   # what status reports
         # published poses agree with the ground truth
-        ids = sorted(truth)
+        ids = sorted(mapper.mapper.keyframes)
         est = {k: pose_to_matrix(p) for k, p in zip(ids, h.poses[-1].poses)}
         err = trajectory_errors(est, truth)
-        assert err['ATE_median'] < 0.03 and err['ARE_median'] < 1.0, err
+        # (the median over the keyframes kept: culling one of the nine, below the median, moves it 2.9 -> 3.3 cm)
+        assert err['ATE_median'] < 0.035 and err['ARE_median'] < 1.0, err
         # every tracked frame is logged, and a camera pose was published at the frames' rate
         assert mapper.session.counts['frames'] == n_tracked == len(frames)
         frame_truth = {f.stamp_ns: f.pose_matrix for f, _ in frames}
@@ -158,11 +165,11 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert err['ATE_median'] < 0.05 and err['ARE_median'] < 1.5, err
         # autosave happened (every 5 keyframes): a valid map of the keyframes so far, posed as published
         saved = read_map(tmp_path / 'auto.rfm')
-        n_saved = int(saved['header']['keyframes'])
+        n_saved = int(saved['header']['keyframes']) + len(saved['merged'])
         assert n_saved >= 5 and n_saved % 5 == 0 and n_saved <= n_kf, saved['header']
         restored = Mapper()
         load_map(restored, tmp_path / 'auto.rfm')
-        assert len(restored.keyframes) == n_saved and set(restored.keyframes) <= set(truth)
+        assert _held(restored) == n_saved and set(restored.keyframes) | set(restored.merged) <= set(truth)
         err = trajectory_errors(restored.camera_poses(), truth)
         assert err['registered'] > 0 and err['ATE_median'] < 0.05, err
 
@@ -191,7 +198,7 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         np.savez(tmp_path / 'crafted.npz', **arrays)
         crafted = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=str(tmp_path / 'crafted.npz')))
         assert not crafted.success and 'revision' in crafted.message and 'unchanged' in crafted.message
-        assert len(mapper.mapper.keyframes) == n_kf                     # untouched
+        assert _held(mapper.mapper) == n_kf                             # untouched
         empty = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=FrameDetections()))
         assert not empty.success and empty.message
         frame, obs = frames[len(frames) // 2]
@@ -208,7 +215,7 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=1)).success
         h.kf_pub.publish(messages[0])                                   # ignored in localization mode
         time.sleep(0.3)
-        assert len(mapper.mapper.keyframes) == n_kf
+        assert _held(mapper.mapper) == n_kf
         poses_before = mapper.mapper.poses
         tracks_before = [(t.track_id, t.box) for t in mapper.mapper.tracks()]
         assert h.call(Trigger, 'rfm/reset', Trigger.Request()).success
@@ -231,7 +238,7 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert h2.wait(lambda: h2.maps and len(h2.maps[-1].objects) == len(tracks_before))
         # a matcher started afresh numbers its keyframes from 0 again: new keyframes of the
         # loaded map, never confused with its keyframes 0, 1, ... (#19)
-        loaded = {k: f.stamp_ns for k, f in fresh.mapper.keyframes.items()}
+        loaded, loaded_held = {k: f.stamp_ns for k, f in fresh.mapper.keyframes.items()}, _held(fresh.mapper)
         assert h2.wait(lambda: h2.kf_pub.get_subscription_count() > 0 and h2.edge_pub.get_subscription_count() > 0)
         restart = [m for m in messages if not isinstance(m, TrackedFrame)][:8]
         numbers = {Keyframe: iter([1, 2, 4, 5, 6, 7, 8, 9]), ViewGraphEdge: iter(range(1, 9))}
@@ -239,8 +246,8 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
             msg.session, msg.sequence = 77, next(numbers[type(msg)])
             (h2.kf_pub if isinstance(msg, Keyframe) else h2.edge_pub).publish(msg)
         n_new = sum(isinstance(m, Keyframe) for m in restart)
-        assert h2.wait(lambda: len(fresh.mapper.keyframes) == len(loaded) + n_new)
-        assert all(fresh.mapper.keyframes[k].stamp_ns == s for k, s in loaded.items())
+        assert h2.wait(lambda: _held(fresh.mapper) == loaded_held + n_new)
+        assert all(fresh.mapper.keyframes[k].stamp_ns == s for k, s in loaded.items() if k in fresh.mapper.keyframes)
         assert h2.wait(lambda: fresh.session.counts['edges'] >= 1)
         assert fresh.num_lost == 1 and 'never arrived' in fresh.session.message
         assert all(s not in loaded or t not in loaded for s, t in list(fresh.mapper.edges)[-fresh.session.counts['edges']:])

@@ -418,8 +418,9 @@ class Mapper:
         keyframes other than K and still one object without K's detections, and a registered
         keyframe A that a kept edge links to K sees at least one of them; or when it shares no
         object with any keyframe (an isolated view of a revisit, with too few detections to
-        verify one) and none of its detections is in the published map, A being the neighbour
-        of its strongest kept edge. Only keyframes of a stream are culled (frames the view
+        verify one) and no object of the published map rests on it alone (a track that
+        duplicate merging joined to other keyframes' does not), A being the neighbour of its
+        strongest kept edge. Only keyframes of a stream are culled (frames the view
         graph followed were tracked against them; separate photos each keep their view, as
         keyframe reuse leaves them alone). K is then merged into A: T_A_K from the current
         poses, K's detections mapped to A's of the same objects; K's edges become A's
@@ -466,8 +467,9 @@ class Mapper:
             objects = {int(label[v]) for v in nodes if len({owner[u] for u in members[int(label[v])]} - gone) > 1}
             views = {c: {int(owner[u]) for u in members[c]} - gone - {k} for c in objects}
             if not objects:                                  # a view that shares no object with the map
-                if published is None:
-                    published = {int(j) for t in self.tracks() for j in t.observations[:, 0]}
+                if published is None:                        # keyframes that alone hold an object of the map
+                    published = {int(t.observations[0, 0]) for t in self.tracks()
+                                 if np.all(t.observations[:, 0] == t.observations[0, 0])}
                 into = self._isolated_into(k, poses, published, gone | set(culled))
                 if into is not None:
                     culled[k] = Merged(into, poses[into] @ poses[k].inverse(), self.keyframes[k].stamp_ns,
@@ -506,8 +508,8 @@ class Mapper:
 
     def _isolated_into(self, keyframe_id: int, poses: dict, published: set, gone: set) -> int | None:
         """The keyframe an isolated keyframe (none of its detections matched in another
-        keyframe, none in the published map) is merged into: the registered neighbour of its
-        strongest kept edge (None: it has none, or it holds a published object)."""
+        keyframe) is merged into: the registered neighbour of its strongest kept edge (None:
+        it has none, or it alone holds an object of the published map: ``published``)."""
         if keyframe_id in published:
             return None
         best, into = 0.0, None
