@@ -7,7 +7,9 @@ camera pose (optical frame to map) composes that with the keyframe's gravity:
 
 Modes: ``mapping`` (keyframes and edges extend the map) and ``localization`` (the map is
 frozen; frames are only relocalized). ``posed`` mode takes keyframe poses from outside
-(e.g. TF or a pose topic; the paper's "posed" rows) instead of averaging.
+(e.g. TF or a pose topic; the paper's "posed" rows) instead of averaging. In mapping mode a
+redundant keyframe of a stream is culled: merged into a neighbour that carries its edges and
+frames from then on (:meth:`Mapper._cull`).
 """
 from __future__ import annotations
 
@@ -458,7 +460,7 @@ class Mapper:
         for e in self.active_edges():
             linked.setdefault(e.source, set()).add(e.target)
             linked.setdefault(e.target, set()).add(e.source)
-        published = None                                     # keyframes with an object in the map (when needed)
+        published = None                                     # keyframes that alone hold a published object (lazily)
         culled, anchors, gone = {}, set(), set()
         for k in due:
             if k in anchors:
