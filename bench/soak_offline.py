@@ -3,14 +3,16 @@ the map stay straight? (#19 item 4; the graph's version is bench/soak.py)
 
     ros_ws/env.sh python bench/soak_offline.py [--minutes 5] [--fps 5] [--seed 7000]
                                                [--cache /tmp/rfm_soak_offline.pkl]
+                                               [--no-culling] [--cull-min-views N]
 
 Renders the soak's handheld walk (furniture made of parts, clutter; ~9 s a loop), detects
 every frame with ``depth_clusters`` (cached: the first run takes a few minutes, later runs
 about 15 s), runs :class:`rfm_core.session.Session` over all frames with the true gravity,
-and prints the keyframes made by time, how many of those made after the first 30 s had a
-keyframe within ``max_translation_m`` / ``max_yaw_deg`` already (true poses), and the
-localization error of every frame (4-DoF aligned). A change to keyframe reuse can be judged
-here in seconds before the real-time soak.
+and prints the keyframes made by time, the keyframes and objects in the map by time (after
+keyframe culling), how many of those made after the first 30 s had a keyframe within
+``max_translation_m`` / ``max_yaw_deg`` already (true poses), the localization error of every
+frame (4-DoF aligned) and the map's AP25 / AR25 against the room. A change to keyframe reuse
+or culling can be judged here in seconds before the real-time soak.
 """
 from __future__ import annotations
 
