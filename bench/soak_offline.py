@@ -24,6 +24,10 @@ from pathlib import Path
 import numpy as np
 
 
+#: when counts are printed (seconds since the first frame)
+MARKS_S = (10, 30, 60, 120, 300)
+
+
 def _detections(args) -> list:
     if args.cache.is_file():
         cached = pickle.loads(args.cache.read_bytes())
@@ -82,13 +86,14 @@ def main() -> int:
     made, near = [], 0                                # (seconds, true pose) of each keyframe
     in_map = {}                                       # seconds -> keyframes in the map (after culling)
     objects = {}                                      # seconds -> objects in the map, at the marks
-    t0 = time.perf_counter()
+    t0, t_prev = time.perf_counter(), -1.0
     for obs, _ in frames:
         step = session.step(obs)
         t = (obs.stamp_ns - start_ns) / 1e9
         in_map[t] = len(session.mapper.keyframes)
-        if any(t_prev < mark <= t for mark in (10, 30, 60, 120, 300) for t_prev in [max(objects, default=-1)]):
+        if any(t_prev < mark <= t for mark in MARKS_S):                # the first frame at or past a mark
             objects[t] = len(session.mapper.tracks())
+        t_prev = t
         if step.keyframe is None:
             continue
         kf = step.keyframe.observations
@@ -102,9 +107,9 @@ def main() -> int:
     seconds = time.perf_counter() - t0
     errors = trajectory_errors(session.mapper.frame_poses(), truth, align='4dof')
     times = np.array([s for s, _ in made])
-    print('keyframes made by ' + ', '.join(f'{t} s: {int((times <= t).sum())}' for t in (10, 30, 60, 120, 300)
+    print('keyframes made by ' + ', '.join(f'{t} s: {int((times <= t).sum())}' for t in MARKS_S
                                            if t <= times.max(initial=0) + 60))
-    marks = [t for t in (10, 30, 60, 120, 300) if t <= max(in_map)]
+    marks = [t for t in MARKS_S if t <= max(in_map)]
     print('keyframes in the map at ' + ', '.join(
         f'{t} s: {in_map[max(s for s in in_map if s <= t)]}' for t in marks)
         + f' (end: {len(session.mapper.keyframes)}, culled {len(session.mapper.merged)}); objects at '

@@ -354,9 +354,7 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
             fresh.add_edge(e)
         fresh.restore(content['poses'], [e for e, a in zip(content['edges'], content['edge_active']) if a])
         if content['frames']:
-            fresh.frames.restore(content['frames'])
-            log = fresh.frames.arrays()
-            fresh.streamed = set(log['keyframes'][log['continuous']].tolist()) & set(fresh.keyframes)
+            fresh.restore_frames(content['frames'])
     except (ValueError, TypeError, IndexError, KeyError) as exc:
         raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
     fresh.origins = content['origins']

@@ -296,6 +296,13 @@ class Mapper:
         return replace(track, keyframe_id=m.into, keyframe_stamp_ns=self.keyframes[m.into].stamp_ns,
                        pose=m.pose @ track.pose, is_keyframe=False)
 
+    def restore_frames(self, arrays: dict) -> None:
+        """Replace the frame log by ``arrays`` (a map file's, validated), and with it which
+        keyframes frames of a stream were tracked against (:attr:`streamed`)."""
+        self.frames.restore(arrays)
+        log = self.frames.arrays()
+        self.streamed = set(log['keyframes'][log['continuous']].tolist()) & set(self.keyframes)
+
     def awaits_recovery(self, keyframe_id: int) -> bool:
         """Whether tracking recovery has yet to try this keyframe, which is outside the
         registered map (an update tries it once something newer has arrived)."""
@@ -444,8 +451,9 @@ class Mapper:
         offset = dict(zip(ids, np.cumsum([0] + [len(self.keyframes[k]) for k in ids[:-1]]).tolist()))
         n = sum(len(f) for f in self.keyframes.values())
         owner = np.repeat(np.array(ids), [len(self.keyframes[k]) for k in ids])      # node -> keyframe
+        active = self.active_edges()
         pairs = np.array([(offset[e.source] + a, offset[e.target] + b)
-                          for e in self.active_edges() for a, b in e.inliers], int).reshape(-1, 2)
+                          for e in active for a, b in e.inliers], int).reshape(-1, 2)
         if not len(pairs):
             return False
         label = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)),
@@ -456,10 +464,13 @@ class Mapper:
         links: dict = {}                                     # object -> [(node, node)] (its matches)
         for a, b in pairs:
             links.setdefault(int(label[a]), []).append((int(a), int(b)))
-        linked: dict = {}                                    # keyframe -> keyframes a kept edge links it to
-        for e in self.active_edges():
-            linked.setdefault(e.source, set()).add(e.target)
-            linked.setdefault(e.target, set()).add(e.source)
+        # keyframe -> {keyframe a kept edge links it to: (-its strongest weight, that edge's order)}
+        linked: dict = {}
+        for i, e in enumerate(active):
+            for a, b in ((e.source, e.target), (e.target, e.source)):
+                best = linked.setdefault(a, {}).get(b)
+                if best is None or -e.weight < best[0]:
+                    linked[a][b] = (-e.weight, i)
         published = None                                     # keyframes that alone hold a published object (lazily)
         culled, anchors, gone = {}, set(), set()
         for k in due:
@@ -472,7 +483,8 @@ class Mapper:
                 if published is None:                        # keyframes that alone hold an object of the map
                     published = {int(t.observations[0, 0]) for t in self.tracks()
                                  if np.all(t.observations[:, 0] == t.observations[0, 0])}
-                into = self._isolated_into(k, poses, published, gone | set(culled))
+                into = None if k in published else min(
+                    (j for j in linked.get(k, ()) if j in poses and j not in gone), key=linked[k].get, default=None)
                 if into is not None:
                     culled[k] = Merged(into, poses[into] @ poses[k].inverse(), self.keyframes[k].stamp_ns,
                                        np.full(len(self.keyframes[k]), -1))
@@ -505,30 +517,16 @@ class Mapper:
                 links[c] = [(moved.get(a, a), moved.get(b, b)) for a, b in links.get(c, ())
                             if moved.get(a, a) is not None and moved.get(b, b) is not None]
         if culled:
-            self._merge(culled)
+            self._merge(culled, poses)
         return bool(culled)
 
-    def _isolated_into(self, keyframe_id: int, poses: dict, published: set, gone: set) -> int | None:
-        """The keyframe an isolated keyframe (none of its detections matched in another
-        keyframe) is merged into: the registered neighbour of its strongest kept edge (None:
-        it has none, or it alone holds an object of the published map: ``published``)."""
-        if keyframe_id in published:
-            return None
-        best, into = 0.0, None
-        for e in self.active_edges():
-            if keyframe_id in (e.source, e.target):
-                other = e.target if e.source == keyframe_id else e.source
-                if other in poses and other not in gone and e.weight > best:
-                    best, into = e.weight, other
-        return into
-
-    def _merge(self, culled: dict) -> None:
-        """Take the ``culled`` keyframes ({id: Merged}) out of the map (see :meth:`_cull`)."""
+    def _merge(self, culled: dict, poses: dict) -> None:
+        """Take the ``culled`` keyframes ({id: Merged}) out of the map (see :meth:`_cull`);
+        ``poses``: the averaged poses ({id: Pose4 T_k_map}), which the kept keyframes keep."""
         for k, m in list(self.merged.items()):
             if m.into in culled:
                 self.merged[k] = m.then(culled[m.into])
         self.merged.update(culled)
-        poses = self.averager.poses
         old, store = self._averaged, self.averager.edges
         kept = [(self._resolved(old[i]), bool(store.active[i]), bool(store.blocked[i]))
                 for i in range(len(store)) if i in old]
