@@ -243,3 +243,31 @@ def test_camera_heights_replace_the_vertical_translation_where_they_agree():
     assert with_camera_heights(dc_replace(rel), source, target, off).pose.t[2] == rel.pose.t[2]
     # a non-physical height is no measurement
     assert np.isnan(FrameObservations(1, 'c', intr, [0, 0, -1], camera_height=-1.0).camera_height)
+
+
+def test_an_edge_whose_boxes_disagree_is_uncertain_whatever_its_count():
+    """``pose_uncertainty``: boxes that agree under the pose give an edge the detection noise
+    model's standard deviations (more objects, smaller); the same count of boxes that
+    disagree (partial views whose centres and faces moved) makes it several times less
+    certain, and the averaging weight follows; one object at the reference range (straight
+    above the camera: no lever arm) that agrees as the model expects weighs one."""
+    from rfm_core.matching.relative_pose import REFERENCE_RANGE_M, pose_uncertainty  # noqa: PLC0415
+
+    rng = np.random.default_rng(5)
+    a = scene_boxes(rng, 6)
+    truth = Pose4(0.3, (0.6, -0.2, 0.0))                 # T_b_a
+    b = truth.transform_boxes(a)
+    pairs = np.stack([np.arange(6), np.arange(6)], 1)
+    agree = pose_uncertainty(truth, a, b, pairs)
+    three = pose_uncertainty(truth, a, b, pairs[:3])
+    assert agree.translation_m < three.translation_m and agree.yaw_rad < three.yaw_rad
+    assert agree.weights[1] > three.weights[1] > 0
+    moved = b.copy()
+    moved[:, :2] += rng.normal(0.0, 0.15, (6, 2))        # centres 15 cm off, faces 8 deg off
+    moved[:, 6] += np.radians(rng.normal(0.0, 8.0, 6))
+    disagree = pose_uncertainty(truth, a, moved, pairs)
+    assert disagree.translation_m > 3 * agree.translation_m and disagree.yaw_rad > 3 * agree.yaw_rad
+    assert disagree.weights[1] < agree.weights[1] / 9
+    one = np.array([[0.0, 0.0, REFERENCE_RANGE_M, 1.0, 1.0, 1.0, 0.0]])
+    single = pose_uncertainty(Pose4(0.0, (0.0, 0.0, 0.0)), one, one, np.zeros((1, 2), int))
+    assert single.weights == pytest.approx((1.0, 1.0), rel=1e-6)

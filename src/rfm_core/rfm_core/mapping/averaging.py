@@ -77,6 +77,12 @@ class AveragingConfig:
                                      'within this multiple of max_yaw_residual_deg / max_translation_residual_m '
                                      'of the measurement (three edges add their errors)', lo=0.5, hi=20.0)
     cycle_max_loops: int = setting(12, '... triangles tried per pair of keyframes (bounded cost)', lo=1, hi=1000)
+    edge_weights: str = setting('objects', "An edge's weight in translation averaging: 'objects' (its verified "
+                                'objects x its score, as in yaw averaging) or \'uncertainty\' (the inverse variance of '
+                                'its horizontal translation from how well its inlier boxes agree, in objects at 2 m: '
+                                'matching.relative_pose.pose_uncertainty). The second ranks edges by their true error '
+                                'better, yet made the maps worse on tuning scenes (BENCHMARKS.md)',
+                                choices=('objects', 'uncertainty'))
     max_map_turn_deg: float = setting(0.0, 'A full re-solve may turn each keyframe registered before it by at '
                                       'most this (deg): one that turns any further is re-run without the new '
                                       'edges the previous map contradicts, which are rejected for good when '
@@ -410,11 +416,13 @@ def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np
     return flagged
 
 
-def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, allowed=None):
+def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, allowed=None,
+               translation_weight=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
     mask, component mask, and the mask of the edges the cycle check dropped. ``yaw_only``
     edges (the gyroscope's) count in the yaw stage only: they neither place nor connect
     keyframes. Only ``allowed`` edges take part (default all)."""
+    tweight = weight if translation_weight is None else translation_weight
     active = np.ones(len(src), bool) if allowed is None else np.asarray(allowed, bool).copy()
     full = ~yaw_only if yaw_only is not None else np.ones(len(src), bool)
     theta = np.full(n, np.nan)
@@ -453,7 +461,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
                 bad = use & (yr > cfg.max_yaw_residual_deg)
             else:
                 centres = _solve_centres(theta, np.where(comp[:, None], centres, 0.0), src[use], dst[use],
-                                         trans[use], weight[use], free, cfg)
+                                         trans[use], tweight[use], free, cfg)
                 _, tr = _residuals(theta, centres, src, dst, yaw, trans)
                 bad = use & (tr > cfg.max_translation_residual_m)
             if not np.any(bad):
@@ -470,7 +478,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     return theta, centres, active, comp, cycle
 
 
-_EDGE_ARRAYS = ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only', '_blocked')
+_EDGE_ARRAYS = ('_src', '_dst', '_yaw', '_trans', '_weight', '_tweight', '_active', '_yaw_only', '_blocked')
 
 
 class _EdgeStore:
@@ -483,11 +491,12 @@ class _EdgeStore:
         self._yaw = np.zeros(64)
         self._trans = np.zeros((64, 3))
         self._weight = np.zeros(64)
+        self._tweight = np.zeros(64)
         self._active = np.zeros(64, bool)
         self._yaw_only = np.zeros(64, bool)
         self._blocked = np.zeros(64, bool)
 
-    def append(self, s, t, yaw, trans, weight, yaw_only=False):
+    def append(self, s, t, yaw, trans, weight, yaw_only=False, translation_weight=None):
         if self.n == len(self._src):
             for name in _EDGE_ARRAYS:
                 old = getattr(self, name)
@@ -495,6 +504,7 @@ class _EdgeStore:
         i = self.n
         self._src[i], self._dst[i], self._yaw[i] = s, t, yaw
         self._trans[i], self._weight[i], self._active[i] = trans, weight, True
+        self._tweight[i] = weight if translation_weight is None else translation_weight
         self._yaw_only[i] = yaw_only
         self._blocked[i] = False
         self.n += 1
@@ -504,6 +514,7 @@ class _EdgeStore:
     yaw = property(lambda self: self._yaw[:self.n])
     trans = property(lambda self: self._trans[:self.n])
     weight = property(lambda self: self._weight[:self.n])
+    translation_weight = property(lambda self: self._tweight[:self.n])   #: in translation averaging
     active = property(lambda self: self._active[:self.n])
     yaw_only = property(lambda self: self._yaw_only[:self.n])
     blocked = property(lambda self: self._blocked[:self.n])      #: rejected for good (max_map_turn_deg)
@@ -556,7 +567,7 @@ class IncrementalAverager:
         self._new.append(keyframe_id)
 
     def add_edge(self, source_id: int, target_id: int, pose: Pose4, weight: float = 1.0,
-                 yaw_only: bool = False) -> None:
+                 yaw_only: bool = False, translation_weight: float | None = None) -> None:
         """An edge T_source_target; unknown keyframes are added. ``yaw_only``: only the yaw
         is measured (the gyroscope's rotation between two keyframes): it counts in yaw
         averaging but neither places nor connects keyframes."""
@@ -566,7 +577,8 @@ class IncrementalAverager:
         if s == t:
             return
         self.edges.append(s, t, float(pose.yaw), np.zeros(3) if yaw_only else np.asarray(pose.t, float),
-                          float(weight), yaw_only)
+                          float(weight), yaw_only,
+                          None if translation_weight is None else float(translation_weight))
         self._new_edges = True
 
     # ------------------------------------------------------------------ output
@@ -675,7 +687,7 @@ class IncrementalAverager:
         order = np.r_[np.flatnonzero(reg), np.flatnonzero(~reg)]
         theta, centres, active, comp, cycle = _solve_all(
             len(self.ids), rank[src][edge], rank[dst][edge], yaw[edge], trans[edge], weight[edge], self.config,
-            order, self.edges.yaw_only[edge], np.asarray(allowed, bool)[edge])
+            order, self.edges.yaw_only[edge], np.asarray(allowed, bool)[edge], self.edges.translation_weight[edge])
         anchor = next((node[k] for k in order if comp[k]), None)
         back = np.empty_like(edge)
         back[edge] = np.arange(len(edge))                    # store index -> canonical position
@@ -757,7 +769,8 @@ class IncrementalAverager:
             return True
         theta = _solve_yaw(theta, src[use], dst[use], yaw[use], weight[use], free, cfg)
         ut = use & full
-        centres = _solve_centres(theta, centres, src[ut], dst[ut], trans[ut], weight[ut], free, cfg)
+        tweight = self.edges.translation_weight
+        centres = _solve_centres(theta, centres, src[ut], dst[ut], trans[ut], tweight[ut], free, cfg)
         yr, tr = _residuals(theta, centres, src[use], dst[use], yaw[use], trans[use])
         bad = (yr > cfg.max_yaw_residual_deg) | ((tr > cfg.max_translation_residual_m) & full[use])
         idx = np.flatnonzero(use)[bad]

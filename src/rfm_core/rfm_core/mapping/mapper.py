@@ -29,6 +29,7 @@ from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.relative_pose import pose_uncertainty
 from rfm_core.matching.view_graph import Edge, bag_of_objects
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import from_dict, section, setting
@@ -233,8 +234,17 @@ class Mapper:
         self._pairs.setdefault(key, []).append(edge)
         if not self.config.posed:
             self._averaged[len(self.averager.edges)] = edge
-            self.averager.add_edge(edge.source, edge.target, edge.pose,
-                                   edge.weight * self.config.averaging.turn_factor(edge.pose.yaw))
+            turn = self.config.averaging.turn_factor(edge.pose.yaw)
+            self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight * turn,
+                                   translation_weight=self._translation_weight(edge) * turn)
+
+    def _translation_weight(self, edge: EdgeRecord) -> float:
+        """An edge's weight in translation averaging (``averaging.edge_weights``)."""
+        if self.config.averaging.edge_weights != 'uncertainty' or len(edge.inliers) < 2:
+            return edge.weight
+        u = pose_uncertainty(edge.pose, self.keyframes[edge.target].boxes, self.keyframes[edge.source].boxes,
+                             edge.inliers[:, ::-1], self.config.matching)
+        return u.weights[1] * max(edge.score, 1e-3)
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""

@@ -36,7 +36,8 @@ from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 
-__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'with_camera_heights']
+__all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty',
+           'with_camera_heights']
 
 
 @dataclass
@@ -175,6 +176,75 @@ def with_camera_heights(rel: RelativePose | None, source, target,
         t[2] = ht - hs
         rel.pose = Pose4(rel.pose.yaw, t)
     return rel
+
+
+@dataclass(frozen=True)
+class PoseUncertainty:
+    """Standard deviations of a relative pose, from its inlier boxes (:func:`pose_uncertainty`)."""
+
+    yaw_rad: float               #: of its yaw
+    translation_m: float         #: of its horizontal translation (both axes together)
+    #: (yaw, translation) as inverse variances, in units of one object that agrees as the
+    #: noise model expects: its two boxes' faces at ``face_sigma_deg``, their centres at the
+    #: detection noise of ``REFERENCE_RANGE_M`` (and no lever arm)
+    weights: tuple
+
+
+#: where an object's detection noise is the reference of :attr:`PoseUncertainty.weights` (m)
+REFERENCE_RANGE_M = 2.0
+#: the detection noise model's (and the face yaw's) word, in objects, against the boxes' own
+#: scatter: an edge on two objects that happen to agree is not certain
+PRIOR_OBJECTS = 1.0
+
+
+def pose_uncertainty(pose: Pose4, boxes_a: np.ndarray, boxes_b: np.ndarray, pairs: np.ndarray,
+                     config: MatchingConfig | None = None) -> PoseUncertainty:
+    """How well a verified T_b_a (``pose``) is known, from how its inlier boxes (``pairs``:
+    (K, 2) indices into ``boxes_a``, ``boxes_b``) agree under it (not in the paper; #18).
+
+    Each object's error is the detection noise model's (``refine_sigma_m`` +
+    ``refine_sigma_per_m`` x range, per box) pooled with the object's own scatter about the
+    pose (``PRIOR_OBJECTS`` objects of prior against the residual degrees of freedom): boxes
+    that disagree (partial views, boxes the image border cuts differently, a look-alike)
+    make the edge uncertain whatever their count. The yaw's comes from the boxes'
+    orientations (each pair's yaw difference modulo a quarter turn, ``refine_yaw`` 'faces';
+    prior ``face_sigma_deg`` per box) or from the spread of their centres ('centres');
+    the translation's adds the yaw's times the objects' mean distance (a turn about the
+    camera moves the objects). Precision-weighted over objects as the refit is."""
+    cfg = config or MatchingConfig()
+    pairs = np.asarray(pairs, int).reshape(-1, 2)
+    a = np.asarray(boxes_a, np.float64)[pairs[:, 0]]
+    b = np.asarray(boxes_b, np.float64)[pairs[:, 1]]
+    n = len(pairs)
+    noise = lambda rng: cfg.refine_sigma_m + cfg.refine_sigma_per_m * rng  # noqa: E731
+    if n == 0:
+        return PoseUncertainty(np.pi, np.inf, (0.0, 0.0))
+    sigma = noise(0.5 * (np.linalg.norm(a[:, :3], axis=1) + np.linalg.norm(b[:, :3], axis=1)))
+    w = 1.0 / sigma ** 2
+    n_eff = float(w.sum() ** 2 / np.sum(w ** 2))
+    dof = max(n - 1, 0)                                      # residual degrees of freedom per object
+
+    def pooled(prior, residual_sq):                          # one object's variance
+        empirical = float(np.sum(w * residual_sq) / w.sum()) * n / max(n - 1, 1)
+        return (PRIOR_OBJECTS * prior + dof * empirical) / (PRIOR_OBJECTS + dof)
+
+    # horizontal centre residuals: two boxes per object, two axes
+    r = (b[:, :3] - pose.transform_points(a[:, :3]))[:, :2]
+    var_object = pooled(4.0 * float(np.sum(w * sigma ** 2) / w.sum()), np.sum(r ** 2, axis=1))
+    lever = np.sum(w[:, None] * a[:, :2], axis=0) / w.sum()
+    if cfg.refine_yaw == 'faces':
+        d = wrap_angle(b[:, 6] - a[:, 6] - pose.yaw)
+        d = (d + np.pi / 4) % (np.pi / 2) - np.pi / 4
+        var_yaw = pooled(2.0 * np.radians(cfg.face_sigma_deg) ** 2, d ** 2) / n_eff
+    else:                                                    # from the centres' spread about their mean
+        unit = w * n_eff / w.sum()                           # weights summing to n_eff objects
+        spread = float(np.sum(unit * np.sum((a[:, :2] - lever) ** 2, axis=1)))
+        var_yaw = min(var_object / 2.0 / max(spread, 1e-9), np.pi ** 2)
+    var_t = var_object / n_eff + var_yaw * float(lever @ lever)
+    ref_t = 4.0 * noise(REFERENCE_RANGE_M) ** 2
+    ref_yaw = 2.0 * np.radians(cfg.face_sigma_deg) ** 2
+    return PoseUncertainty(float(np.sqrt(var_yaw)), float(np.sqrt(var_t)),
+                           (float(ref_yaw / max(var_yaw, 1e-12)), float(ref_t / max(var_t, 1e-12))))
 
 
 def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
