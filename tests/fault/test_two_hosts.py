@@ -129,5 +129,6 @@ def test_detector_on_one_host_matcher_and_mapper_on_another(two_hosts, tmp_path)
     print(json.dumps({'keyframes': len(mapper.keyframes), 'registered': len(mapper.poses),
                       'ARE': loc['ARE_median'], 'ATE': loc['ATE_median'], 'localized': loc['registered'],
                       'AP25': m['AP25']}))
-    assert len(mapper.keyframes) >= 8 and len(mapper.poses) >= 0.7 * len(mapper.keyframes)
+    # (keyframes held: in the map or culled into one of its keyframes)
+    assert len(mapper.keyframes) + len(mapper.merged) >= 8 and len(mapper.poses) >= 0.7 * len(mapper.keyframes)
     assert loc['registered'] >= 0.5 and loc['ATE_median'] < 0.2 and m['AP25'] > 0.2, (loc, m)

@@ -305,6 +305,7 @@ class MapperNode(Node):
         msg.header.frame_id = self.map_frame
         msg.mode = MapperStatus.MODE_MAPPING if mp.mode == 'mapping' else MapperStatus.MODE_LOCALIZATION
         msg.num_keyframes = len(mp.keyframes)
+        msg.num_culled = len(mp.merged)
         msg.num_registered = len(mp.poses)
         active = len(mp.active_edges())
         msg.num_edges = active
