@@ -60,13 +60,15 @@ def main():
     print('| | Spearman rho with the yaw error | with the horizontal error |')
     print('|---|---|---|')
     print(f'| predicted sigma | {spearmanr(s_yaw, e_yaw)[0]:+.2f} | {spearmanr(s_t, e_t)[0]:+.2f} |')
-    print(f'| 1 / sqrt(inliers) (before) | {spearmanr(n ** -0.5, e_yaw)[0]:+.2f} | {spearmanr(n ** -0.5, e_t)[0]:+.2f} |')
+    count = n ** -0.5
+    print(f'| 1 / sqrt(inliers) (before) | {spearmanr(count, e_yaw)[0]:+.2f} | {spearmanr(count, e_t)[0]:+.2f} |')
     z_yaw, z_t = e_yaw / s_yaw, e_t / s_t
-    print(f'\nyaw |error| / sigma: median {np.median(z_yaw):.2f} (0.67 if calibrated), p90 {np.percentile(z_yaw, 90):.2f}'
-          f' (1.64); sigma median {np.degrees(np.median(s_yaw)):.2f} deg, error median {np.degrees(np.median(e_yaw)):.2f} deg')
-    print(f'horizontal |error| / sigma: RMS {np.sqrt(np.mean(z_t ** 2)):.2f} (1 if calibrated), median {np.median(z_t):.2f}'
-          f' (0.83), p90 {np.percentile(z_t, 90):.2f} (1.52); sigma median {100 * np.median(s_t):.1f} cm, error median'
-          f' {100 * np.median(e_t):.1f} cm')
+    print(f'\nyaw |error| / sigma: median {np.median(z_yaw):.2f} (0.67 if calibrated), '
+          f'p90 {np.percentile(z_yaw, 90):.2f} (1.64); sigma median {np.degrees(np.median(s_yaw)):.2f} deg, '
+          f'error median {np.degrees(np.median(e_yaw)):.2f} deg')
+    print(f'horizontal |error| / sigma: RMS {np.sqrt(np.mean(z_t ** 2)):.2f} (1 if calibrated), '
+          f'median {np.median(z_t):.2f} (0.83), p90 {np.percentile(z_t, 90):.2f} (1.52); '
+          f'sigma median {100 * np.median(s_t):.1f} cm, error median {100 * np.median(e_t):.1f} cm')
     # the edges binned by predicted sigma: the error should grow with it
     for label, s, e, scale in (('yaw (deg)', s_yaw, e_yaw, np.degrees(1.0)), ('horizontal (cm)', s_t, e_t, 100.0)):
         q = np.quantile(s, [0, 0.25, 0.5, 0.75, 1.0])

@@ -60,7 +60,8 @@ def scene(config) -> Counter:
             continue
         shared = len(seen[k] & seen[partner])
         matches = graph.matcher.match(views[k], views[partner])
-        right = sum(1 for a, b in zip(matches.a, matches.b) if objects[k][a] >= 0 and objects[k][a] == objects[partner][b])
+        right = sum(1 for a, b in zip(matches.a, matches.b)
+                    if objects[k][a] >= 0 and objects[k][a] == objects[partner][b])
         rel = graph._relative(views[partner], views[k], matches, stream=False)
         inliers = 0 if rel is None else len(rel.inliers)
         print(f'  keyframe {k}: {len(views[k])} detections ({int((objects[k] >= 0).sum())} of room objects); '

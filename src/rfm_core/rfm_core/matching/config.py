@@ -32,8 +32,8 @@ class MatchingConfig:
                                     lo=0.001, hi=1.0)
     refine_sigma_per_m: float = setting(0.01, '... growing by this per metre of range', lo=0.0, hi=1.0)
     face_sigma_deg: float = setting(2.0, "A box's yaw error (deg), where the boxes' orientations give a relative "
-                                    "pose's yaw: its prior in an edge's uncertainty (mapper averaging.edge_weights: uncertainty)",
-                                    lo=0.01, hi=45.0)
+                                    "pose's yaw: its prior in an edge's uncertainty (mapper "
+                                    'averaging.edge_weights: uncertainty)', lo=0.01, hi=45.0)
     refine_yaw: str = setting('faces', "The refit's yaw: 'centres' (from the spread of the inlier boxes' "
                               "centres) or 'faces' (the boxes' own orientations, robustly averaged: partial "
                               'boxes, whose centres shift towards the camera that saw them, cannot turn it)',
