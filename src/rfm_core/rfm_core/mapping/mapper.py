@@ -487,8 +487,10 @@ class Mapper:
             if k in anchors:
                 continue
             nodes = range(offset[k], offset[k] + len(self.keyframes[k]))
-            objects = {int(label[v]) for v in nodes if len({owner[u] for u in members[int(label[v])]} - gone) > 1}
-            views = {c: {int(owner[u]) for u in members[c]} - gone - {k} for c in objects}
+            node_set = set(nodes)
+            seen_by = {c: {int(owner[u]) for u in members[c]} - gone for c in {int(label[v]) for v in nodes}}
+            objects = {c for c, seen in seen_by.items() if len(seen) > 1}       # seen by other keyframes too
+            views = {c: seen_by[c] - {k} for c in objects}
             if not objects:                                  # a view that shares no object with the map
                 if published is None:                        # keyframes that alone hold an object of the map
                     published = {int(t.observations[0, 0]) for t in self.tracks()
@@ -515,7 +517,7 @@ class Mapper:
             for u in range(offset[into], offset[into] + len(self.keyframes[into])):
                 first.setdefault(int(label[u]), u)
             moved = {v: first.get(int(label[v])) for v in nodes}          # K's node -> into's (or None)
-            if not all(_connected(members[c] - set(nodes), links.get(c, ()), moved) for c in objects):
+            if not all(_connected(members[c] - node_set, links.get(c, ()), moved) for c in objects):
                 continue
             detections = np.array([moved[v] - offset[into] if moved[v] is not None and int(label[v]) in objects
                                    else -1 for v in nodes], int)
@@ -523,7 +525,7 @@ class Mapper:
             anchors.add(into)
             gone.add(k)
             for c in objects:                                # K's matches now end at into's detection
-                members[c] -= set(nodes)
+                members[c] -= node_set
                 links[c] = [(moved.get(a, a), moved.get(b, b)) for a, b in links.get(c, ())
                             if moved.get(a, a) is not None and moved.get(b, b) is not None]
         if culled:
