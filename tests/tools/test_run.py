@@ -186,6 +186,23 @@ def test_rfm_eval_measures_the_graph_a_user_runs(tmp_path):
     assert 'frames localized' in proc.stdout
 
 
+def test_relocalization_counts_the_frames_that_see_two_mapped_objects():
+    """#20's denominator: a frame counts when two objects of the room that the map holds (a map
+    box overlaps them) are each at least 20% in view."""
+    from rfm_core.evaluation.report import GroundTruth, frames_seeing_mapped  # noqa: PLC0415
+    room = np.array([[0, 0, 0.5, 1, 1, 1, 0], [3, 0, 0.5, 1, 1, 1, 0], [0, 3, 0.5, 1, 1, 1, 0.3]], float)
+    truth = GroundTruth(boxes=room, ids=np.array([7, 8, 9]), frame_visibility={
+        1: {7: 0.9, 8: 0.5},              # two mapped objects in view
+        2: {7: 0.9, 9: 0.9},              # 9 is not in the map
+        3: {7: 0.9, 8: 0.1},              # 8 barely in view
+        4: {7: 0.3, 8: 0.2, 9: 1.0}})
+    mapped = room[:2] + np.array([0.1, -0.1, 0, 0, 0, 0, 0.05])      # off by a little: still the same objects
+    assert frames_seeing_mapped(truth, mapped) == {1, 4}
+    assert frames_seeing_mapped(truth, mapped, min_objects=1) == {1, 2, 3, 4}
+    assert frames_seeing_mapped(truth, mapped + [2, 2, 0, 0, 0, 0, 0]) == set()      # a map elsewhere
+    assert frames_seeing_mapped(truth, np.zeros((0, 7))) == set()
+
+
 def test_eval_settings_by_exact_name_or_part_of_names():
     from rfm_core.evaluation.suite import SETTINGS, select_settings
     names = lambda keys: [s.name for s in select_settings(keys)]  # noqa: E731
@@ -233,6 +250,8 @@ def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
     assert 'error' not in result, result
     assert result['map_registered'] >= 0.9 and result['frames'] == 12, result
     assert result['registered'] >= 0.6 and result['wrong'] <= 0.1, result
+    # #20's denominator: the query frames that see two objects of the map (each in view)
+    assert 6 <= result['seeing_mapped'] <= 12 and result['registered_seeing'] >= 0.6, result
     assert result['ARE_median'] < 2.0 and result['ATE_median'] < 0.10, result
     assert 0 < result['latency_ms'] < 1000, result          # the mapper timed its queries (summary.json)
     assert (tmp_path / f'{config.seed}_{config.room_style}_handheld' / 'query_run' / 'outputs.mcap').is_dir()

@@ -505,7 +505,9 @@ def cmd_eval_reloc(args) -> int:
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
             for r in pool.map(scene_fn, work):
                 rows.append(r)
-                print(f'[rfm eval-reloc] {r["scene"]}: relocalized {100 * r["registered"]:.0f}%, '
+                seeing = (f' ({100 * r["registered_seeing"]:.0f}% of the {r["seeing_mapped"]} frames that see two '
+                          f'mapped objects)' if r.get('seeing_mapped') else '')
+                print(f'[rfm eval-reloc] {r["scene"]}: relocalized {100 * r["registered"]:.0f}%{seeing}, '
                       f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong {100 * r["wrong"]:.0f}%, '
                       f'{r.get("latency_ms", float("nan")):.0f} ms per query '
                       f'(map: {100 * r["map_registered"]:.0f}% of keyframes registered)'
@@ -518,15 +520,18 @@ def cmd_eval_reloc(args) -> int:
     ate = float(np.nanmedian([r['ATE_median'] for r in rows]))
     relocalized = np.array([r['registered'] * r['frames'] for r in rows])
     wrong = float(np.nansum(np.array([r['wrong'] for r in rows]) * relocalized) / max(relocalized.sum(), 1))
+    seeing = np.array([r.get('seeing_mapped', 0) for r in rows], float)
+    found = np.nan_to_num(np.array([r.get('registered_seeing', np.nan) for r in rows], float)) * seeing
+    seeing_share = f'{100 * found.sum() / seeing.sum():.1f}%' if seeing.sum() else '-'
     latency = np.array([r.get('latency_ms', np.nan) for r in rows], float)
     latency = float(np.median(latency[np.isfinite(latency)])) if np.isfinite(latency).any() else float('nan')
     path = 'in-process' if args.offline else 'through the node graph'
     print(f'\n{path}, {args.world} world:\n'
-          f'| input | rooms | relocalized | ARE median (deg) | ATE median (cm) | wrong (> 5 deg or > 25 cm) '
-          f'| ms per query (median) |\n'
-          f'|---|---|---|---|---|---|---|\n'
-          f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% '
-          f'| {latency:.0f} |')
+          f'| input | rooms | relocalized | of frames that see >= 2 mapped objects | ARE median (deg) '
+          f'| ATE median (cm) | wrong (> 5 deg or > 25 cm) | ms per query (median) |\n'
+          f'|---|---|---|---|---|---|---|---|\n'
+          f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {seeing_share} ({int(seeing.sum())} frames) '
+          f'| {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% | {latency:.0f} |')
     return 0
 
 

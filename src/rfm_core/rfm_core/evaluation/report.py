@@ -16,7 +16,7 @@ from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4, bev_corners, quaternion_from_matrix
 from rfm_core.mapping.tracks import track_colour
 
-__all__ = ['GroundTruth', 'read_ground_truth', 'evaluate_run', 'write_tum', 'write_keyframes_tum',
+__all__ = ['GroundTruth', 'read_ground_truth', 'frames_seeing_mapped', 'evaluate_run', 'write_tum', 'write_keyframes_tum',
            'write_object_json', 'render_top_down', 'write_report']
 
 
@@ -26,6 +26,7 @@ class GroundTruth:
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))   #: (M, 7) map frame, z up
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     best_visibility: dict = field(default_factory=dict)  #: object id -> best visible fraction
+    frame_visibility: dict = field(default_factory=dict)  #: stamp_ns -> {object id: visible fraction}
 
     def __bool__(self) -> bool:
         return bool(self.camera_poses)
@@ -57,10 +58,27 @@ def read_ground_truth(bag) -> GroundTruth:
                 gt.boxes = boxes_from_oriented(centres, rots, sizes)
                 gt.ids = np.array([o.id for o in msg.objects], np.int64)
             else:
+                seen = gt.frame_visibility.setdefault(stamp_to_ns(msg.header.stamp), {})
                 for d in msg.detections:
                     k = int(d.object_id)
+                    seen[k] = float(d.visibility)
                     gt.best_visibility[k] = max(gt.best_visibility.get(k, 0.0), float(d.visibility))
     return gt
+
+
+def frames_seeing_mapped(truth: GroundTruth, map_boxes: np.ndarray, min_objects: int = 2,
+                         min_visibility: float = 0.2, iou: float = 0.25) -> set:
+    """The stamps of the frames of ``truth`` that see ``min_objects`` mapped objects: objects
+    of the room a box of the map (``map_boxes``, (N, 7) in the truth's frame) overlaps by
+    ``iou``, each at least ``min_visibility`` in view (#20's denominator for relocalization:
+    a frame that sees fewer cannot be placed by any object-level method)."""
+    from rfm_core.geometry import iou_3d  # noqa: PLC0415
+
+    if not len(map_boxes) or not len(truth.boxes):
+        return set()
+    mapped = {int(i) for i, hit in zip(truth.ids, iou_3d(truth.boxes, map_boxes).max(1) >= iou) if hit}
+    return {stamp for stamp, seen in truth.frame_visibility.items()
+            if sum(v >= min_visibility for k, v in seen.items() if k in mapped) >= min_objects}
 
 
 def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed: bool = False) -> dict:

@@ -401,7 +401,7 @@ def relocalization_scene_graph(args) -> dict:
     run's keyframes: the query frames are not re-aligned). ``wrong``: > 5 deg or > 25 cm.
     ``params``: extra ``--param`` values for both runs."""
     config, detector, query_frames, work, domain, params = args
-    from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
+    from rfm_core.evaluation.report import frames_seeing_mapped, read_ground_truth  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
@@ -417,7 +417,8 @@ def relocalization_scene_graph(args) -> dict:
                                   'mapper.mode:=localization']}
     nan = float('nan')
     failed = {'scene': scene_name(config), 'registered': 0.0, 'wrong': nan, 'ARE_median': nan, 'ATE_median': nan,
-              'frames': query_frames, 'map_registered': 0.0, 'latency_ms': nan}
+              'frames': query_frames, 'map_registered': 0.0, 'latency_ms': nan, 'seeing_mapped': 0,
+              'registered_seeing': nan}
     for name, output in (('map', mapped), ('query', queried)):
         cmd = [rfm, 'run', '--bag', str(bags[name]), '--output', str(output), '--force', '--quiet', *detector_args,
                *extra[name]]
@@ -431,12 +432,18 @@ def relocalization_scene_graph(args) -> dict:
     load_map(mapper, mapped / 'map.rfm')
     map_truth = read_ground_truth(bags['map']).camera_poses
     keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
-    world = map_to_truth(keyframes, map_truth).matrix()
-    truth = read_ground_truth(bags['query']).camera_poses
+    alignment = map_to_truth(keyframes, map_truth)
+    world = alignment.matrix()
+    query = read_ground_truth(bags['query'])
+    truth = query.camera_poses
     estimated = {stamp: world @ pose for stamp, pose in camera_poses_of_run(queried).items() if stamp in truth}
     errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
+    # #20's denominator: the query frames that see two objects the map holds
+    seeing = frames_seeing_mapped(query, alignment.transform_boxes(
+        np.array([t.box for t in mapper.tracks()]).reshape(-1, 7))) & set(truth)
     latency = json.loads((queried / 'summary.json').read_text()).get('relocalization') or {}
-    return {'scene': scene_name(config), **errors, 'frames': len(truth),
+    return {'scene': scene_name(config), **errors, 'frames': len(truth), 'seeing_mapped': len(seeing),
+            'registered_seeing': len(seeing & set(estimated)) / len(seeing) if seeing else nan,
             'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1),
             'latency_ms': latency.get('median_ms', nan) if latency.get('queries') else nan}
 
