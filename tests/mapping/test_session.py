@@ -261,3 +261,17 @@ def test_redundant_keyframes_are_culled_and_carried_by_their_neighbours(round_wa
         assert (measured.source, measured.target) == (other, merged.into)
         np.testing.assert_allclose(measured.pose.matrix(), (mapper.poses[other] @ into_pose.inverse()).matrix(),
                                    atol=1e-9)
+
+
+def test_culling_passes_over_a_registered_keyframe_whose_edges_all_fell_out():
+    """A keyframe can stay registered with no kept edge (its two edges found outliers after
+    merges): culling must pass over it. This capture (a 30 s walk of `rfm eval-reloc`'s
+    solid-box world) raised KeyError in the culling pass and stopped the mapper."""
+    from rfm_core.evaluation.pipeline import run_capture
+    from rfm_core.evaluation.suite import eval_configs
+    from rfm_core.matching.factory import make_matcher
+    from dataclasses import replace
+    config = replace(eval_configs(1, 5000, 150, 5.0, world='boxes')[0], capture='handheld')
+    mapped = run_capture(config, 'ground_truth:rgbd', matcher=make_matcher('learned'), noise_seed=3)
+    assert mapped.mapper.merged                                                 # culled around it
+    assert mapped.localization['registered'] >= 0.8 and mapped.localization['ATE_median'] < 0.1, mapped.localization

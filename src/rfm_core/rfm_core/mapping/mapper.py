@@ -495,8 +495,11 @@ class Mapper:
                 if published is None:                        # keyframes that alone hold an object of the map
                     published = {int(t.observations[0, 0]) for t in self.tracks()
                                  if np.all(t.observations[:, 0] == t.observations[0, 0])}
+                # (a keyframe may keep its pose with no kept edge left: its edges ended at the
+                # keyframe it carries since a merge)
+                near = linked.get(k, {})
                 into = None if k in published else min(
-                    (j for j in linked.get(k, ()) if j in poses and j not in gone), key=linked[k].get, default=None)
+                    (j for j in near if j in poses and j not in gone), key=near.get, default=None)
                 if into is not None:
                     culled[k] = Merged(into, poses[into] @ poses[k].inverse(), self.keyframes[k].stamp_ns,
                                        np.full(len(self.keyframes[k]), -1))
