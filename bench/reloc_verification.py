@@ -49,16 +49,27 @@ def main() -> int:
                 continue
             est, true = world @ reloc.camera_to_map(obs), frame.pose_matrix
             turn = np.degrees(np.arccos(np.clip((np.trace(est[:3, :3].T @ true[:3, :3]) - 1) / 2, -1, 1)))
-            rows.append((turn > 5 or np.linalg.norm(est[:3, 3] - true[:3, 3]) > 0.25, reloc.explained, len(obs)))
+            rows.append((turn > 5 or np.linalg.norm(est[:3, 3] - true[:3, 3]) > 0.25, reloc.explained, len(obs),
+                         reloc.runner_up))
         wrong = sum(r[0] for r in rows[before:])
         print(f'{config.seed} {config.capture}: {len(rows) - before} relocalized, {wrong} wrong', flush=True)
-    wrong, count, n = (np.array([r[i] for r in rows]) for i in range(3))
+    wrong, count, n, runner_up = (np.array([r[i] for r in rows]) for i in range(4))
     wrong = wrong.astype(bool)
     print(f'\n| min_explained | right poses kept | wrong poses kept | wrong share |\n|---|---|---|---|')
     for threshold in (0, 2, 3, 4, 5):
         keep = count >= np.minimum(threshold, n)
         print(f'| {threshold} | {np.sum(keep & ~wrong)} of {np.sum(~wrong)} | {np.sum(keep & wrong)} of {np.sum(wrong)} '
               f'| {100 * np.sum(keep & wrong) / max(np.sum(keep), 1):.0f}% |')
+    print('\nWith the default min_explained (4), further rules:\n\n| rule | right poses kept | wrong poses kept | '
+          'wrong share |\n|---|---|---|---|')
+    base = count >= np.minimum(4, n)
+    rules = {'none': base, 'more than the best distinct alternative pose': base & (count > runner_up),
+             'half of the detections': base & (count >= 0.5 * n),
+             'both': base & (count > runner_up) & (count >= 0.5 * n)}
+    for name, keep in rules.items():
+        print(f'| {name} | {np.sum(keep & ~wrong)} | {np.sum(keep & wrong)} '
+              f'| {100 * np.sum(keep & wrong) / max(np.sum(keep), 1):.0f}% |')
+    np.save('/tmp/reloc_verification_rows.npy', np.array(rows, float))
     return 0
 
 if __name__ == '__main__':

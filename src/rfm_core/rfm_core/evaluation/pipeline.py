@@ -112,17 +112,27 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
     score the poses in the world frame (``map_to_world``: T_world_map, e.g. from
     :func:`rfm_core.evaluation.trajectory.map_to_truth`); frames that fail count as not
     registered. ``wrong``: share of the relocalized frames off by > 5 deg or > 25 cm;
-    ``latency_ms``: the median wall time of one query."""
+    ``latency_ms``: the median wall time of one query; ``seeing_mapped`` the frames that see two
+    objects of the map (:func:`rfm_core.evaluation.report.frames_seeing_mapped`) and
+    ``registered_seeing`` the share of them relocalized."""
+    from rfm_core.evaluation.report import GroundTruth, frames_seeing_mapped  # noqa: PLC0415
+
     detect = detections_for(detector, noise_seed)
     world = map_to_world.matrix()
     relocalized, truth, seconds = {}, {}, []
+    room = GroundTruth(boxes=capture.room.boxes, ids=np.arange(1, len(capture.room.boxes) + 1))
     for frame in capture.frames():
         obs = detect(frame)
         truth[frame.index] = frame.pose_matrix
+        gt = frame.ground_truth
+        room.frame_visibility[frame.index] = dict(zip(gt.object_ids.tolist(), gt.visibility.tolist()))
         start = time.perf_counter()
         reloc = mapper.relocalize(obs)
         seconds.append(time.perf_counter() - start)
         if reloc is not None:
             relocalized[frame.index] = world @ reloc.camera_to_map(obs)
+    seeing = frames_seeing_mapped(room, map_to_world.transform_boxes(
+        np.array([t.box for t in mapper.tracks()]).reshape(-1, 7)))
     return {**trajectory_errors(relocalized, truth, align=False, gross=(5.0, 0.25)),
-            'latency_ms': 1e3 * float(np.median(seconds)) if seconds else float('nan')}
+            'latency_ms': 1e3 * float(np.median(seconds)) if seconds else float('nan'), 'seeing_mapped': len(seeing),
+            'registered_seeing': len(seeing & set(relocalized)) / len(seeing) if seeing else float('nan')}

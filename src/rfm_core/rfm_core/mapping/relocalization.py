@@ -95,6 +95,7 @@ class Relocalization:
     support: int = 0                         #: inliers of all keyframes agreeing on the pose
     agreeing: int = 1                        #: keyframes agreeing on the pose
     explained: int = 0                       #: query detections the pose places on the map's objects
+    runner_up: int = 0                       #: the same for the best distinct alternative pose (0: none)
 
     def camera_to_map(self, query: FrameObservations) -> np.ndarray:
         """4x4 pose of the query's camera optical frame in the map frame."""
@@ -167,8 +168,10 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         why.append(f'verification against the map failed: the best pose explains {count} of the query\'s '
                    f'{len(query)} detections; need {min(config.min_explained, len(query))}')
         return None
+    runner_up = max((h[0] for h in hypotheses if not _same(h[2].inverse(), pose.inverse(), config)), default=0)
     k, rel, _ = found[best]
-    return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count)
+    return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count,
+                          runner_up)
 
 
 def explained(query: FrameObservations, pose: Pose4, index: MapIndex, matching: MatchingConfig) -> int:
