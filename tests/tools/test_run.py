@@ -203,6 +203,20 @@ def test_relocalization_counts_the_frames_that_see_two_mapped_objects():
     assert frames_seeing_mapped(truth, np.zeros((0, 7))) == set()
 
 
+def test_relocalization_maps_every_room_from_a_whole_walk():
+    """`rfm eval-reloc` maps each room from a walk of --frames / --fps seconds, whatever the
+    suite's capture for that slot: a sparse slot used to become a 2.5 s walk (half its photos
+    at the default 30 Hz), so half the rooms had maps of a corner."""
+    from rfm_core.evaluation.suite import eval_configs  # noqa: PLC0415
+    suite = eval_configs(8, 40)
+    walks = eval_configs(8, 40, 150, 5.0, capture='handheld')
+    assert {c.capture for c in suite} == {'handheld', 'sparse', 'robot'}
+    for room, walk in zip(suite, walks):
+        assert walk.capture == 'handheld' and walk.frames / walk.fps == pytest.approx(30.0), walk
+        assert walk.camera_height and (walk.seed, walk.room_style, walk.width, walk.hfov_deg, walk.noise) == (
+            room.seed, room.room_style, room.width, room.hfov_deg, room.noise)
+
+
 def test_eval_settings_by_exact_name_or_part_of_names():
     from rfm_core.evaluation.suite import SETTINGS, select_settings
     names = lambda keys: [s.name for s in select_settings(keys)]  # noqa: E731

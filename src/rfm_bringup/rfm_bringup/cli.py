@@ -487,8 +487,8 @@ def cmd_eval_reloc(args) -> int:
     from rfm_core.evaluation.suite import (  # noqa: PLC0415
         eval_configs, relocalization_scene, relocalization_scene_graph)
 
-    configs = [replace_capture(c) for c in eval_configs(args.scenes, args.first_seed, args.frames, args.fps,
-                                                        world=args.world)]
+    # every room mapped from a walk around it (--frames / --fps seconds at the scene's rate)
+    configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps, world=args.world, capture='handheld')
     temporary = None
     if args.offline:
         scene_fn, work = relocalization_scene, [(c, args.detector, args.query_frames) for c in configs]
@@ -533,12 +533,6 @@ def cmd_eval_reloc(args) -> int:
           f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {seeing_share} ({int(seeing.sum())} frames) '
           f'| {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% | {latency:.0f} |')
     return 0
-
-
-def replace_capture(config):
-    """Relocalization maps come from handheld walks (a whole-room capture)."""
-    from dataclasses import replace  # noqa: PLC0415
-    return replace(config, capture='handheld')
 
 
 def cmd_params(args) -> int:

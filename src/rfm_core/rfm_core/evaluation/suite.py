@@ -91,7 +91,7 @@ WORLDS = ('realistic', 'boxes')
 
 
 def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps: float = 10.0,
-                 world: str = 'realistic'):
+                 world: str = 'realistic', capture: str | None = None):
     """Mixed scenes: plain / textured rooms, handheld / sparse captures (:func:`scene_kind`).
 
     ``world='boxes'``: every object a solid box, mild sensor noise, ``frames`` at ``fps``
@@ -101,7 +101,9 @@ def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps
     from its seed) a frame rate of 5, 15 or 30 Hz for ``frames / fps`` seconds (10 s by
     default), 640x480 one time in four (else 320x240), a horizontal field of view of
     60-90 deg, a handheld camera 1.0-1.8 m high; sparse captures are ``frames / 2`` photos
-    1.5-5 s apart.
+    1.5-5 s apart. ``capture``: every scene captured this way instead (``'handheld'``: the
+    relocalization protocol's walk around each room, ``frames / fps`` seconds at the scene's
+    rate; the rooms and the scenes' other draws are the suite's).
     """
     from rfm_core.sim.capture import CaptureConfig  # noqa: PLC0415
     from rfm_core.sim.render import NoiseModel  # noqa: PLC0415
@@ -109,26 +111,27 @@ def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps
     if world not in WORLDS:
         raise ValueError(f'world must be one of {WORLDS}, got {world!r}')
     out = []
-    for i, (style, capture) in enumerate(map(scene_kind, range(count))):
+    for i, (style, kind) in enumerate(map(scene_kind, range(count))):
         seed = first_seed + i
         if world == 'boxes':
-            out.append(CaptureConfig(seed=seed, room_style=style, capture=capture, frames=frames, fps=fps))
+            out.append(CaptureConfig(seed=seed, room_style=style, capture=capture or kind, frames=frames, fps=fps))
             continue
         rng = np.random.default_rng([seed, 99])
         rate = float(rng.choice([5.0, 15.0, 30.0]))
         width, height = (640, 480) if rng.random() < 0.25 else (320, 240)
         hfov = float(rng.uniform(60.0, 90.0))
         eye = float(rng.uniform(1.0, 1.8))
-        if capture == 'handheld' and i % 8 == 4:
-            capture = 'robot'
-        options = dict(seed=seed, room_style=style, capture=capture, width=width, height=height, hfov_deg=hfov,
+        if kind == 'handheld' and i % 8 == 4:
+            kind = 'robot'
+        kind = capture or kind
+        options = dict(seed=seed, room_style=style, capture=kind, width=width, height=height, hfov_deg=hfov,
                        furniture='parts', clutter=True,
                        noise=NoiseModel.realsense() if (i // 2) % 2 else NoiseModel())
-        if capture == 'sparse':
+        if kind == 'sparse':
             options.update(frames=max(frames // 2, 2), sparse_gap_s=(1.5, 5.0))
         else:
             options.update(frames=max(int(round(frames / fps * rate)), 2), fps=rate,
-                           camera_height=(eye - 0.05, eye + 0.05) if capture == 'handheld' else ())
+                           camera_height=(eye - 0.05, eye + 0.05) if kind == 'handheld' else ())
         out.append(CaptureConfig(**options))
     return out
 
