@@ -266,7 +266,7 @@ def test_redundant_keyframes_are_culled_and_carried_by_their_neighbours(round_wa
 def test_culling_passes_over_a_registered_keyframe_whose_edges_all_fell_out():
     """A keyframe can stay registered with no kept edge (its two edges found outliers after
     merges): culling must pass over it. This capture (a 30 s walk of `rfm eval-reloc`'s
-    solid-box world) raised KeyError in the culling pass and stopped the mapper."""
+    solid-box world) raised KeyError in the culling pass, failing every update from then on."""
     from rfm_core.evaluation.pipeline import run_capture
     from rfm_core.evaluation.suite import eval_configs
     from rfm_core.matching.factory import make_matcher

@@ -16,8 +16,8 @@ from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4, bev_corners, quaternion_from_matrix
 from rfm_core.mapping.tracks import track_colour
 
-__all__ = ['GroundTruth', 'read_ground_truth', 'frames_seeing_mapped', 'evaluate_run', 'write_tum', 'write_keyframes_tum',
-           'write_object_json', 'render_top_down', 'write_report']
+__all__ = ['GroundTruth', 'read_ground_truth', 'frames_seeing_mapped', 'evaluate_run', 'write_tum',
+           'write_keyframes_tum', 'write_object_json', 'render_top_down', 'write_report']
 
 
 @dataclass
@@ -71,7 +71,7 @@ def frames_seeing_mapped(truth: GroundTruth, map_boxes: np.ndarray, min_objects:
     """The stamps of the frames of ``truth`` that see ``min_objects`` mapped objects: objects
     of the room a box of the map (``map_boxes``, (N, 7) in the truth's frame) overlaps by
     ``iou``, each at least ``min_visibility`` in view (#20's denominator for relocalization:
-    a frame that sees fewer cannot be placed by any object-level method)."""
+    a frame that sees fewer gives an object-level relative pose nothing to verify)."""
     from rfm_core.geometry import iou_3d  # noqa: PLC0415
 
     if not len(map_boxes) or not len(truth.boxes):

@@ -495,8 +495,7 @@ class Mapper:
                 if published is None:                        # keyframes that alone hold an object of the map
                     published = {int(t.observations[0, 0]) for t in self.tracks()
                                  if np.all(t.observations[:, 0] == t.observations[0, 0])}
-                # (a keyframe may keep its pose with no kept edge left: its edges ended at the
-                # keyframe it carries since a merge)
+                # (a registered keyframe may have no kept edge left: its edges dropped as outliers)
                 near = linked.get(k, {})
                 into = None if k in published else min(
                     (j for j in near if j in poses and j not in gone), key=near.get, default=None)
