@@ -29,7 +29,7 @@ def main() -> int:
     parser.add_argument('--query-frames', type=int, default=20)
     args = parser.parse_args()
     from rfm_core.evaluation.pipeline import detections_for  # noqa: PLC0415
-    from rfm_core.evaluation.report import frames_seeing_mapped, read_ground_truth  # noqa: PLC0415
+    from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes, read_ground_truth  # noqa: PLC0415
     from rfm_core.evaluation.suite import camera_poses_of_run, eval_configs, query_capture, scene_name  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import map_to_truth  # noqa: PLC0415
     from rfm_core.mapping.frame_log import pose_from_camera  # noqa: PLC0415
@@ -49,8 +49,7 @@ def main() -> int:
         alignment = map_to_truth(keyframes, read_ground_truth(scene / 'map_bag').camera_poses)
         to_map = np.linalg.inv(alignment.matrix())
         relocalized = camera_poses_of_run(scene / 'query_run')
-        seeing = frames_seeing_mapped(read_ground_truth(scene / 'query_bag'), alignment.transform_boxes(
-            np.array([t.box for t in mapper.tracks()]).reshape(-1, 7)))
+        seeing = frames_seeing_mapped(read_ground_truth(scene / 'query_bag'), map_boxes(mapper.tracks(), alignment))
         index = mapper.map_index()
         detect = detections_for('depth_clusters', noise_seed=11)
         for frame in Capture(query_capture(config, args.query_frames)).frames():

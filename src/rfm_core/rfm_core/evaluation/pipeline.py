@@ -15,6 +15,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from rfm_core.evaluation.mapping import evaluate_map
+from rfm_core.evaluation.report import GroundTruth, frames_seeing_mapped, map_boxes
 from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.mapper import Mapper, MapperConfig
@@ -100,7 +101,7 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     loc.update({f'keyframe_{k}': v for k, v in kf.items()})
     # express the map in the world frame: identity when posed, else the 4-DoF alignment
     align = Pose4(0.0, (0, 0, 0)) if posed else map_to_truth(estimated, frame_truth)
-    boxes = align.transform_boxes(np.array([t.box for t in tracks]).reshape(-1, 7))
+    boxes = map_boxes(tracks, align)
     scores = np.array([t.score for t in tracks])
     mapping = evaluate_map(boxes, scores, capture.room.boxes, best_visibility < min_visibility)
     return PipelineResult(loc, mapping, len(truth), n_frames, times, mapper, truth, align)
@@ -115,8 +116,6 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
     ``latency_ms``: the median wall time of one query; ``seeing_mapped`` the frames that see two
     objects of the map (:func:`rfm_core.evaluation.report.frames_seeing_mapped`) and
     ``registered_seeing`` the share of them relocalized."""
-    from rfm_core.evaluation.report import GroundTruth, frames_seeing_mapped  # noqa: PLC0415
-
     detect = detections_for(detector, noise_seed)
     world = map_to_world.matrix()
     relocalized, truth, seconds = {}, {}, []
@@ -131,8 +130,7 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
         seconds.append(time.perf_counter() - start)
         if reloc is not None:
             relocalized[frame.index] = world @ reloc.camera_to_map(obs)
-    seeing = frames_seeing_mapped(room, map_to_world.transform_boxes(
-        np.array([t.box for t in mapper.tracks()]).reshape(-1, 7)))
+    seeing = frames_seeing_mapped(room, map_boxes(mapper.tracks(), map_to_world))
     return {**trajectory_errors(relocalized, truth, align=False, gross=(5.0, 0.25)),
             'latency_ms': 1e3 * float(np.median(seconds)) if seconds else float('nan'), 'seeing_mapped': len(seeing),
             'registered_seeing': len(seeing & set(relocalized)) / len(seeing) if seeing else float('nan')}

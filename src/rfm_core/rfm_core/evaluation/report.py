@@ -13,10 +13,10 @@ import numpy as np
 
 from rfm_core.evaluation.mapping import evaluate_map
 from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
-from rfm_core.geometry import Pose4, bev_corners, quaternion_from_matrix
+from rfm_core.geometry import Pose4, bev_corners, iou_3d, quaternion_from_matrix
 from rfm_core.mapping.tracks import track_colour
 
-__all__ = ['GroundTruth', 'read_ground_truth', 'frames_seeing_mapped', 'evaluate_run', 'write_tum',
+__all__ = ['GroundTruth', 'read_ground_truth', 'map_boxes', 'frames_seeing_mapped', 'evaluate_run', 'write_tum',
            'write_keyframes_tum', 'write_object_json', 'render_top_down', 'write_report']
 
 
@@ -66,14 +66,17 @@ def read_ground_truth(bag) -> GroundTruth:
     return gt
 
 
+def map_boxes(tracks, alignment: Pose4) -> np.ndarray:
+    """(N, 7) the boxes of a map's ``tracks`` moved by ``alignment`` (e.g. T_truth_map)."""
+    return alignment.transform_boxes(np.array([t.box for t in tracks]).reshape(-1, 7))
+
+
 def frames_seeing_mapped(truth: GroundTruth, map_boxes: np.ndarray, min_objects: int = 2,
                          min_visibility: float = 0.2, iou: float = 0.25) -> set:
     """The stamps of the frames of ``truth`` that see ``min_objects`` mapped objects: objects
     of the room a box of the map (``map_boxes``, (N, 7) in the truth's frame) overlaps by
     ``iou``, each at least ``min_visibility`` in view (#20's denominator for relocalization:
     a frame that sees fewer gives an object-level relative pose nothing to verify)."""
-    from rfm_core.geometry import iou_3d  # noqa: PLC0415
-
     if not len(map_boxes) or not len(truth.boxes):
         return set()
     mapped = {int(i) for i, hit in zip(truth.ids, iou_3d(truth.boxes, map_boxes).max(1) >= iou) if hit}
@@ -97,7 +100,7 @@ def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed:
     loc['keyframes'] = len(mapper.keyframes)
     align = Pose4(0.0, (0.0, 0.0, 0.0)) if posed else map_to_truth(frames or by_stamp, truth.camera_poses)
     tracks = mapper.tracks()
-    boxes = align.transform_boxes(np.array([tr.box for tr in tracks]).reshape(-1, 7))
+    boxes = map_boxes(tracks, align)
     ignore = np.array([truth.best_visibility.get(int(i), 0.0) < min_visibility for i in truth.ids], bool)
     mapping = evaluate_map(boxes, [tr.score for tr in tracks], truth.boxes, ignore)
     return {'localization': loc, 'mapping': mapping, 'alignment': align}
@@ -157,7 +160,7 @@ def render_top_down(path, mapper, truth: GroundTruth | None = None, alignment: P
     keyframes = align.transform_points(
         np.array([m[:3, 3] for m in mapper.camera_poses().values()]).reshape(-1, 3))
     tracks = mapper.tracks()
-    boxes = align.transform_boxes(np.array([tr.box for tr in tracks]).reshape(-1, 7))
+    boxes = map_boxes(tracks, align)
     fig, ax = plt.subplots(figsize=(8, 8), dpi=100)
     handles = []
     if truth:

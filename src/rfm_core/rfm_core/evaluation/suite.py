@@ -404,7 +404,7 @@ def relocalization_scene_graph(args) -> dict:
     run's keyframes: the query frames are not re-aligned). ``wrong``: > 5 deg or > 25 cm.
     ``params``: extra ``--param`` values for both runs."""
     config, detector, query_frames, work, domain, params = args
-    from rfm_core.evaluation.report import frames_seeing_mapped, read_ground_truth  # noqa: PLC0415
+    from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes, read_ground_truth  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
@@ -442,8 +442,7 @@ def relocalization_scene_graph(args) -> dict:
     estimated = {stamp: world @ pose for stamp, pose in camera_poses_of_run(queried).items() if stamp in truth}
     errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
     # #20's denominator: the query frames that see two objects the map holds
-    seeing = frames_seeing_mapped(query, alignment.transform_boxes(
-        np.array([t.box for t in mapper.tracks()]).reshape(-1, 7))) & set(truth)
+    seeing = frames_seeing_mapped(query, map_boxes(mapper.tracks(), alignment)) & set(truth)
     latency = json.loads((queried / 'summary.json').read_text()).get('relocalization') or {}
     return {'scene': scene_name(config), **errors, 'frames': len(truth), 'seeing_mapped': len(seeing),
             'registered_seeing': len(seeing & set(estimated)) / len(seeing) if seeing else nan,

@@ -123,7 +123,7 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
         return None
     rel = match.relative
     return Relocalization(match.pose, match.keyframe_id, len(rel.inliers), rel.inliers[:, ::-1].copy(), 0,
-                          len(rel.inliers), 1, match.explained)
+                          len(rel.inliers), 1, match.explained, match.runner_up)
 
 
 def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, why):
