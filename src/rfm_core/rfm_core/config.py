@@ -120,7 +120,8 @@ class MapperNodeConfig:
                                      'autosaving then stays linear in the map size)', lo=0.0, hi=10.0)
     load_map_on_start: bool = setting(False, 'Load map_path at start-up', read_only=True)
     mode: str = setting('mapping', "Start in 'mapping' or 'localization' (the map is frozen, every frame is "
-                        'relocalized) mode; rfm/set_mode switches', choices=MODES, read_only=True)
+                        'localized against it as a stream: relocalization.stream) mode; rfm/set_mode switches',
+                        choices=MODES, read_only=True)
     pose_source: str = setting('', "Posed mode: '' (un-posed: averaging), 'topic' (rfm/external_pose, "
                                "PoseStamped of the camera in the map frame) or 'tf' (map_frame -> camera frame "
                                'lookups)', choices=('', 'topic', 'tf'), read_only=True)

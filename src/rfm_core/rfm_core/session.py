@@ -25,6 +25,7 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.frame_log import camera_to_map, pose_from_camera
+from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import MODES, EdgeRecord, Mapper, MapperConfig
 from rfm_core.mapping.relocalization import Relocalization
@@ -130,6 +131,8 @@ class MapSession:
         self.since_save = 0                   # keyframes added since the map was last saved
         self._full_solve_due = None           # clock time of the idle full re-solve
         self._latest_track = None             # the newest tracked frame
+        self.stream = StreamLocalizer(lambda obs, prior, why: self.mapper.relocalize(obs, why, prior),
+                                      self.mapper.config.relocalization)
         self._last_camera = None              # the last CameraPose handed out
         # (view-graph session, its keyframe id) -> map id; numbered sessions' from the map file
         self._incoming: dict = {origin: k for k, origin in self.mapper.origins.items()}
@@ -145,6 +148,7 @@ class MapSession:
         if mode not in MODES:
             raise ValueError(f'unknown mode {mode!r}: one of {", ".join(MODES)}')
         self.mapper.mode = mode
+        self.stream.reset()                   # a track from before means nothing now
 
     @property
     def full_solve_pending(self) -> bool:
@@ -368,20 +372,29 @@ class MapSession:
                 'median_ms': float(np.median(times)) if len(times) else 0.0,
                 'p95_ms': float(times[int(0.95 * (len(times) - 1))]) if len(times) else 0.0}
 
-    def localize(self, obs: FrameObservations) -> CameraPose | None:
-        """Localization mode: relocalize a frame against the (frozen) map and log it."""
+    def localize(self, obs: FrameObservations) -> list:
+        """Localization mode: localize a frame of the stream against the (frozen) map
+        (:class:`~rfm_core.mapping.localization.StreamLocalizer`) and log it. The frames placed
+        by it, oldest first, as CameraPoses: this one, and a held frame it confirmed before it;
+        [] while its pose waits for confirmation, or when nothing places it."""
         if self.mode != 'localization':
-            return None
-        reloc, _ = self.relocalize(obs)
-        if reloc is None:
-            return None
-        k = reloc.keyframe_id
-        self.mapper.frames.add(FrameTrack(obs.stamp_ns, obs.frame_id, obs.gravity_cam, k,
-                                          self.mapper.keyframes[k].stamp_ns,
-                                          self.mapper.poses[k] @ reloc.pose.inverse(), reloc.num_inliers))
-        pose = CameraPose(obs.stamp_ns, obs.frame_id, camera_to_map(reloc.pose, obs.gravity_cam))
-        self._last_camera = pose
-        return pose
+            return []
+        why = []
+        start = time.perf_counter()
+        accepted = self.stream.step(obs, why)
+        self.relocalize_seconds.append(time.perf_counter() - start)
+        self.counts['relocalized' if accepted and accepted[-1][0] is obs else 'relocalize_failed'] += 1
+        self.message = '' if accepted else (why[-1] if why else 'no pose found')
+        out = []
+        for o, reloc in accepted:
+            k = reloc.keyframe_id
+            self.mapper.frames.add(FrameTrack(o.stamp_ns, o.frame_id, o.gravity_cam, k,
+                                              self.mapper.keyframes[k].stamp_ns,
+                                              self.mapper.poses[k] @ reloc.pose.inverse(), reloc.num_inliers))
+            out.append(CameraPose(o.stamp_ns, o.frame_id, camera_to_map(reloc.pose, o.gravity_cam)))
+        if out:
+            self._last_camera = out[-1]
+        return out
 
     # ------------------------------------------------------------------ the map
 

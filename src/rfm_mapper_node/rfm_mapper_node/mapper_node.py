@@ -3,7 +3,7 @@
 Subscribes rfm/keyframes, rfm/view_graph/edges (transient local: a mapper started after the
 matcher gets its kept history; keyframes it already holds are recognised by their view-graph
 session and id) and rfm/tracked_frames (from the matcher),
-rfm/detections (in localization mode: every frame is relocalized), and in posed mode a pose
+rfm/detections (in localization mode: every frame is localized, as a stream), and in posed mode a pose
 source. Publishes rfm/keyframe_poses, rfm/trajectory, rfm/camera_pose and TF (map -> camera)
 for every localized frame, rfm/object_map, rfm/object_markers and rfm/status. Services:
 rfm/relocalize, rfm/save_map, rfm/load_map, rfm/reset, rfm/set_mode.
@@ -218,7 +218,8 @@ class MapperNode(Node):
         return transform_to_matrix(tf.transform)
 
     def _on_detections(self, msg: FrameDetections) -> None:
-        """Localization mode: relocalize every frame and publish its pose."""
+        """Localization mode: localize every frame (as a stream: see
+        :mod:`rfm_core.mapping.localization`) and publish the poses found."""
         if self.session.mode != 'localization':
             return
         try:
@@ -226,7 +227,8 @@ class MapperNode(Node):
         except ValueError as exc:
             self._warn(f'detections dropped: {exc}')
             return
-        self._publish_camera(self.session.localize(obs))
+        for camera in self.session.localize(obs):
+            self._publish_camera(camera)
 
     # ------------------------------------------------------------------ output
 

@@ -18,6 +18,7 @@ from rfm_core.evaluation.mapping import evaluate_map
 from rfm_core.evaluation.report import GroundTruth, frames_seeing_mapped, map_boxes
 from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4
+from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.mapper import Mapper, MapperConfig
 from rfm_core.matching.config import monocular
 from rfm_core.matching.view_graph import KeyframeConfig
@@ -109,8 +110,9 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
 
 def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, detector: str,
                        noise_seed: int = 0) -> dict:
-    """Relocalize every frame of ``capture`` against ``mapper``'s map (paper appendix) and
-    score the poses in the world frame (``map_to_world``: T_world_map, e.g. from
+    """Localize the frames of ``capture`` against ``mapper``'s map (paper appendix) as
+    localization mode does (:class:`~rfm_core.mapping.localization.StreamLocalizer`; each
+    frame alone with ``relocalization.stream`` off) and score the poses in the world frame (``map_to_world``: T_world_map, e.g. from
     :func:`rfm_core.evaluation.trajectory.map_to_truth`); frames that fail count as not
     registered. ``wrong``: share of the relocalized frames off by > 5 deg or > 25 cm;
     ``latency_ms``: the median wall time of one query; ``seeing_mapped`` the frames that see two
@@ -118,18 +120,20 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
     ``registered_seeing`` the share of them relocalized."""
     detect = detections_for(detector, noise_seed)
     world = map_to_world.matrix()
-    relocalized, truth, seconds = {}, {}, []
+    relocalized, truth, seconds, index_of = {}, {}, [], {}
     room = GroundTruth(boxes=capture.room.boxes, ids=np.arange(1, len(capture.room.boxes) + 1))
+    stream = StreamLocalizer(lambda obs, prior, why: mapper.relocalize(obs, why, prior), mapper.config.relocalization)
     for frame in capture.frames():
         obs = detect(frame)
         truth[frame.index] = frame.pose_matrix
+        index_of[obs.stamp_ns] = frame.index
         gt = frame.ground_truth
         room.frame_visibility[frame.index] = dict(zip(gt.object_ids.tolist(), gt.visibility.tolist()))
         start = time.perf_counter()
-        reloc = mapper.relocalize(obs)
+        placed = stream.step(obs)
         seconds.append(time.perf_counter() - start)
-        if reloc is not None:
-            relocalized[frame.index] = world @ reloc.camera_to_map(obs)
+        for o, reloc in placed:
+            relocalized[index_of[o.stamp_ns]] = world @ reloc.camera_to_map(o)
     seeing = frames_seeing_mapped(room, map_boxes(mapper.tracks(), map_to_world))
     return {**trajectory_errors(relocalized, truth, align=False, gross=(5.0, 0.25)),
             'latency_ms': 1e3 * float(np.median(seconds)) if seconds else float('nan'), 'seeing_mapped': len(seeing),

@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from rfm_core.geometry import iou_3d_paired
+from rfm_core.geometry import iou_3d_paired, wrap_angle
 from rfm_core.matching.classical import size_similarity
 from rfm_core.matching.view_graph import bag_of_objects
 
@@ -69,6 +69,18 @@ class MapIndex:
         sims = matrix @ desc
         top = np.argpartition(-sims, count - 1)[:count] if len(ids) > count else np.arange(len(ids))
         return [ids[i] for i in top[np.lexsort((top, -sims[top]))]]
+
+    def keyframes_near(self, centre, yaw: float, reach_m: float, count: int) -> list:
+        """Registered keyframes with two or more detections whose cameras lie within
+        ``reach_m`` (plus their yaw's difference from ``yaw`` at a metre per radian) of
+        ``centre``, nearest first, at most ``count``."""
+        ids = [k for k in self.poses if len(self.keyframes[k]) >= 2]
+        if not ids:
+            return []
+        inv = [self.poses[k].inverse() for k in ids]
+        far = np.array([np.linalg.norm(t.t - centre) + abs(wrap_angle(t.yaw - yaw)) for t in inv])
+        order = np.argsort(far, kind='stable')[:count]
+        return [ids[i] for i in order if far[i] <= reach_m + np.pi / 2]
 
     # ------------------------------------------------------------------ objects
 

@@ -24,7 +24,8 @@ from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.frame_log import FrameLog
-from rfm_core.mapping.relocalization import MapIndex, Relocalization, RelocalizationConfig, match_to_map, relocalize
+from rfm_core.mapping.relocalization import (MapIndex, MotionPrior, Relocalization, RelocalizationConfig, match_to_map,
+                                             relocalize)
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
@@ -674,7 +675,8 @@ class Mapper:
 
     # ------------------------------------------------------------------ relocalization
 
-    def relocalize(self, query: FrameObservations, why: list | None = None) -> Relocalization | None:
+    def relocalize(self, query: FrameObservations, why: list | None = None,
+                   prior: MotionPrior | None = None) -> Relocalization | None:
         """The paper's procedure, made more robust: match the query against registered
         keyframes (the ``relocalization.candidates`` most similar by bag-of-objects
         descriptor) and verify each relative pose. The paper takes the keyframe with the most
@@ -684,6 +686,7 @@ class Mapper:
         query objects wins, needs ``relocalization.min_inliers`` of them, is averaged over
         the agreeing keyframes and refitted on the map's tracks where that lays the query on
         the map better. Looked up in :meth:`map_index`. ``keyframe_id`` is the agreeing
-        keyframe with the most inliers."""
+        keyframe with the most inliers. ``prior``: a localization track's prediction
+        (:mod:`rfm_core.mapping.localization`)."""
         return relocalize(query, self.map_index(), self.matcher, self.config.relocalization, self.config.matching,
-                          self.config.averaging, why)
+                          self.config.averaging, why, prior)

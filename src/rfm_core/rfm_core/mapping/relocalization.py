@@ -32,8 +32,8 @@ from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_rel
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'MapMatch', 'MapIndex', 'relocalize', 'match_to_map',
-           'refine_on_tracks', 'explained', 'track_boxes']
+__all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize',
+           'match_to_map', 'refine_on_tracks', 'explained', 'track_boxes']
 
 
 @dataclass(frozen=True)
@@ -45,7 +45,8 @@ class RelocalizationConfig:
                                paper='2 (one keyframe verified by the relative-pose test)')
     min_keyframe_inliers: int = setting(2, "A keyframe's vote needs this many inliers", lo=1, hi=100)
     min_explained: int = setting(4, "Query detections the pose must explain in the map (all of them, for a query "
-                                 "with fewer): placed by it, each overlapping one of the map's objects (its box or a "
+                                 "with fewer, but at least 3: two objects build a pose and verify nothing beyond "
+                                 "it): placed by it, each overlapping one of the map's objects (its box or a "
                                  "view of it) with the relative pose test's IoU. Verifies the pose against the whole "
                                  "map, not only the matched keyframes: a wrong pose from look-alike furniture "
                                  "explains its two or three matches and little else (BENCHMARKS.md); 0: off",
@@ -83,6 +84,39 @@ class RelocalizationConfig:
                                        'poses from this many tracks of compatible size, the most similar '
                                        '(embedding, then size): the cost stays bounded in a map of thousands '
                                        'of objects', lo=1, hi=10000)
+    stream: bool = setting(True, 'Localization mode: frames are localized as a stream, as a robot\'s localization '
+                           'uses its odometry. A pose must agree with the last one accepted (the gyroscope\'s turn, '
+                           'a walking pace); without a live track a pose waits until a later frame\'s pose agrees '
+                           'with it. Off: every frame relocalized on its own (the rfm/relocalize service always is)')
+    stream_max_gap_s: float = setting(2.0, '... a track (or a pose waiting to be confirmed) lives this long '
+                                      'without a pose', lo=0.0, hi=60.0)
+    stream_speed_mps: float = setting(1.5, '... the fastest the camera moves between two frames (a brisk walk)',
+                                      lo=0.0, hi=100.0)
+    stream_turn_dps: float = setting(180.0, '... the fastest it turns, where no gyroscope measured the turn',
+                                     lo=0.0, hi=3600.0)
+    stream_slack_m: float = setting(0.3, '... plus this much: the error of two relocalized poses', lo=0.0, hi=10.0)
+    stream_slack_deg: float = setting(5.0, '... and this much of yaw', lo=0.0, hi=180.0)
+    stream_min_explained: int = setting(4, '... a pose where the track predicts it needs this many detections '
+                                        'explained in the map (all of them, for a query with fewer: the '
+                                        'prediction verifies the pose too). 3 localized more frames and more '
+                                        'of them wrong on tuning rooms (BENCHMARKS.md)', lo=0, hi=100)
+
+
+@dataclass(frozen=True)
+class MotionPrior:
+    """Where a frame's camera can be (a localization track's prediction): T_map_view's yaw
+    within ``yaw_tolerance`` (rad) of ``yaw``, its centre within ``reach_m`` of ``centre``."""
+
+    yaw: float
+    centre: np.ndarray
+    reach_m: float
+    yaw_tolerance: float
+
+    def admits(self, pose: Pose4) -> bool:
+        """Whether ``pose`` (T_view_map) is where the camera can be."""
+        t_map_view = pose.inverse()
+        return (float(np.linalg.norm(t_map_view.t - self.centre)) <= self.reach_m
+                and abs(wrap_angle(t_map_view.yaw - self.yaw)) <= self.yaw_tolerance)
 
 
 @dataclass
@@ -103,18 +137,21 @@ class Relocalization:
 
 
 def relocalize(query: FrameObservations, index: MapIndex, matcher, config: RelocalizationConfig,
-               matching: MatchingConfig, averaging: AveragingConfig, why: list | None = None) -> Relocalization | None:
+               matching: MatchingConfig, averaging: AveragingConfig, why: list | None = None,
+               prior: MotionPrior | None = None) -> Relocalization | None:
     """The query's pose in the map (``index``: :class:`MapIndex`, its tracks built only once a
     keyframe verified a pose), or None (and the reason appended to ``why``). Against
     keyframes first; with ``map_fallback``, a query no keyframe places is matched against the
-    map's objects (:func:`match_to_map`, no gyroscope: another session)."""
+    map's objects (:func:`match_to_map`, no gyroscope: another session). ``prior`` (a
+    localization track's prediction): only poses it admits, and ``stream_min_explained``
+    detections explained suffice."""
     why = why if why is not None else []
     if len(query) < 2 or not index.poses:
         why.append(f'the query has {len(query)} detections; need >= 2' if index.poses else 'the map has no '
                    'registered keyframes')
         return None
-    found = _on_keyframes(query, index, matcher, config, matching, averaging, why)
-    if found is not None or not config.map_fallback:
+    found = _on_keyframes(query, index, matcher, config, matching, averaging, why, prior)
+    if found is not None or not config.map_fallback or prior is not None:
         return found
     match = match_to_map(query, index, matching, config)
     if match is None or not match.accepted(config, len(query), gyroscope=False):
@@ -126,20 +163,25 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
                           len(rel.inliers), 1, match.explained, match.runner_up)
 
 
-def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, why):
+def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, why, prior=None):
     """:func:`relocalize` against the most similar keyframes."""
     keyframes, poses = index.keyframes, index.poses
     candidates = index.candidates(query, config.candidates)
+    if prior is not None:                       # and the keyframes where the track predicts the camera
+        candidates += [k for k in index.keyframes_near(prior.centre, prior.yaw, prior.reach_m, config.candidates)
+                       if k not in candidates]
     found = []
     for k, matches in zip(candidates, matcher.match_many(query, [keyframes[k] for k in candidates])):
         rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, matches, matching)
         if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
             continue
         # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
-        found.append((k, rel, rel.pose.inverse() @ poses[k]))
+        pose = rel.pose.inverse() @ poses[k]
+        if prior is None or prior.admits(pose):
+            found.append((k, rel, pose))
     if not found:
         why.append(f'no candidate keyframe (of {len(candidates)}) verified a relative pose with '
-                   f'{config.min_keyframe_inliers} objects')
+                   f'{config.min_keyframe_inliers} objects' + (' where the track predicts the camera' if prior else ''))
         return None
     # consensus: each verified keyframe votes for its pose; the pose whose agreeing keyframes
     # verify the most distinct query objects wins, averaged over them
@@ -164,9 +206,12 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         why.append(f'the verified keyframes agree on no pose with {config.min_inliers} query objects')
         return None
     count, support_, pose, best, members = max(hypotheses, key=lambda h: h[:2])
-    if count < min(config.min_explained, len(query)):
+    # all of a small query's detections, but never only the two a pose can be built from: they verify nothing
+    need = (max(min(config.min_explained, len(query)), min(config.min_explained, 3)) if prior is None
+            else min(config.stream_min_explained, len(query)))
+    if count < need:
         why.append(f'verification against the map failed: the best pose explains {count} of the query\'s '
-                   f'{len(query)} detections; need {min(config.min_explained, len(query))}')
+                   f'{len(query)} detections; need {need}')
         return None
     runner_up = max((h[0] for h in hypotheses if not _same(h[2].inverse(), pose.inverse(), config)), default=0)
     k, rel, _ = found[best]

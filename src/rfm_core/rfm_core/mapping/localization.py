@@ -1,0 +1,126 @@
+"""Localization mode: a stream of frames localized against a frozen map.
+
+Each frame relocalized on its own (:func:`rfm_core.mapping.relocalization.relocalize`) is
+right or wrong alone: look-alike furniture (two equal chairs, a shifted row of cabinets)
+explains three or four detections as well as the truth does, and a frame that sees two or
+three of the map's objects cannot be told from a look-alike by the map alone (BENCHMARKS.md,
+#20). A camera moves continuously, so a stream of frames can do what one frame cannot, as a
+robot's localization does with its odometry:
+
+- **A track.** Once a pose is accepted, the next frame's pose is predicted: its yaw from the
+  gyroscope's turn between the two frames (:func:`rfm_core.observations.imu_relative_yaw`;
+  without one, any turn a hand makes in the time), its camera centre within walking reach
+  of the last. Only hypotheses consistent with the prediction are tried, and one is
+  accepted with fewer explained detections (``stream_min_explained``): the prediction
+  already tells it from the look-alikes.
+- **Confirmation.** Without a track (the first frame, or after ``stream_max_gap_s`` without
+  a pose), a pose found against the whole map is held until a later frame's pose, found
+  the same way, agrees with it under the same motion bounds; then both are accepted (the
+  held one late). A look-alike that one frame happens to see rarely survives the next.
+- **Kidnapping.** A track that nothing confirms for ``stream_max_gap_s`` is dropped; poses
+  against the whole map that contradict a live track are held and confirmed the same way,
+  and two that agree replace the track.
+
+No ROS here: :class:`rfm_core.session.MapSession` calls :meth:`StreamLocalizer.step` for
+each frame in localization mode (``rfm/detections``), and ``rfm eval-reloc --offline`` does
+the same. The ``rfm/relocalize`` service answers single queries without the stream.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from rfm_core.geometry import wrap_angle
+from rfm_core.mapping.relocalization import MotionPrior, Relocalization, RelocalizationConfig
+from rfm_core.observations import FrameObservations, imu_relative_yaw
+
+__all__ = ['StreamLocalizer', 'motion_prior']
+
+HELD = 8                        #: unconfirmed poses held at most (the newest)
+TRACK = 10                      #: accepted frames the track predicts yaw from (the newest)
+
+
+def motion_prior(track: list, obs: FrameObservations, config: RelocalizationConfig) -> MotionPrior:
+    """Where ``obs``'s camera can be, given the accepted frames ``track`` ((observations,
+    T_view_map) pairs, oldest first): its centre within ``stream_speed_mps`` of the newest's
+    (plus ``stream_slack_m``); its yaw, where the gyroscope measured the turns from them, the
+    median of each one's yaw turned by its turn to ``obs`` (``stream_slack_deg``: one pose's
+    error does not carry over), else the newest's within any turn at ``stream_turn_dps``."""
+    last, pose = track[-1]
+    dt = abs(obs.stamp_ns - last.stamp_ns) * 1e-9
+    t_map_last = pose.inverse()
+    yaws = []
+    for o, p in track:
+        turn = imu_relative_yaw(o, obs)
+        if turn is not None:
+            yaws.append(p.inverse().yaw + turn)
+    if yaws:
+        ref = yaws[-1]                          # a median of angles about the newest's
+        yaw, tolerance = ref + float(np.median(wrap_angle(np.array(yaws) - ref))), config.stream_slack_deg
+    else:
+        yaw, tolerance = t_map_last.yaw, config.stream_slack_deg + config.stream_turn_dps * dt
+    return MotionPrior(float(yaw), t_map_last.t.copy(), config.stream_slack_m + config.stream_speed_mps * dt,
+                       min(math.radians(tolerance), math.pi))
+
+
+@dataclass
+class _Held:
+    obs: FrameObservations
+    reloc: Relocalization
+
+
+class StreamLocalizer:
+    """Localization mode's frames as a stream (see the module). ``relocalize(obs, prior,
+    why)``: the mapper's :meth:`~rfm_core.mapping.mapper.Mapper.relocalize` (a pose or None;
+    with a :class:`MotionPrior`, only poses consistent with it)."""
+
+    def __init__(self, relocalize, config: RelocalizationConfig):
+        self.relocalize = relocalize
+        self.config = config
+        self.reset()
+
+    def reset(self) -> None:
+        self.track: list = []                     # the newest accepted frames: (observations, T_view_map)
+        self.held: list[_Held] = []               # poses waiting for a frame that agrees
+        self.counts = dict(tracked=0, confirmed=0, held=0, rejected=0)
+
+    def _live(self, obs: FrameObservations) -> bool:
+        return bool(self.track) and abs(obs.stamp_ns - self.track[-1][0].stamp_ns) * 1e-9 <= self.config.stream_max_gap_s
+
+    def _accept(self, *frames) -> list:
+        self.track = (self.track + [(o, r.pose) for o, r in frames])[-TRACK:]
+        self.held = []
+        return list(frames)
+
+    def step(self, obs: FrameObservations, why: list | None = None) -> list:
+        """Localize one frame: the frames accepted by it, oldest first, as (observations,
+        :class:`Relocalization`) — this one when the track or a confirmation places it, with a
+        held frame it confirms before it; [] while its pose waits to be confirmed, or when
+        nothing places it (the reason appended to ``why``)."""
+        why = why if why is not None else []
+        cfg = self.config
+        if not cfg.stream:
+            reloc = self.relocalize(obs, None, why)
+            return [(obs, reloc)] if reloc is not None else []
+        if self._live(obs):
+            reloc = self.relocalize(obs, motion_prior(self.track, obs, cfg), why)
+            if reloc is not None:
+                self.counts['tracked'] += 1
+                return self._accept((obs, reloc))
+        reloc = self.relocalize(obs, None, why)
+        if reloc is None:
+            return []
+        # keep only held poses still within reach in time; the newest that agrees confirms
+        self.held = [h for h in self.held if abs(obs.stamp_ns - h.obs.stamp_ns) * 1e-9 <= cfg.stream_max_gap_s]
+        for h in reversed(self.held):
+            if motion_prior([(h.obs, h.reloc.pose)], obs, cfg).admits(reloc.pose):
+                self.counts['confirmed'] += 1
+                self.track = []                     # a new track (or the old one replaced)
+                return self._accept((h.obs, h.reloc), (obs, reloc))
+        self.counts['held'] += 1
+        self.held = (self.held + [_Held(obs, reloc)])[-HELD:]
+        why.append('the pose waits for a later frame to agree with it' if not self._live(obs)
+                   else 'the pose contradicts the track; held until a later frame agrees with it')
+        return []
