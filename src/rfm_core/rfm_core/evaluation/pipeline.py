@@ -112,7 +112,8 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
                        noise_seed: int = 0) -> dict:
     """Localize the frames of ``capture`` against ``mapper``'s map (paper appendix) as
     localization mode does (:class:`~rfm_core.mapping.localization.StreamLocalizer`; each
-    frame alone with ``relocalization.stream`` off) and score the poses in the world frame (``map_to_world``: T_world_map, e.g. from
+    frame alone with ``relocalization.stream`` off) and score the poses in the world frame
+    (``map_to_world``: T_world_map, e.g. from
     :func:`rfm_core.evaluation.trajectory.map_to_truth`); frames that fail count as not
     registered. ``wrong``: share of the relocalized frames off by > 5 deg or > 25 cm;
     ``latency_ms``: the median wall time of one query; ``seeing_mapped`` the frames that see two

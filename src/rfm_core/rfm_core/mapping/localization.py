@@ -84,10 +84,11 @@ class StreamLocalizer:
     def reset(self) -> None:
         self.track: list = []                     # the newest accepted frames: (observations, T_view_map)
         self.held: list[_Held] = []               # poses waiting for a frame that agrees
-        self.counts = dict(tracked=0, confirmed=0, held=0, rejected=0)
+        self.counts = dict(tracked=0, confirmed=0, held=0)          # frames, by what became of them
 
     def _live(self, obs: FrameObservations) -> bool:
-        return bool(self.track) and abs(obs.stamp_ns - self.track[-1][0].stamp_ns) * 1e-9 <= self.config.stream_max_gap_s
+        return (bool(self.track)
+                and abs(obs.stamp_ns - self.track[-1][0].stamp_ns) * 1e-9 <= self.config.stream_max_gap_s)
 
     def _accept(self, *frames) -> list:
         self.track = (self.track + [(o, r.pose) for o, r in frames])[-TRACK:]

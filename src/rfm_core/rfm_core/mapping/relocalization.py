@@ -89,7 +89,7 @@ class RelocalizationConfig:
                            'a walking pace); without a live track a pose waits until a later frame\'s pose agrees '
                            'with it. Off: every frame relocalized on its own (the rfm/relocalize service always is)')
     stream_max_gap_s: float = setting(2.0, '... a track (or a pose waiting to be confirmed) lives this long '
-                                      'without a pose', lo=0.0, hi=60.0)
+                                      'without a pose', lo=0.1, hi=60.0)
     stream_speed_mps: float = setting(1.5, '... the fastest the camera moves between two frames (a brisk walk)',
                                       lo=0.0, hi=100.0)
     stream_turn_dps: float = setting(180.0, '... the fastest it turns, where no gyroscope measured the turn',
