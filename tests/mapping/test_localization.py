@@ -17,12 +17,17 @@ STEP_NS = 500_000_000                      # the queries come at 2 Hz
 
 
 @pytest.fixture(scope='module')
-def room(tmp_path_factory):
-    """A saved map of one walk, loaded fresh in localization mode."""
-    path = save_map(run_capture(SCENE, 'ground_truth:rgbd', noise_seed=3).mapper,
+def saved(tmp_path_factory):
+    """A saved map of one walk."""
+    return save_map(run_capture(SCENE, 'ground_truth:rgbd', noise_seed=3).mapper,
                     tmp_path_factory.mktemp('map') / 'room.rfm')
+
+
+@pytest.fixture(scope='module')
+def room(saved):
+    """The map, loaded fresh in localization mode."""
     mapper = Mapper()
-    load_map(mapper, path)
+    load_map(mapper, saved)
     mapper.mode = 'localization'
     return mapper
 
@@ -124,3 +129,23 @@ def test_two_detections_verify_nothing_alone_but_do_where_the_track_predicts_the
     # ... and a prediction somewhere else admits no pose
     assert room.relocalize(two, None, MotionPrior(t.yaw, t.t + np.array([3.0, 0.0, 0.0]), 0.5,
                                                  np.radians(5.0))) is None
+
+
+def test_a_loaded_map_keeps_the_sessions_way_of_localizing(saved):
+    """A map file carries the settings that built it, and the session takes them, except
+    how localization mode localizes (relocalization.stream*: not what built the map)."""
+    from rfm_core.mapping.frame_log import camera_to_map
+    from rfm_core.mapping.mapper import MapperConfig
+    from rfm_core.session import MapSession
+    config = MapperConfig()
+    mine = replace(config, relocalization=replace(config.relocalization, stream=False, min_explained=5))
+    session = MapSession(mine)
+    _, changed = session.load(saved)
+    assert session.mapper.config.relocalization.min_explained == 4 and 'relocalization.min_explained' in changed
+    assert session.mapper.config.relocalization.stream is False and 'relocalization.stream' not in changed
+    session.mode = 'localization'
+    view, truth = _views(session.mapper)[0]
+    placed = session.localize(view)                   # at once: each frame on its own, no confirmation
+    assert len(placed) == 1 and placed[0].stamp_ns == view.stamp_ns
+    expected = camera_to_map(truth, view.gravity_cam)
+    assert np.linalg.norm(placed[0].matrix[:3, 3] - expected[:3, 3]) < 0.1

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 from typing import Callable, NamedTuple
 
 import numpy as np
@@ -406,10 +406,15 @@ class MapSession:
 
     def load(self, path) -> tuple[dict, dict]:
         """Replace the map by a map file (MapFileError: the current map is unchanged). The
-        mapper takes the configuration the map was built with. Returns the file's header and
-        the settings that differ from before ({dotted name: (file, before)})."""
+        mapper takes the configuration the map was built with, except how localization mode
+        localizes a stream (``relocalization.stream*``: this session's, as the map was not
+        built with them). Returns the file's header and the settings that differ from before
+        ({dotted name: (file, before)})."""
         before = self.mapper.config
         header = load_map(self.mapper, path)
+        loaded = self.mapper.config.relocalization
+        self.mapper.config = replace(self.mapper.config, relocalization=replace(loaded, **{
+            f.name: getattr(before.relocalization, f.name) for f in fields(loaded) if f.name.startswith('stream')}))
         mine, theirs = _flat(before.to_dict()), _flat(self.mapper.config.to_dict())
         changed = {k: (theirs[k], mine.get(k)) for k in sorted(theirs) if theirs[k] != mine.get(k)}
         self._clear()
