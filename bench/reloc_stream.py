@@ -4,8 +4,9 @@
     ros_ws/env.sh python bench/reloc_stream.py W [--scenes 10 --first-seed 40] [--set NAME=VALUE ...]
 
 For each room of a graph-path `rfm eval-reloc` run kept in ``W``: the map the graph built
-(``map_run/map.rfm``), and the second walk detected again in-process (``depth_clusters``,
-the simulator's rotation as the gyroscope) and localized twice in the same run: each frame
+(``map_run/map.rfm``, with the mapper node's default learned matcher), and the second walk
+detected again in-process (``depth_clusters``, the simulator's rotation as the gyroscope)
+and localized twice in the same run: each frame
 relocalized on its own (`relocalization.stream` off: the service's way), and as a stream
 (`rfm_core.mapping.localization`: a track, and confirmation by a later frame). Prints, per
 room and over all, the share relocalized (of all query frames and of #20's denominator, the
@@ -50,6 +51,7 @@ def main() -> int:
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
     variants = {'each frame alone': {'stream': False}, 'stream': {}}
@@ -70,7 +72,7 @@ def main() -> int:
         scene = args.work / scene_name(config)
         if not (scene / 'map_run' / 'map.rfm').is_file():
             continue
-        mapper = Mapper()
+        mapper = Mapper(matcher=make_matcher('learned'))             # the mapper node's default
         load_map(mapper, scene / 'map_run' / 'map.rfm')
         mapper.mode = 'localization'
         base = mapper.config
