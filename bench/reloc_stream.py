@@ -2,16 +2,19 @@
 
     ros_ws/env.sh rfm eval-reloc --scenes 10 --first-seed 40 --jobs 2 --work W
     ros_ws/env.sh python bench/reloc_stream.py W [--scenes 10 --first-seed 40] [--set NAME=VALUE ...]
+        [--alt NAME=VALUE[,NAME=VALUE] ...]
 
 For each room of a graph-path `rfm eval-reloc` run kept in ``W``: the map the graph built
 (``map_run/map.rfm``, with the mapper node's default learned matcher), and the second walk
 detected again in-process (``depth_clusters``, the simulator's rotation as the gyroscope)
-and localized twice in the same run: each frame
-relocalized on its own (`relocalization.stream` off: the service's way), and as a stream
+and localized twice in the same run: each frame relocalized on its own
+(`relocalization.stream` off: the service's way), and as a stream
 (`rfm_core.mapping.localization`: a track, and confirmation by a later frame). Prints, per
 room and over all, the share relocalized (of all query frames and of #20's denominator, the
 frames that see two mapped objects), the share wrong (> 5 deg or > 25 cm) and the median
-errors. ``--set relocalization.NAME=VALUE`` changes a setting of the stream run.
+errors. ``--set NAME=VALUE`` changes a ``relocalization`` setting of the stream run;
+``--alt`` adds stream runs with other settings (the stream's settings are this code's
+defaults, not the map file's).
 """
 from __future__ import annotations
 

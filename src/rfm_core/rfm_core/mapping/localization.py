@@ -8,11 +8,11 @@ three of the map's objects cannot be told from a look-alike by the map alone (BE
 robot's localization does with its odometry:
 
 - **A track.** Once a pose is accepted, the next frame's pose is predicted: its yaw from the
-  gyroscope's turn between the two frames (:func:`rfm_core.observations.imu_relative_yaw`;
+  gyroscope's turns from the track's last frames (:func:`rfm_core.observations.imu_relative_yaw`;
   without one, any turn a hand makes in the time), its camera centre within walking reach
-  of the last. Only hypotheses consistent with the prediction are tried, and one is
-  accepted with fewer explained detections (``stream_min_explained``): the prediction
-  already tells it from the look-alikes.
+  of the last. Only hypotheses consistent with the prediction are kept (the keyframes
+  nearest it are tried too), and one is accepted with ``stream_min_explained`` detections
+  explained, all of a smaller query: the prediction verifies it as well.
 - **Confirmation.** Without a track (the first frame, or after ``stream_max_gap_s`` without
   a pose), a pose found against the whole map is held until a later frame's pose, found
   the same way, agrees with it under the same motion bounds; then both are accepted (the

@@ -71,9 +71,9 @@ class MapIndex:
         return [ids[i] for i in top[np.lexsort((top, -sims[top]))]]
 
     def keyframes_near(self, centre, yaw: float, reach_m: float, count: int) -> list:
-        """Registered keyframes with two or more detections whose cameras lie within
-        ``reach_m`` (plus their yaw's difference from ``yaw`` at a metre per radian) of
-        ``centre``, nearest first, at most ``count``."""
+        """Registered keyframes with two or more detections near a camera at ``centre``
+        looking along ``yaw``: nearest first by centre distance plus yaw difference (a metre
+        per radian), those within ``reach_m`` plus a quarter turn, at most ``count``."""
         ids = [k for k in self.poses if len(self.keyframes[k]) >= 2]
         if not ids:
             return []
