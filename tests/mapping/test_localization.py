@@ -1,6 +1,6 @@
 """Localization mode as a stream (rfm_core.mapping.localization): a track, confirmation by a
 later frame, kidnapping; and the whole-map check's floor of three explained detections."""
-from dataclasses import fields, replace
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -42,18 +42,6 @@ def _views(mapper):
 def _stream(mapper, **changes):
     config = replace(mapper.config.relocalization, **changes)
     return StreamLocalizer(lambda obs, prior, why: mapper.relocalize(obs, why, prior), config)
-
-
-def _subset(obs, idx):
-    """The observations of detections ``idx`` only."""
-    n, changes = len(obs), {}
-    for f in fields(obs):
-        value = getattr(obs, f.name)
-        if isinstance(value, np.ndarray) and value.ndim and len(value) == n and f.name != 'gravity_cam':
-            changes[f.name] = value[idx]
-        elif isinstance(value, list) and len(value) == n:
-            changes[f.name] = [value[i] for i in idx]
-    return replace(obs, **changes)
 
 
 def _close(a, b, metres=0.1, degrees=3.0):
@@ -118,7 +106,7 @@ def test_two_detections_verify_nothing_alone_but_do_where_the_track_predicts_the
     view, truth = room.keyframes[k], room.poses[k]
     full = room.relocalize(view)
     assert full is not None and _close(full.pose, truth)
-    two = _subset(view, sorted(full.inliers[:2, 0].tolist()))
+    two = view.subset(sorted(full.inliers[:2, 0].tolist()))
     why = []
     assert room.relocalize(two, why) is None
     assert 'need 3' in why[-1] or 'no candidate keyframe' in why[-1], why

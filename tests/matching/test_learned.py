@@ -31,12 +31,6 @@ def _frame(n, dim=8, seed=0, backend='test'):
                              backend=backend)
 
 
-def _subset(obs, idx):
-    return replace(obs, boxes=obs.boxes[idx], scores=obs.scores[idx], labels=[obs.labels[i] for i in idx],
-                   embeddings=obs.embeddings[idx], boxes_2d=obs.boxes_2d[idx],
-                   visibility=obs.visibility[idx], object_ids=obs.object_ids[idx])
-
-
 def test_assignment_contract_and_permutation_equivariance():
     torch.manual_seed(0)
     net = ObjectMatcherNet(MatcherNetConfig(embedding_dim=8, dim=32, layers=2, heads=4)).eval()
@@ -44,7 +38,7 @@ def test_assignment_contract_and_permutation_equivariance():
     with torch.no_grad():
         la = net(*batch_inputs([a], [b]))[0].numpy()
         perm = np.random.default_rng(3).permutation(7)
-        lp = net(*batch_inputs([a], [_subset(b, perm)]))[0].numpy()
+        lp = net(*batch_inputs([a], [b.subset(perm)]))[0].numpy()
     assert la.shape == (6, 8)
     assert np.all(la <= 1e-6)                                    # log-probabilities
     # the double softmax: each row's match probabilities sum to at most one
@@ -115,9 +109,9 @@ def test_training_labels():
     assert matches.tolist() == [[0, 1], [3, 0]] and un_a.tolist() == [1, 2] and un_b.tolist() == [2]
     truth = _frame(3, seed=7)
     truth = replace(truth, object_ids=np.array([11, 12, 13]))
-    pred = _subset(truth, np.array([2, 0]))
+    pred = truth.subset([2, 0])
     pred = replace(pred, boxes=pred.boxes + [0.02, 0, 0, 0, 0, 0, 0])
-    far = replace(_subset(truth, np.array([1])), boxes=truth.boxes[1:2] + [5, 0, 0, 0, 0, 0, 0])
+    far = replace(truth.subset([1]), boxes=truth.boxes[1:2] + [5, 0, 0, 0, 0, 0, 0])
     assert assign_object_ids(pred, truth).tolist() == [13, 11]
     assert assign_object_ids(far, truth).tolist() == [-1]
 
@@ -164,6 +158,25 @@ def test_training_learns_to_match_held_out_pairs():
     assert after.f1 > 0.6 and after.f1 > before.f1 + 0.4 and after.match_precision > 0.8, (before, after)
 
 
+def test_training_drops_detections_of_frames_with_full_boxes():
+    """depth_clusters' frames carry full boxes beside the fitted ones (and may carry corner
+    descriptors): the augmentation that drops detections drops all of a detection's fields
+    (it dropped the boxes and not the full boxes, and rfm train-matcher --backend
+    depth_clusters stopped on the first batch)."""
+    frames = []
+    for seed in (1, 2):
+        obs = _frame(6, seed=seed)
+        obs = replace(obs, full_boxes=obs.boxes + [0, 0, 0, 0.1, 0.1, 0.1, 0], object_ids=np.arange(1, 7),
+                      corner_descriptors=np.ones((6, 8, 4), np.float32))
+        frames.append(LabelledFrame(obs, Pose4(0.0, np.zeros(3)), np.arange(1, 7)))
+    some = frames[0].observations.subset(np.array([True, False, True, False, False, True]))
+    assert np.array_equal(some.object_ids, [1, 3, 6]) and some.full_boxes.shape == (3, 7)
+    assert some.corner_descriptors.shape == (3, 8, 4) and np.allclose(some.full_boxes[:, 3:6] - some.boxes[:, 3:6], 0.1)
+    config = MatcherNetConfig(embedding_dim=8, dim=32, layers=1)
+    net = train_matcher([tuple(frames)] * 4, config, TrainConfig(epochs=2, batch_size=2, drop_detections=0.5))
+    assert isinstance(net, ObjectMatcherNet)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize('spec', ['depth_clusters', 'ground_truth:rgb'])
 def test_shipped_weights_beat_the_classical_matcher(spec):
@@ -184,7 +197,7 @@ def test_batched_matching_equals_pair_by_pair():
     pairs = labelled_pairs(scene_configs(range(2000, 2002), frames=12), ['ground_truth:rgbd'], noise_seeds=(2,),
                            gaps=(1, 2, 3), min_shared=2)['ground_truth:rgbd']
     query = pairs[0][0].observations
-    others = [b.observations for _, b in pairs[:6]] + [_subset(query, [])]     # sizes differ; one empty
+    others = [b.observations for _, b in pairs[:6]] + [query.subset([])]     # sizes differ; one empty
     matcher = LearnedMatcher(threads=1)
     batched = matcher.match_many(query, others)
     assert len(batched) == len(others) and len(batched[-1]) == 0

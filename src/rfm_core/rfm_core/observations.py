@@ -1,7 +1,7 @@
 """ROS-free data types exchanged between the stages (mirrors of the rfm_msgs messages)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -148,6 +148,16 @@ class FrameObservations:
                 raise ValueError(f'full_boxes must be finite ({n}, {BOX_DIM}) boxes with non-negative sizes, '
                                  f'got shape {fb.shape}')
             self.full_boxes = fb
+
+    def subset(self, idx) -> 'FrameObservations':
+        """The same frame with detections ``idx`` only (indices or a boolean mask), every
+        per-detection field with them."""
+        idx = np.flatnonzero(idx) if np.asarray(idx).dtype == bool else np.asarray(idx, dtype=np.int64).reshape(-1)
+        return replace(self, boxes=self.boxes[idx], scores=self.scores[idx], labels=[self.labels[i] for i in idx],
+                       embeddings=self.embeddings[idx], boxes_2d=self.boxes_2d[idx], visibility=self.visibility[idx],
+                       object_ids=self.object_ids[idx],
+                       corner_descriptors=None if self.corner_descriptors is None else self.corner_descriptors[idx],
+                       full_boxes=None if self.full_boxes is None else self.full_boxes[idx])
 
     @property
     def map_boxes(self) -> np.ndarray:

@@ -191,14 +191,6 @@ class TrainConfig:
     threads: int = 2
 
 
-def _subsample(obs: FrameObservations, keep: np.ndarray) -> FrameObservations:
-    idx = np.flatnonzero(keep)
-    return replace(obs, boxes=obs.boxes[idx], scores=obs.scores[idx],
-                   labels=[obs.labels[i] for i in idx], embeddings=obs.embeddings[idx],
-                   boxes_2d=obs.boxes_2d[idx], visibility=obs.visibility[idx],
-                   object_ids=obs.object_ids[idx])
-
-
 def _loss(log_assignment: torch.Tensor, targets, balance: float) -> torch.Tensor:
     """LightGlue's negative log-likelihood: matched entries and the unmatched row/column."""
     pos, neg = [], []
@@ -244,7 +236,7 @@ def train_matcher(pairs, net_config: MatcherNetConfig, config: TrainConfig = Tra
                     ka = rng.random(len(a)) >= config.drop_detections
                     kb = rng.random(len(b)) >= config.drop_detections
                     if ka.sum() >= 1 and kb.sum() >= 1:
-                        a, b = _subsample(a, ka), _subsample(b, kb)
+                        a, b = a.subset(ka), b.subset(kb)
                 if len(a) == 0 or len(b) == 0:
                     continue
                 batch_a.append(a)
