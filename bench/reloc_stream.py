@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 
-def localize(mapper, frames, config) -> dict:
-    """{stamp: T_query_map Pose4 as a 4x4 camera-to-map} of the frames ``config`` accepts."""
+def localize(mapper, frames) -> dict:
+    """{stamp: 4x4 camera-to-map} of the frames ``mapper``'s settings localize."""
     from rfm_core.mapping.localization import StreamLocalizer  # noqa: PLC0415
 
-    stream = StreamLocalizer(lambda obs, prior, why: mapper.relocalize(obs, why, prior), config)
+    stream = StreamLocalizer(mapper)
     out = {}
     for obs in frames:
         for o, reloc in stream.step(obs):
@@ -91,7 +91,7 @@ def main() -> int:
         line = [scene.name]
         for name, changes in variants.items():
             mapper.config = replace(base, relocalization=replace(base.relocalization, **changes))
-            found = {s: world @ m for s, m in localize(mapper, frames, mapper.config.relocalization).items()}
+            found = {s: world @ m for s, m in localize(mapper, frames).items()}
             err = trajectory_errors(found, truth, align=False, gross=(5.0, 0.25))
             n_wrong = int(round(err['wrong'] * len(found))) if found else 0
             totals[name].append((len(truth), len(found), len(seeing), len(seeing & set(found)), n_wrong,

@@ -1,5 +1,6 @@
 """Localization mode as a stream (rfm_core.mapping.localization): a track, confirmation by a
 later frame, kidnapping; and the whole-map check's floor of three explained detections."""
+import copy
 from dataclasses import replace
 
 import numpy as np
@@ -40,8 +41,10 @@ def _views(mapper):
 
 
 def _stream(mapper, **changes):
-    config = replace(mapper.config.relocalization, **changes)
-    return StreamLocalizer(lambda obs, prior, why: mapper.relocalize(obs, why, prior), config)
+    """A stream against ``mapper``'s map (shared, not copied) with relocalization settings changed."""
+    changed = copy.copy(mapper)
+    changed.config = replace(mapper.config, relocalization=replace(mapper.config.relocalization, **changes))
+    return StreamLocalizer(changed)
 
 
 def _close(a, b, metres=0.1, degrees=3.0):

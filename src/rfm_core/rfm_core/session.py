@@ -131,8 +131,7 @@ class MapSession:
         self.since_save = 0                   # keyframes added since the map was last saved
         self._full_solve_due = None           # clock time of the idle full re-solve
         self._latest_track = None             # the newest tracked frame
-        self.stream = StreamLocalizer(lambda obs, prior, why: self.mapper.relocalize(obs, why, prior),
-                                      self.mapper.config.relocalization)
+        self.stream = StreamLocalizer(self.mapper)
         self._last_camera = None              # the last CameraPose handed out
         # (view-graph session, its keyframe id) -> map id; numbered sessions' from the map file
         self._incoming: dict = {origin: k for k, origin in self.mapper.origins.items()}

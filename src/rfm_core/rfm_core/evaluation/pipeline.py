@@ -123,7 +123,7 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
     world = map_to_world.matrix()
     relocalized, truth, seconds, index_of = {}, {}, [], {}
     room = GroundTruth(boxes=capture.room.boxes, ids=np.arange(1, len(capture.room.boxes) + 1))
-    stream = StreamLocalizer(lambda obs, prior, why: mapper.relocalize(obs, why, prior), mapper.config.relocalization)
+    stream = StreamLocalizer(mapper)
     for frame in capture.frames():
         obs = detect(frame)
         truth[frame.index] = frame.pose_matrix

@@ -72,14 +72,18 @@ class _Held:
 
 
 class StreamLocalizer:
-    """Localization mode's frames as a stream (see the module). ``relocalize(obs, prior,
-    why)``: the mapper's :meth:`~rfm_core.mapping.mapper.Mapper.relocalize` (a pose or None;
-    with a :class:`MotionPrior`, only poses consistent with it)."""
+    """Localization mode's frames as a stream (see the module) against ``mapper``'s map:
+    its :meth:`~rfm_core.mapping.mapper.Mapper.relocalize` (with a :class:`MotionPrior`, only
+    poses consistent with it) and its ``config.relocalization``, read at each frame, so the
+    stream and the relocalization it calls never disagree on a setting."""
 
-    def __init__(self, relocalize, config: RelocalizationConfig):
-        self.relocalize = relocalize
-        self.config = config
+    def __init__(self, mapper):
+        self.mapper = mapper
         self.reset()
+
+    @property
+    def config(self) -> RelocalizationConfig:
+        return self.mapper.config.relocalization
 
     def reset(self) -> None:
         self.track: list = []                     # the newest accepted frames: (observations, T_view_map)
@@ -102,15 +106,16 @@ class StreamLocalizer:
         nothing places it (the reason appended to ``why``)."""
         why = why if why is not None else []
         cfg = self.config
+        relocalize = self.mapper.relocalize
         if not cfg.stream:
-            reloc = self.relocalize(obs, None, why)
+            reloc = relocalize(obs, why)
             return [(obs, reloc)] if reloc is not None else []
         if self._live(obs):
-            reloc = self.relocalize(obs, motion_prior(self.track, obs, cfg), why)
+            reloc = relocalize(obs, why, motion_prior(self.track, obs, cfg))
             if reloc is not None:
                 self.counts['tracked'] += 1
                 return self._accept((obs, reloc))
-        reloc = self.relocalize(obs, None, why)
+        reloc = relocalize(obs, why)
         if reloc is None:
             return []
         # keep only held poses still within reach in time; the newest that agrees confirms
