@@ -2,7 +2,7 @@
 
     ros_ws/env.sh rfm eval-reloc --scenes 10 --first-seed 40 --jobs 2 --work W
     ros_ws/env.sh python bench/reloc_stream.py W [--scenes 10 --first-seed 40] [--set NAME=VALUE ...]
-        [--alt NAME=VALUE[,NAME=VALUE] ...]
+        [--alt NAME=VALUE[,NAME=VALUE] ...] [--weights CHECKPOINT]
 
 For each room of a graph-path `rfm eval-reloc` run kept in ``W``: the map the graph built
 (``map_run/map.rfm``, with the mapper node's default learned matcher), and the second walk
@@ -14,7 +14,8 @@ room and over all, the share relocalized (of all query frames and of #20's denom
 frames that see two mapped objects), the share wrong (> 5 deg or > 25 cm) and the median
 errors. ``--set NAME=VALUE`` changes a ``relocalization`` setting of the stream run;
 ``--alt`` adds stream runs with other settings (the stream's settings are this code's
-defaults, not the map file's).
+defaults, not the map file's). ``--weights``: the learned matcher's checkpoint for the
+queries (the mapper node's ``relocalization.matcher_weights``; default: the shipped one).
 """
 from __future__ import annotations
 
@@ -47,6 +48,7 @@ def main() -> int:
                         help='relocalization settings of the stream run, e.g. stream_slack_m=0.5')
     parser.add_argument('--alt', nargs='*', metavar='NAME=VALUE[,NAME=VALUE]',
                         help='more stream runs, each with these settings')
+    parser.add_argument('--weights', help="the queries' learned matcher checkpoint (default: the shipped one)")
     args = parser.parse_args()
     from rfm_core.evaluation.pipeline import detections_for  # noqa: PLC0415
     from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes, read_ground_truth  # noqa: PLC0415
@@ -75,7 +77,7 @@ def main() -> int:
         scene = args.work / scene_name(config)
         if not (scene / 'map_run' / 'map.rfm').is_file():
             continue
-        mapper = Mapper(matcher=make_matcher('learned'))             # the mapper node's default
+        mapper = Mapper(matcher=make_matcher('learned', weights=args.weights))     # the mapper node's default
         load_map(mapper, scene / 'map_run' / 'map.rfm')
         mapper.mode = 'localization'
         base = mapper.config

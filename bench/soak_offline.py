@@ -60,6 +60,8 @@ def main() -> int:
     parser.add_argument('--cache', type=Path, default=Path('/tmp/rfm_soak_offline.pkl'))
     parser.add_argument('--cycle-min-loops', type=int, default=None,
                         help='averaging.cycle_min_loops (default: the shipped one; 0: no cycle check)')
+    parser.add_argument('--matcher', default='learned', help="object matcher: 'learned' (the nodes' default) or "
+                        "'classical' (before session 26 this bench used the classical one)")
     parser.add_argument('--no-culling', action='store_true', help='culling.enabled:=false (keyframes are never culled)')
     parser.add_argument('--cull-min-views', type=int, default=None, help='culling.min_views (default: the shipped one)')
     args = parser.parse_args()
@@ -69,6 +71,7 @@ def main() -> int:
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import Session  # noqa: PLC0415
 
     frames = _detections(args)
@@ -81,7 +84,7 @@ def main() -> int:
         config = replace(config, culling=replace(config.culling, enabled=False))
     if args.cull_min_views is not None:
         config = replace(config, culling=replace(config.culling, min_views=args.cull_min_views))
-    session = Session(config)
+    session = Session(config, matcher=make_matcher(args.matcher))          # the matcher node's default
     cfg = session.graph.config
     made, near = [], 0                                # (seconds, true pose) of each keyframe
     in_map = {}                                       # seconds -> keyframes in the map (after culling)

@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.geometry import Pose4
+from rfm_core.geometry import Pose4, wrap_angle
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.frame_log import FrameLog
@@ -48,13 +48,21 @@ MAX_PAIR_MEASUREMENTS = 16
 @dataclass(frozen=True)
 class CullingConfig:
     enabled: bool = setting(True, 'Cull redundant keyframes of a stream (as ORB-SLAM and RTAB-Map do): a keyframe '
-                            'whose objects other keyframes see (each by min_views of them), or that shares no '
-                            'object with the map and adds none to it, is merged into a neighbour: its edges and '
+                            'whose objects other keyframes see (each by min_views of them), or that lies where '
+                            'another keyframe is (colocated_m, colocated_deg), or that shares no object with the '
+                            'map, and adds no object to it alone, is merged into a neighbour: its edges and '
                             'tracked frames are carried over through its pose relative to it, and its views still '
                             'count for its objects. Revisits then stop growing the map')
     min_views: int = setting(3, 'Other keyframes that must see each object of a keyframe culled', lo=1, hi=1000)
     keep_newest: int = setting(3, 'The newest keyframes (by id) are never culled: their edges are still arriving',
                                lo=1, hi=1000)
+    colocated_m: float = setting(0.4, 'A keyframe whose objects fewer than min_views others see is culled all the '
+                                 'same when a keyframe that sees one of its objects is within this distance (m, '
+                                 'the averaged poses) and colocated_deg, and no published object rests on it '
+                                 'alone: a revisit whose detections did not verify against the keyframes there '
+                                 '(its detections of objects that keyframe does not see are dropped). 0: off',
+                                 lo=0.0, hi=10.0)
+    colocated_deg: float = setting(15.0, '... and within this turn (deg)', lo=0.0, hi=180.0)
 
 
 @dataclass(frozen=True)
@@ -436,11 +444,15 @@ class Mapper:
         track before merging and the evidence check). A keyframe K is redundant when it sees
         at least two objects that other keyframes see too, each of them seen by ``min_views``
         keyframes other than K and still one object without K's detections, and a registered
-        keyframe A that a kept edge links to K sees at least one of them; or when it shares no
-        object with any keyframe (an isolated view of a revisit, with too few detections to
-        verify one) and no object of the published map rests on it alone (a track that
-        duplicate merging joined to other keyframes' does not), A being the neighbour of its
-        strongest kept edge. Only keyframes of a stream are culled (frames the view
+        keyframe A that a kept edge links to K sees at least one of them; or when a keyframe A
+        that sees one of its objects lies within ``colocated_m`` and ``colocated_deg`` of it
+        (a revisit whose detections did not verify against the keyframes there; its
+        detections of objects A does not see are dropped) and no object of the published map
+        rests on K alone; or when it shares no object with
+        any keyframe (an isolated view of a revisit, with too few detections to verify one)
+        and no object of the published map rests on it alone (a track that duplicate merging
+        joined to other keyframes' does not), A being the neighbour of its strongest kept
+        edge. Only keyframes of a stream are culled (frames the view
         graph followed were tracked against them; separate photos each keep their view, as
         keyframe reuse leaves them alone). K is then merged into A: T_A_K from the current
         poses, K's detections mapped to A's of the same objects; K's edges become A's
@@ -493,9 +505,7 @@ class Mapper:
             objects = {c for c, seen in seen_by.items() if len(seen) > 1}       # seen by other keyframes too
             views = {c: seen_by[c] - {k} for c in objects}
             if not objects:                                  # a view that shares no object with the map
-                if published is None:                        # keyframes that alone hold an object of the map
-                    published = {int(t.observations[0, 0]) for t in self.tracks()
-                                 if np.all(t.observations[:, 0] == t.observations[0, 0])}
+                published = self._sole_holders() if published is None else published
                 # (a registered keyframe may have no kept edge left: its edges dropped as outliers)
                 near = linked.get(k, {})
                 into = None if k in published else min(
@@ -506,13 +516,19 @@ class Mapper:
                     anchors.add(into)
                     gone.add(k)
                 continue
-            if len(objects) < 2 or any(len(v) < cfg.min_views for v in views.values()):
-                continue
             share = {}                                       # K's neighbours (a kept edge) -> objects shared
             for c in objects:
                 for j in views[c]:
                     if j in poses and j in linked.get(k, ()):
                         share[j] = share.get(j, 0) + 1
+            if len(objects) < 2 or any(len(v) < cfg.min_views for v in views.values()):
+                # a keyframe where another already is (a revisit its detections failed to verify)
+                near = {j for c in objects for j in views[c]
+                        if j in poses and _colocated(poses[j], poses[k], cfg.colocated_m, cfg.colocated_deg)}
+                published = self._sole_holders() if published is None else published
+                if not near or k in published:
+                    continue
+                share = {j: sum(j in views[c] for c in objects) for j in near}
             if not share:
                 continue
             into = min(share, key=lambda j: (-share[j], float(np.linalg.norm(poses[j].t - poses[k].t))))
@@ -534,6 +550,11 @@ class Mapper:
         if culled:
             self._merge(culled, poses)
         return bool(culled)
+
+    def _sole_holders(self) -> set:
+        """Keyframes that alone hold an object of the published map."""
+        return {int(t.observations[0, 0]) for t in self.tracks()
+                if np.all(t.observations[:, 0] == t.observations[0, 0])}
 
     def _merge(self, culled: dict, poses: dict) -> None:
         """Take the ``culled`` keyframes ({id: Merged}) out of the map (see :meth:`_cull`);
@@ -690,3 +711,9 @@ class Mapper:
         (:mod:`rfm_core.mapping.localization`)."""
         return relocalize(query, self.map_index(), self.matcher, self.config.relocalization, self.config.matching,
                           self.config.averaging, why, prior)
+
+
+def _colocated(a: Pose4, b: Pose4, metres: float, degrees: float) -> bool:
+    """Whether two cameras (T_k_map) are within ``metres`` and ``degrees`` of each other."""
+    rel = a @ b.inverse()
+    return float(np.linalg.norm(rel.t)) <= metres and np.degrees(abs(wrap_angle(rel.yaw))) <= degrees
