@@ -448,16 +448,16 @@ class Mapper:
         that sees one of its objects lies within ``colocated_m`` and ``colocated_deg`` of it
         (a revisit whose detections did not verify against the keyframes there; its
         detections of objects A does not see are dropped) and no object of the published map
-        rests on K alone; or when it shares no object with
-        any keyframe (an isolated view of a revisit, with too few detections to verify one)
-        and no object of the published map rests on it alone (a track that duplicate merging
-        joined to other keyframes' does not), A being the neighbour of its strongest kept
-        edge. Only keyframes of a stream are culled (frames the view
-        graph followed were tracked against them; separate photos each keep their view, as
-        keyframe reuse leaves them alone). K is then merged into A: T_A_K from the current
-        poses, K's detections mapped to A's of the same objects; K's edges become A's
-        (matches of K's other detections are dropped), frames tracked against K are tracked
-        against A, and later messages naming K are carried over the same way
+        rests on K alone; or when it shares no object with any keyframe (an isolated view of a
+        revisit, with too few detections to verify one) and no object of the published map
+        rests on it alone (a track that duplicate merging joined to other keyframes' does
+        not), A being the neighbour of its strongest kept edge. Only keyframes of a stream
+        are culled (frames the view graph followed were tracked against them; separate
+        photos each keep their view, as keyframe reuse leaves them alone). K is then merged
+        into A: T_A_K from the current poses, K's detections mapped to A's of the same
+        objects; K's edges become A's (matches of K's other detections are dropped), frames
+        tracked against K are tracked against A, and later messages naming K are carried
+        over the same way
         (:attr:`merged`). Only keyframes that new edges touched since the last pass are
         checked; the first registered keyframe (the map's anchor) and the ``keep_newest``
         newest are kept; nothing is solved again (the kept keyframes keep their poses)."""
