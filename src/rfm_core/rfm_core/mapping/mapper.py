@@ -525,8 +525,10 @@ class Mapper:
                 # a keyframe where another already is (a revisit its detections failed to verify)
                 near = {j for c in objects for j in views[c]
                         if j in poses and _colocated(poses[j], poses[k], cfg.colocated_m, cfg.colocated_deg)}
-                published = self._sole_holders() if published is None else published
-                if not near or k in published:
+                if not near:
+                    continue
+                published = self._sole_holders() if published is None else published    # (builds the tracks)
+                if k in published:
                     continue
                 share = {j: sum(j in views[c] for c in objects) for j in near}
             if not share:
