@@ -112,6 +112,33 @@ def test_gravity_filter_uses_the_gyroscope():
     assert not fused.add(int(0.1e9), [0, -9.81, 0])                    # out of order rejected
 
 
+def test_gravity_at_a_frame_is_gravity_when_it_was_taken():
+    """A frame detected after later IMU samples arrived (the detector busy, the IMU queue
+    polled) gets gravity as it was at the frame's stamp, not as the camera has turned since."""
+    rate, dt = 1.0, 0.005                                   # rolling at 1 rad/s, at rest otherwise
+    g = GravityFilter(tau_s=1.0)
+    up_at = lambda t: np.array([-np.sin(rate * t), -np.cos(rate * t), 0.0])   # noqa: E731
+    for k in range(200):
+        g.add(int(k * dt * 1e9), 9.81 * up_at(k * dt), [0.0, 0.0, rate])
+    frame_s = 0.8                                           # a frame 0.2 s (11 deg) older than the IMU
+    err = lambda down: np.degrees(np.arccos(np.clip(down @ -up_at(frame_s), -1, 1)))  # noqa: E731
+    assert err(g.gravity_at(int(frame_s * 1e9))) < 0.5 < 10 < err(g.gravity())
+    assert err(g.gravity_at(int(frame_s * 1e9) + 1_000_000)) < 0.5      # within a sample's gap
+    np.testing.assert_allclose(g.gravity_at(int(5e9)), g.gravity())        # no sample near: the newest
+
+
+def test_gravity_filter_starts_from_the_mean_of_its_first_samples():
+    """The first sample carries the camera's acceleration at that moment; until tau_s of
+    samples have come the estimate is their mean, not the first sample decaying with tau_s."""
+    dt, truth = 0.005, np.array([0.0, 1.0, 0.0])           # level camera: down is +y
+    g = GravityFilter(tau_s=1.0)
+    for k in range(100):                                    # 0.5 s shaken sideways at 2 Hz, 2 m/s^2
+        shake = 2.0 * np.cos(2 * np.pi * 2.0 * k * dt)
+        g.add(int(k * dt * 1e9), [shake, -9.80665, 0.0])                  # (no gyroscope)
+    first = np.degrees(np.arctan2(2.0, 9.80665))            # the first sample's error: 11.5 deg
+    assert np.degrees(np.arccos(np.clip(g.gravity() @ truth, -1, 1))) < 0.1 * first
+
+
 def test_calibrated_score_ranks_boxes_better_than_the_raw_score(frames):
     """The shipped score model (trained on seeds 3000+) raises per-frame AP on these
     frames and keeps exactly the boxes the raw score keeps."""

@@ -141,7 +141,7 @@ class DetectorFrontend:
             self.warn('frame dropped: no recent IMU data on "imu"; remap the IMU topic, '
                       'or set gravity_source:=parameter with gravity:=[gx, gy, gz]')
             return None
-        return self.gravity_filter.gravity()
+        return self.gravity_filter.gravity_at(stamp)
 
     def diagnostics(self) -> dict:
         """Counters for /diagnostics."""

@@ -6,8 +6,12 @@ plain low-pass of the accelerometer therefore lags every rotation of the camera 
 degrees for a handheld camera). Here the estimate is rotated with the gyroscope between
 samples (in the camera frame a fixed direction v moves as dv/dt = -w x v) and pulled
 towards the accelerometer with time constant ``tau_s``. Without gyroscope readings it
-degrades to the low-pass. Everything is in the IMU's frame (the camera optical frame, or
-rotated into it by the caller).
+degrades to the low-pass. Until ``tau_s`` of samples have come the estimate is their mean
+(the first sample alone carries the camera's acceleration at that moment: about 5 deg on a
+handheld start). A frame is given gravity as it was at its stamp (:meth:`gravity_at`: the
+newest estimate turned back by the gyroscope), not as the camera has turned while the
+detector was busy. Everything is in the IMU's frame (the camera optical frame, or rotated
+into it by the caller).
 
 The gyroscope is also integrated into an orientation (IMU frame -> a fixed frame that
 drifts slowly with the gyroscope's bias): the rotation between two moments of one
@@ -65,9 +69,10 @@ class GravityFilter:
         self.rest_reset_deg = float(rest_reset_deg)
         self._rest = deque()               # recent samples that look like rest: (stamp_ns, force)
         self._force = None
+        self._since_start = 0              # samples since the estimate (re)started
         self._stamp_ns = None
         self._orientation = None          # IMU frame -> integration frame, None without gyroscope
-        self._history = deque(maxlen=256)  # recent (stamp_ns, epoch, orientation)
+        self._history = deque(maxlen=256)  # recent (stamp_ns, epoch, orientation or None, force)
         self.epoch = 0                    # integration epoch of the orientation (0: none yet)
         self.samples = 0
         self.rejected = 0
@@ -92,6 +97,7 @@ class GravityFilter:
         if self._force is None or (stamp_ns - self._stamp_ns) * 1e-9 > self.max_gap_s:
             self._force = f.copy()
             self._orientation = None
+            self._since_start = 1
         else:
             dt = (stamp_ns - self._stamp_ns) * 1e-9
             if w is not None:
@@ -99,7 +105,10 @@ class GravityFilter:
                 self._force = step.T @ self._force    # a fixed direction, seen from the body
                 if self._orientation is not None:     # R <- R exp([w dt]x): body rates
                     self._orientation = self._orientation @ step
-            alpha = 1.0 - np.exp(-dt / self.tau_s)
+            # until tau_s of samples have come, their mean (turned by the gyroscope): the
+            # first sample alone carries the camera's acceleration at that moment
+            self._since_start += 1
+            alpha = max(1.0 - np.exp(-dt / self.tau_s), 1.0 / self._since_start)
             self._force += alpha * (f - self._force)
         self._at_rest(stamp_ns, f, norm, w)
         if w is None:
@@ -107,8 +116,7 @@ class GravityFilter:
         elif self._orientation is None:               # a new integration epoch
             self._orientation = np.eye(3)
             self.epoch += 1
-        if self._orientation is not None:
-            self._history.append((int(stamp_ns), self.epoch, self._orientation))
+        self._history.append((int(stamp_ns), self.epoch, self._orientation, self._force.copy()))
         self._stamp_ns = int(stamp_ns)
         self.samples += 1
         return True
@@ -139,16 +147,36 @@ class GravityFilter:
             return None
         return _orthonormal(self._orientation)
 
-    def orientation_at(self, stamp_ns: int, max_gap_s: float = 0.02):
-        """(orientation, epoch) of the sample nearest ``stamp_ns`` among the recent ones, if
-        within ``max_gap_s`` of it (a frame's IMU may arrive before or after it); else None."""
+    def _nearest(self, stamp_ns: int, max_gap_s: float):
+        """The recent sample nearest ``stamp_ns``, if within ``max_gap_s`` of it; else None."""
         history = list(self._history)          # (a copy: the IMU callback may be appending)
         if not history:
             return None
-        stamp, epoch, rotation = min(history, key=lambda h: abs(h[0] - stamp_ns))
-        if abs(stamp - stamp_ns) > max_gap_s * 1e9:
+        nearest = min(history, key=lambda h: abs(h[0] - stamp_ns))
+        return nearest if abs(nearest[0] - stamp_ns) <= max_gap_s * 1e9 else None
+
+    def orientation_at(self, stamp_ns: int, max_gap_s: float = 0.02):
+        """(orientation, epoch) of the sample nearest ``stamp_ns`` among the recent ones, if
+        within ``max_gap_s`` of it (a frame's IMU may arrive before or after it); else None."""
+        found = self._nearest(stamp_ns, max_gap_s)
+        if found is None or found[2] is None:
             return None
-        return _orthonormal(rotation), epoch
+        return _orthonormal(found[2]), found[1]
+
+    def gravity_at(self, stamp_ns: int, max_gap_s: float = 0.02) -> np.ndarray:
+        """Unit gravity ("down") in the IMU frame at ``stamp_ns``: the newest estimate turned
+        back by the gyroscope to the recent sample nearest ``stamp_ns`` (within ``max_gap_s``;
+        without a gyroscope between them, the estimate that sample left). A frame detected
+        after later IMU samples arrived gets gravity as it was when the frame was taken, not
+        as the camera has turned since. Without such a sample: :meth:`gravity`."""
+        found = self._nearest(stamp_ns, max_gap_s)
+        if found is None:
+            return self.gravity()
+        _, epoch, orientation, force = found
+        if orientation is not None and self._orientation is not None and epoch == self.epoch:
+            # a fixed direction in the integration frame, seen from the body at the sample
+            force = _orthonormal(orientation).T @ (_orthonormal(self._orientation) @ self._force)
+        return -force / np.linalg.norm(force)
 
     @property
     def last_stamp_ns(self):
