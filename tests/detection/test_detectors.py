@@ -49,6 +49,26 @@ def test_depth_clusters_refines_a_tilted_gravity_from_the_floor(frames):
     assert err < 0.7                                   # from 3 degrees
 
 
+def test_depth_clusters_measures_the_walls(frames):
+    """The walls it reports lie where the room's walls are (the simulator's room spans
+    [0, width] x [0, depth]): normals along the room's axes, distances to the centimetre."""
+    from rfm_core.geometry import yaw_matrix
+    from rfm_core.mapping.frame_log import pose_from_camera
+
+    det = make_detector('depth_clusters')
+    errors = []
+    for cap, f in frames:
+        obs = det.detect(inputs(cap, f))
+        camera = pose_from_camera(f.pose_matrix, obs.gravity_cam, atol=0.2).inverse()     # T_map_aligned
+        for nx, ny, d in obs.walls:
+            m = yaw_matrix(camera.yaw)[:2, :2] @ [nx, ny]                  # the normal in the room
+            axis = int(np.argmax(np.abs(m)))
+            assert abs(m[axis]) > np.cos(np.radians(3.0))
+            coordinate = np.sign(m[axis]) * (d + m @ np.asarray(camera.t)[:2])   # the wall's x or y
+            errors.append(abs(coordinate - (cap.room.size[axis] if m[axis] > 0 else 0.0)))
+    assert len(errors) >= 4 and np.median(errors) < 0.02 and max(errors) < 0.1, errors
+
+
 def test_depth_clusters_handles_empty_and_degenerate_depth(frames):
     cap, f = frames[0]
     det = make_detector('depth_clusters')

@@ -32,6 +32,7 @@ def make_observations(rng, n=4, gravity=(0.1, 0.95, -0.2)):
         full_boxes=np.c_[rng.uniform(-2, 2, (n, 3)), rng.uniform(0.2, 2, (n, 3)), rng.uniform(-3, 3, n)],
         backend='ground_truth',
         camera_height=1.47,
+        walls=[[0.6, 0.8, 2.5], [-0.8, 0.6, 1.2]],
     )
 
 
@@ -69,6 +70,35 @@ def test_frame_detections_round_trip_preserves_everything():
     np.testing.assert_allclose(back.boxes_2d, obs.boxes_2d, rtol=1e-6)
     np.testing.assert_array_equal(back.object_ids, obs.object_ids)
     assert back.camera_height == pytest.approx(1.47)
+    np.testing.assert_allclose(back.walls, obs.walls, atol=1e-9)
+
+
+def test_walls_are_planes_in_the_optical_frame_and_validated():
+    """Walls travel as optical-frame normals and distances; a message with mismatched lists,
+    a non-finite or zero normal, a normal along gravity or too many walls is refused."""
+    obs = make_observations(np.random.default_rng(3))
+    msg = frame_detections_to_msg(obs)
+    assert len(msg.wall_normals) == len(msg.wall_distances) == 2
+    n = np.array([msg.wall_normals[0].x, msg.wall_normals[0].y, msg.wall_normals[0].z])
+    assert abs(n @ obs.gravity_cam) < 1e-9                        # vertical planes: normals across gravity
+    np.testing.assert_allclose(gravity_aligned_rotation(obs.gravity_cam) @ n, [0.6, 0.8, 0.0], atol=1e-9)
+    none = frame_detections_to_msg(make_observations(np.random.default_rng(3)).subset([0]))
+    none.wall_normals, none.wall_distances = [], []
+    assert frame_detections_from_msg(none).walls.shape == (0, 3)
+    bad = [('wall_distances', lambda m: m.wall_distances.pop(), 'wall normals for'),
+           ('nan', lambda m: setattr(m.wall_normals[0], 'x', float('nan')), 'finite'),
+           ('zero', lambda m: [setattr(m.wall_normals[0], a, 0.0) for a in 'xyz'], 'finite'),
+           ('along gravity', lambda m: [setattr(m.wall_normals[0], a, float(v))
+                                        for a, v in zip('xyz', obs.gravity_cam)], 'perpendicular'),
+           ('negative distance', lambda m: m.wall_distances.__setitem__(0, -1.0), 'walls'),
+           ('too many', lambda m: (m.wall_normals.extend([m.wall_normals[0]] * 70),
+                                   m.wall_distances.extend([2.0] * 70)), 'at most')]
+    for name, spoil, match in bad:
+        m = frame_detections_to_msg(obs)
+        m.wall_distances = list(m.wall_distances)
+        spoil(m)
+        with pytest.raises(ValueError, match=match):
+            frame_detections_from_msg(m)
 
 
 def test_a_camera_height_not_measured_reads_as_unknown():

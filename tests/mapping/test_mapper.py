@@ -166,10 +166,12 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     k0 = min(mapper.keyframes)
     assert np.isnan(mapper.keyframes[k0].camera_height)        # ground_truth boxes: no floor fit
     mapper.keyframes[k0].camera_height = 1.53
+    mapper.keyframes[k0].walls = np.array([[1.0, 0.0, 2.5], [0.0, 1.0, 1.5]])
     try:
         path = save_map(mapper, tmp_path / 'room.rfm')
     finally:
         mapper.keyframes[k0].camera_height = float('nan')
+        mapper.keyframes[k0].walls = np.zeros((0, 3))
     assert not list(tmp_path.glob('*.tmp'))
     fresh = Mapper()
     header = load_map(fresh, path)
@@ -182,6 +184,8 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     a, b = mapper.keyframes[k0], fresh.keyframes[k0]
     assert a.intrinsics == b.intrinsics and a.stamp_ns == b.stamp_ns and a.frame_id == b.frame_id
     assert b.camera_height == 1.53 and np.isnan(fresh.keyframes[max(fresh.keyframes)].camera_height)
+    np.testing.assert_allclose(b.walls, [[1.0, 0.0, 2.5], [0.0, 1.0, 1.5]])
+    assert fresh.keyframes[max(fresh.keyframes)].walls.shape == (0, 3)
     np.testing.assert_allclose(a.boxes, b.boxes)
     np.testing.assert_allclose(a.embeddings, b.embeddings)
     t0, t1 = mapper.tracks(), fresh.tracks()
@@ -205,6 +209,13 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     np.savez(tmp_path / 'future.npz', **data)
     with pytest.raises(MapFileError, match='version 99'):
         read_map(tmp_path / 'future.npz')
+    # walls: counts that do not add up, or a wall that is no plane
+    data = dict(np.load(path))
+    for name, change, match in [('walls1.npz', {'kf_wall_counts': data['kf_wall_counts'] + 1}, 'wall arrays'),
+                                ('walls2.npz', {'kf_walls': np.zeros_like(data['kf_walls'])}, 'walls')]:
+        np.savez(tmp_path / name, **{**data, **change})
+        with pytest.raises(MapFileError, match=match):
+            read_map(tmp_path / name)
     assert fresh.poses.keys() == good.keys()            # refused loads left the map alone
 
 

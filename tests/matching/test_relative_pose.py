@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from rfm_core.detection import make_detector
-from rfm_core.geometry import Pose4, box_corners, iou_3d_paired
+from rfm_core.geometry import Pose4, box_corners, iou_3d_paired, wrap_angle
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig, monocular
 from rfm_core.matching.corners import corner_permutation, quarter_turn_candidates, relabel
@@ -243,6 +243,56 @@ def test_camera_heights_replace_the_vertical_translation_where_they_agree():
     assert with_camera_heights(dc_replace(rel), source, target, off).pose.t[2] == rel.pose.t[2]
     # a non-physical height is no measurement
     assert np.isnan(FrameObservations(1, 'c', intr, [0, 0, -1], camera_height=-1.0).camera_height)
+
+
+def test_walls_correct_the_horizontal_translation_along_their_normals():
+    """Walls both frames measured fix the translation along their normals (two at an angle:
+    all of it; one: across the wall); a wall the boxes put too far from the other frame's, or
+    turned away from it, is no evidence; yaw and height are kept."""
+    from dataclasses import replace as dc_replace  # noqa: PLC0415
+
+    from rfm_core.matching.relative_pose import RelativePose, with_walls  # noqa: PLC0415
+    from rfm_core.observations import CameraIntrinsics, FrameObservations  # noqa: PLC0415
+
+    intr = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+    truth = Pose4(np.radians(12.0), (0.35, -0.2, 0.05))                  # T_source_target
+    source_walls = np.array([[1.0, 0.0, 2.5], [0.0, -1.0, 1.8]])        # n . p = d, source frame
+    c, s_ = np.cos(truth.yaw), np.sin(truth.yaw)
+    rot = np.array([[c, -s_], [s_, c]])
+
+    def seen_from_target(walls):                                        # n_t = R^T n_s, d_t = d_s - n_s . t
+        return np.c_[walls[:, :2] @ rot, walls[:, 2] - walls[:, :2] @ np.asarray(truth.t)[:2]]
+
+    source = FrameObservations(0, 'c', intr, [0, 0, -1], walls=source_walls)
+    target = FrameObservations(1, 'c', intr, [0, 0, -1], walls=seen_from_target(source_walls))
+    boxes = RelativePose(Pose4(truth.yaw, np.asarray(truth.t) + [0.08, -0.06, 0.01]), np.zeros((0, 2), int),
+                         np.zeros(0), np.zeros(0), 0.0, 3)              # the boxes' estimate, 10 cm off
+    fixed = with_walls(dc_replace(boxes), source, target)
+    assert np.linalg.norm(np.asarray(fixed.pose.t)[:2] - np.asarray(truth.t)[:2]) < 0.005
+    assert fixed.pose.yaw == boxes.pose.yaw and fixed.pose.t[2] == boxes.pose.t[2]
+    one = FrameObservations(1, 'c', intr, [0, 0, -1], walls=seen_from_target(source_walls)[:1])
+    t = with_walls(dc_replace(boxes), source, one).pose.t                # the x-normal wall only
+    assert abs(t[0] - truth.t[0]) < 0.005 and t[1] == pytest.approx(boxes.pose.t[1], abs=0.003)
+    far = seen_from_target(source_walls)
+    far[:, 2] += 0.5                                                     # another plane, 50 cm away
+    assert with_walls(dc_replace(boxes), source, FrameObservations(1, 'c', intr, [0, 0, -1], walls=far)).pose \
+        == boxes.pose
+    # a yaw 1.5 deg off as well: the walls' normals turn it back, the matched boxes keep their place
+    boxes_b = np.array([[1.5, 0.4, 0.0, 0.5, 0.5, 0.5, 0.0], [2.0, -0.6, 0.0, 0.5, 0.5, 0.5, 0.0]])
+    target_boxes = FrameObservations(1, 'c', intr, [0, 0, -1], boxes=boxes_b, scores=[1.0, 1.0],
+                                     walls=seen_from_target(source_walls))
+    skewed = RelativePose(Pose4(truth.yaw + np.radians(1.5), np.asarray(truth.t) + [0.05, 0.03, 0.0]),
+                          np.array([[0, 0], [1, 1]]), np.ones(2), np.ones(2), 0.0, 2)
+    fixed = with_walls(dc_replace(skewed), source, target_boxes)
+    assert abs(np.degrees(wrap_angle(fixed.pose.yaw - truth.yaw))) < 0.1
+    assert np.linalg.norm(np.asarray(fixed.pose.t)[:2] - np.asarray(truth.t)[:2]) < 0.01
+    turned = FrameObservations(1, 'c', intr, [0, 0, -1], walls=[[0.6, 0.8, 2.0]])
+    assert with_walls(dc_replace(boxes), source, turned).pose == boxes.pose
+    off = MatchingConfig(wall_tolerance_m=0.0)
+    assert with_walls(dc_replace(boxes), source, target, off).pose == boxes.pose
+    for bad in ([[1.0, 0.0]], [[0.0, 0.0, 2.0]], [[1.0, 0.0, -1.0]], [[1.0, 0.0, np.nan]]):
+        with pytest.raises(ValueError, match='walls'):
+            FrameObservations(1, 'c', intr, [0, 0, -1], walls=bad)
 
 
 def test_an_edge_whose_boxes_disagree_is_uncertain_whatever_its_count():

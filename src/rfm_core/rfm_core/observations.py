@@ -92,6 +92,10 @@ class FrameObservations:
     #: height of the camera above the floor along gravity (m), where the detector measured the
     #: floor plane; NaN: not measured
     camera_height: float = float('nan')
+    #: (W, 3) vertical planes (walls) the detector measured: unit horizontal normal (nx, ny)
+    #: in the gravity-aligned camera frame, pointing away from the camera, and the plane's
+    #: distance d > 0 (points p on it: n . p_xy = d); empty: none measured
+    walls: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
     def __post_init__(self):
         self.gravity_cam = unit_gravity(self.gravity_cam)
@@ -137,6 +141,16 @@ class FrameObservations:
         self.camera_height = float(self.camera_height)
         if not (np.isnan(self.camera_height) or (np.isfinite(self.camera_height) and self.camera_height > 0)):
             self.camera_height = float('nan')         # 0 / inf / negative: not a measurement
+        walls = np.asarray(self.walls, dtype=np.float64)
+        if walls.size == 0:
+            walls = walls.reshape(0, 3)
+        if walls.ndim != 2 or walls.shape[1] != 3 or not np.all(np.isfinite(walls)):
+            raise ValueError(f'walls must be finite (W, 3) rows (nx, ny, d), got shape {walls.shape}')
+        norm = np.hypot(walls[:, 0], walls[:, 1])
+        if np.any(norm < 0.5) or np.any(walls[:, 2] <= 0):
+            raise ValueError('walls need a horizontal normal of unit length and a positive distance')
+        walls[:, :2] /= norm[:, None]
+        self.walls = walls
         if self.corner_descriptors is not None:
             cd = np.asarray(self.corner_descriptors, dtype=np.float32)
             if cd.ndim != 3 or cd.shape[:2] != (n, 8):

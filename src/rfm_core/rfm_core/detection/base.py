@@ -65,9 +65,9 @@ class Detector:
 
 def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, config: DetectorConfig,
              backend: str, visibility=None, object_ids=None, full_boxes=None,
-             camera_height: float = float('nan')) -> FrameObservations:
+             camera_height: float = float('nan'), walls=None) -> FrameObservations:
     """Threshold by score, keep the best ``max_detections``, package as FrameObservations
-    (``full_boxes``, ``camera_height``: see :class:`FrameObservations`)."""
+    (``full_boxes``, ``camera_height``, ``walls``: see :class:`FrameObservations`)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     scores = np.asarray(scores, dtype=np.float32).reshape(-1)
     keep = np.flatnonzero(scores >= config.score_threshold)
@@ -85,4 +85,5 @@ def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, 
         object_ids=(np.asarray(object_ids, np.int64)[keep] if object_ids is not None
                     else np.full(len(keep), -1, np.int64)),
         full_boxes=np.asarray(full_boxes, np.float64).reshape(-1, 7)[keep] if full_boxes is not None else None,
-        backend=backend, camera_height=camera_height)
+        backend=backend, camera_height=camera_height,
+        walls=np.zeros((0, 3)) if walls is None else np.asarray(walls, np.float64).reshape(-1, 3))

@@ -25,7 +25,7 @@ Works on any registered RGB-D stream with gravity; it never reads instance ids.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
@@ -178,6 +178,7 @@ class Candidates:
     floor_z: float | None         #: floor height in the gravity-aligned frame, when seen
     ceiling_z: float | None
     items: list                   #: [Candidate]
+    walls: list = field(default_factory=list)   #: [(unit normal (2,), distance)] in that frame
 
 
 class DepthClustersDetector(Detector):
@@ -227,7 +228,8 @@ class DepthClustersDetector(Detector):
         embeds = [self._embedding(c.colours, box, found.floor_z) for c, box in zip(items, boxes)]
         return finalize(frame, boxes, scores, labels, np.array(embeds).reshape(len(items), EMBEDDING_DIM),
                         [c.box_2d for c in items], cfg, self.name, full_boxes=full,
-                        camera_height=-found.floor_z if found.floor_z is not None else float('nan'))
+                        camera_height=-found.floor_z if found.floor_z is not None else float('nan'),
+                        walls=[(n[0], n[1], d) for n, d in found.walls if d > 0.05])
 
     def candidates(self, frame: DetectorInput) -> 'Candidates':
         """Steps 1-4: one :class:`Candidate` per cluster with its fitted box and raw score,
@@ -283,7 +285,7 @@ class DepthClustersDetector(Detector):
                 fit[0], fit[1], truncated, support_z is not None, hidden,
                 [pixels[:, 1].min() - s / 2, pixels[:, 0].min() - s / 2,
                  pixels[:, 1].max() + s / 2, pixels[:, 0].max() + s / 2]))
-        return Candidates(frame, floor_z, ceiling_z, items)
+        return Candidates(frame, floor_z, ceiling_z, items, walls)
 
     # ------------------------------------------------------------------ structure
 

@@ -31,6 +31,7 @@ __all__ = [
 ]
 
 MAX_DETECTIONS = 1000       #: detections read from one frame message (the detectors' max_detections bound)
+MAX_WALLS = 64              #: walls read from one frame message
 MAX_DESCRIPTOR_DIM = 4096   #: values in one embedding, or per corner descriptor (CuTR: 256)
 
 _NS = 1_000_000_000
@@ -339,8 +340,30 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         backend=msg.backend,
         # none in messages of older rfm versions; 0, NaN or a non-physical value: not measured
         camera_height=float(getattr(msg, 'camera_height', 0.0)),
+        walls=_walls(msg, obs_rotation),
         **_imu_fields(msg),
     )
+
+
+def _walls(msg, obs_rotation) -> np.ndarray:
+    """(W, 3) walls of a FrameDetections in its gravity-aligned frame (none in messages of
+    older rfm versions); ValueError for mismatched, non-finite, non-vertical or too many."""
+    normals, distances = list(getattr(msg, 'wall_normals', ())), list(getattr(msg, 'wall_distances', ()))
+    if len(normals) != len(distances):
+        raise ValueError(f'{len(normals)} wall normals for {len(distances)} wall distances')
+    if len(normals) > MAX_WALLS:
+        raise ValueError(f'{len(normals)} walls in one frame; at most {MAX_WALLS} are read')
+    if not normals:
+        return np.zeros((0, 3))
+    n = np.array([vector3_to_numpy(v) for v in normals]) @ obs_rotation.T      # in the aligned frame
+    d = np.asarray(distances, dtype=np.float64)
+    norm = np.linalg.norm(n, axis=1)
+    if not (np.all(np.isfinite(n)) and np.all(np.isfinite(d))) or np.any(norm < 1e-6):
+        raise ValueError('wall normals and distances must be finite, the normals non-zero')
+    n /= norm[:, None]
+    if np.any(np.abs(n[:, 2]) > np.sin(np.radians(10.0))):
+        raise ValueError('wall normals must be perpendicular to gravity (within 10 deg)')
+    return np.c_[n[:, :2], d]
 
 
 def _aligned_boxes(obs_rotation, poses, sizes) -> np.ndarray:
@@ -404,6 +427,8 @@ def frame_detections_to_msg(obs: FrameObservations, make=ROS):
                 gravity=_vector3(make, obs.gravity_cam), imu_orientation=_quaternion(make, obs.imu_rotation),
                 imu_epoch=int(obs.imu_epoch) if obs.imu_rotation is not None else 0,
                 camera_height=float(obs.camera_height) if np.isfinite(obs.camera_height) else 0.0,
+                wall_normals=[_vector3(make, camera_from_aligned @ np.r_[w[:2], 0.0]) for w in obs.walls],
+                wall_distances=np.asarray(obs.walls[:, 2], dtype=np.float64),
                 detections=detections)
 
 

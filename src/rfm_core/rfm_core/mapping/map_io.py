@@ -68,6 +68,9 @@ def _keyframe_arrays(mapper: Mapper) -> dict:
         'det_full_boxes': cat(lambda f: f.map_boxes, (7,), np.float64),
         # FrameObservations.camera_height (NaN: not measured)
         'kf_camera_height': np.array([f.camera_height for f in frames], float),
+        # FrameObservations.walls: kf_wall_counts per keyframe, their rows in kf_walls
+        'kf_wall_counts': np.array([len(f.walls) for f in frames], np.int64),
+        'kf_walls': (np.concatenate([f.walls for f in frames]) if frames else np.zeros((0, 3))).reshape(-1, 3),
         # where each keyframe came from: (view-graph session, its id there); (0, 0) unknown
         'kf_origin': np.array([mapper.origins.get(k, (0, 0)) for k in ids], np.uint64).reshape(-1, 2),
     }, {'kf_frame_ids': [f.frame_id for f in frames],
@@ -290,6 +293,10 @@ def _parse_map(path: Path, data: dict) -> dict:
     if 'kf_camera_height' in data:                            # none in maps of older rfm versions
         checks += [(data['kf_camera_height'].shape == (n_kf,) and data['kf_camera_height'].dtype.kind == 'f',
                     'keyframe camera heights')]
+    if 'kf_wall_counts' in data:                              # none in maps of older rfm versions
+        wc, walls = data['kf_wall_counts'], data.get('kf_walls', np.zeros(0))
+        checks += [(wc.shape == (n_kf,) and wc.dtype.kind in 'iu' and np.all(wc >= 0) and walls.ndim == 2
+                    and walls.shape == (int(wc.sum()), 3) and walls.dtype.kind == 'f', 'keyframe wall arrays')]
     for ok, what in checks:
         if not ok:
             raise MapFileError(f'{path}: inconsistent map file ({what})')
@@ -300,6 +307,7 @@ def _parse_map(path: Path, data: dict) -> dict:
     frames = {k[len('frame_'):]: data[k] for k in frame_keys if k in data}
     keyframes = {}
     offsets = np.r_[0, np.cumsum(data['kf_counts'])]
+    wall_offsets = np.r_[0, np.cumsum(data['kf_wall_counts'])] if 'kf_wall_counts' in data else None
     labels = header['det_labels']
     for i, k in enumerate(data['kf_ids']):
         a, b = offsets[i], offsets[i + 1]
@@ -312,7 +320,9 @@ def _parse_map(path: Path, data: dict) -> dict:
                 labels=list(labels[a:b]), embeddings=data['det_embeddings'][a:b],
                 boxes_2d=data['det_boxes_2d'][a:b], backend=header.get('kf_backends', [''] * n_kf)[i],
                 full_boxes=data['det_full_boxes'][a:b] if 'kf_full' in data and data['kf_full'][i] else None,
-                camera_height=float(data['kf_camera_height'][i]) if 'kf_camera_height' in data else float('nan'))
+                camera_height=float(data['kf_camera_height'][i]) if 'kf_camera_height' in data else float('nan'),
+                walls=(data['kf_walls'][wall_offsets[i]:wall_offsets[i + 1]] if wall_offsets is not None
+                       else np.zeros((0, 3))))
         except ValueError as exc:
             raise MapFileError(f'{path}: keyframe {int(k)}: {exc}') from None
     edges = []

@@ -54,6 +54,22 @@ class MatchingConfig:
                                         "a centimetre, box centres to several) and it is within this of the boxes' "
                                         '(m): a larger disagreement means a frame took another surface for the '
                                         'floor (0: boxes only)', lo=0.0, hi=10.0)
+    wall_tolerance_m: float = setting(0.3, "A relative pose's horizontal translation is corrected along the "
+                                      'normals of walls both frames measured (FrameDetections.walls: a wall plane '
+                                      'fixes the distance to it to about a centimetre, boxes the border cuts or '
+                                      'partly hidden to several) where the boxes put the two planes within this '
+                                      'of each other (m) and their normals within wall_tolerance_deg (0: boxes '
+                                      'only)', lo=0.0, hi=10.0)
+    wall_tolerance_deg: float = setting(10.0, '... and their normals within this (deg)', lo=0.0, hi=90.0)
+    wall_yaw_sigma_deg: float = setting(0.2, "Error of the yaw between two frames one wall's normals give (deg): "
+                                        "against box_yaw_sigma_deg, how far walls turn a relative pose's yaw",
+                                        lo=1e-3, hi=90.0)
+    box_yaw_sigma_deg: float = setting(1.0, "Error of a relative pose's yaw from its boxes (deg), as it is weighed "
+                                       'against walls', lo=1e-3, hi=90.0)
+    wall_sigma_m: float = setting(0.02, "A wall plane's offset error (m): against box_translation_sigma_m, how "
+                                  "far a wall moves the boxes' translation along its normal", lo=1e-4, hi=10.0)
+    box_translation_sigma_m: float = setting(0.1, "Error of the boxes' horizontal translation (m), per axis, as "
+                                             'it is weighed against walls', lo=1e-4, hi=10.0)
 
     @property
     def along_rays(self) -> bool:

@@ -37,7 +37,7 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 
 __all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty',
-           'with_camera_heights']
+           'with_camera_heights', 'with_walls']
 
 
 @dataclass
@@ -176,6 +176,77 @@ def with_camera_heights(rel: RelativePose | None, source, target,
         t[2] = ht - hs
         rel.pose = Pose4(rel.pose.yaw, t)
     return rel
+
+
+def with_walls(rel: RelativePose | None, source, target, config: MatchingConfig | None = None) -> RelativePose | None:
+    """``rel`` (T_source_target) corrected by the walls both frames measured
+    (``FrameObservations.walls``; in place, returns ``rel``). A wall of the target, turned
+    by the pose's yaw, pairs with the source's wall whose normal is within
+    ``wall_tolerance_deg`` of it and whose plane the pose puts within ``wall_tolerance_m`` of
+    it. A plane fitted to a wall's many points gives its direction to a tenth of a degree
+    and the camera's distance to it to a centimetre or two; boxes the image border cuts, or
+    partly hidden, move their centres by several centimetres and their faces by a degree.
+
+    1. Yaw: the pairs' normals turn the yaw by their mean disagreement, weighed
+       (``wall_yaw_sigma_deg`` each) against the pose's (``box_yaw_sigma_deg``); the pose
+       turns about the centroid of its matched target boxes, which keep their place.
+    2. Translation: each pair fixes it along its normal (n . t = d_source - d_target, error
+       ``wall_sigma_m``), weighed against the pose's (``box_translation_sigma_m`` per axis).
+       Two walls at an angle fix the horizontal translation; one fixes it across the wall.
+    The height is kept."""
+    cfg = config or MatchingConfig()
+    if rel is None or cfg.wall_tolerance_m <= 0:
+        return rel
+    ws, wt = np.asarray(source.walls, float).reshape(-1, 3), np.asarray(target.walls, float).reshape(-1, 3)
+    if not len(ws) or not len(wt):
+        return rel
+    pairs = _wall_pairs(rel.pose, ws, wt, cfg)
+    if not pairs:
+        return rel
+    yaw, t = float(rel.pose.yaw), np.array(rel.pose.t, dtype=np.float64)
+    # 1. yaw, turning the pose about the matched target boxes (the camera for a motion edge)
+    rot = yaw_matrix(yaw)[:2, :2]
+    turns = [np.arctan2(*_cross_dot(rot @ wt[i, :2], ws[j, :2])) for i, j in pairs]
+    w_box, w_wall = 1.0 / np.radians(cfg.box_yaw_sigma_deg) ** 2, 1.0 / np.radians(cfg.wall_yaw_sigma_deg) ** 2
+    turn = w_wall * float(np.sum(turns)) / (w_box + w_wall * len(turns))
+    inl = np.asarray(rel.inliers, int).reshape(-1, 2)
+    pivot = (np.asarray(target.boxes, float)[inl[:, 1], :2].mean(0) if len(inl) and len(target.boxes)
+             else np.zeros(2))
+    turned = yaw_matrix(yaw + turn)[:2, :2]
+    t[:2] += (rot - turned) @ pivot
+    yaw += turn
+    # 2. translation along the walls' normals
+    info = np.eye(2) / cfg.box_translation_sigma_m ** 2
+    rhs = info @ t[:2]
+    for i, j in pairs:
+        n = ws[j, :2]
+        info = info + np.outer(n, n) / cfg.wall_sigma_m ** 2
+        rhs = rhs + n * (ws[j, 2] - wt[i, 2]) / cfg.wall_sigma_m ** 2
+    t[:2] = np.linalg.solve(info, rhs)
+    rel.pose = Pose4(float(wrap_angle(yaw)), t)
+    return rel
+
+
+def _cross_dot(a, b):
+    """(z of a x b, a . b) of 2-vectors: arctan2 of it turns a onto b."""
+    return a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1]
+
+
+def _wall_pairs(pose: Pose4, ws: np.ndarray, wt: np.ndarray, cfg: MatchingConfig) -> list:
+    """(target wall, source wall) index pairs: each target wall, turned by ``pose``'s yaw,
+    with the nearest source wall (one-to-one) whose normal and plane it agrees with."""
+    c, s = np.cos(pose.yaw), np.sin(pose.yaw)
+    normals = wt[:, :2] @ np.array([[c, s], [-s, c]])                # target's normals turned: R n
+    gap = ws[None, :, 2] - wt[:, None, 2] - (ws[:, :2] @ np.asarray(pose.t, float)[:2])[None, :]   # d_s - d_t - n_s . t
+    near = (normals @ ws[:, :2].T > np.cos(np.radians(cfg.wall_tolerance_deg))) & (np.abs(gap) <= cfg.wall_tolerance_m)
+    pairs, used = [], set()
+    for i in range(len(wt)):
+        for j in np.flatnonzero(near[i])[np.argsort(np.abs(gap[i, near[i]]))]:
+            if j not in used:
+                used.add(int(j))
+                pairs.append((i, int(j)))
+                break
+    return pairs
 
 
 @dataclass(frozen=True)
