@@ -141,7 +141,7 @@ class FrameObservations:
         self.camera_height = float(self.camera_height)
         if not (np.isnan(self.camera_height) or (np.isfinite(self.camera_height) and self.camera_height > 0)):
             self.camera_height = float('nan')         # 0 / inf / negative: not a measurement
-        walls = np.asarray(self.walls, dtype=np.float64)
+        walls = np.array(self.walls, dtype=np.float64)          # (a copy: normalised below)
         if walls.size == 0:
             walls = walls.reshape(0, 3)
         if walls.ndim != 2 or walls.shape[1] != 3 or not np.all(np.isfinite(walls)):
