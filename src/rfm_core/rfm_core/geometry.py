@@ -327,6 +327,11 @@ class Pose4:
         """Absolute yaw difference (rad) to another pose."""
         return float(abs(wrap_angle(self.yaw - other.yaw)))
 
+    def within(self, metres: float, degrees: float) -> bool:
+        """Whether this relative pose (T_a_b) moves by at most ``metres`` and turns by at
+        most ``degrees``: the two frames are at one place."""
+        return bool(np.linalg.norm(self.t) <= metres and np.degrees(abs(wrap_angle(self.yaw))) <= degrees)
+
 
 def kabsch_4dof(source, target, weights=None) -> Pose4:
     """Weighted least-squares 4-DoF alignment: argmin sum_i w_i |Rz(yaw) s_i + t - q_i|^2.

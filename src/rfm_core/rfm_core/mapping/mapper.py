@@ -20,7 +20,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.frame_log import FrameLog
@@ -524,7 +524,7 @@ class Mapper:
             if len(objects) < 2 or any(len(v) < cfg.min_views for v in views.values()):
                 # a keyframe where another already is (a revisit its detections failed to verify)
                 near = {j for c in objects for j in views[c]
-                        if j in poses and _colocated(poses[j], poses[k], cfg.colocated_m, cfg.colocated_deg)}
+                        if j in poses and (poses[j] @ poses[k].inverse()).within(cfg.colocated_m, cfg.colocated_deg)}
                 if not near:
                     continue
                 published = self._sole_holders() if published is None else published    # (builds the tracks)
@@ -714,8 +714,3 @@ class Mapper:
         return relocalize(query, self.map_index(), self.matcher, self.config.relocalization, self.config.matching,
                           self.config.averaging, why, prior)
 
-
-def _colocated(a: Pose4, b: Pose4, metres: float, degrees: float) -> bool:
-    """Whether two cameras (T_k_map) are within ``metres`` and ``degrees`` of each other."""
-    rel = a @ b.inverse()
-    return float(np.linalg.norm(rel.t)) <= metres and np.degrees(abs(wrap_angle(rel.yaw))) <= degrees

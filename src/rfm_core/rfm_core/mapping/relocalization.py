@@ -369,8 +369,7 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
 
 def _same(a: Pose4, b: Pose4, config: RelocalizationConfig) -> bool:
     """Whether two T_map_view poses are one (centres within ``distinct_m``, yaws within ``distinct_deg``)."""
-    return (np.linalg.norm(a.t - b.t) <= config.distinct_m
-            and np.degrees(abs(wrap_angle(a.yaw - b.yaw))) <= config.distinct_deg)
+    return (a.inverse() @ b).within(config.distinct_m, config.distinct_deg)
 
 
 def _verify(query, t_map_view: Pose4, qb, compatible, index: MapIndex, matching, config):

@@ -206,7 +206,8 @@ def with_walls(rel: RelativePose | None, source, target, config: MatchingConfig 
     yaw, t = float(rel.pose.yaw), np.array(rel.pose.t, dtype=np.float64)
     # 1. yaw, turning the pose about the matched target boxes (the camera for a motion edge)
     rot = yaw_matrix(yaw)[:2, :2]
-    turns = [np.arctan2(*_cross_dot(rot @ wt[i, :2], ws[j, :2])) for i, j in pairs]
+    heading_s, heading_t = np.arctan2(ws[:, 1], ws[:, 0]), np.arctan2(wt[:, 1], wt[:, 0])
+    turns = [wrap_angle(heading_s[j] - heading_t[i] - yaw) for i, j in pairs]    # R(turn) R n_t = n_s
     w_box, w_wall = 1.0 / np.radians(cfg.box_yaw_sigma_deg) ** 2, 1.0 / np.radians(cfg.wall_yaw_sigma_deg) ** 2
     turn = w_wall * float(np.sum(turns)) / (w_box + w_wall * len(turns))
     inl = np.asarray(rel.inliers, int).reshape(-1, 2)
@@ -225,11 +226,6 @@ def with_walls(rel: RelativePose | None, source, target, config: MatchingConfig 
     t[:2] = np.linalg.solve(info, rhs)
     rel.pose = Pose4(float(wrap_angle(yaw)), t)
     return rel
-
-
-def _cross_dot(a, b):
-    """(z of a x b, a . b) of 2-vectors: arctan2 of it turns a onto b."""
-    return a[0] * b[1] - a[1] * b[0], a[0] * b[0] + a[1] * b[1]
 
 
 def _wall_pairs(pose: Pose4, ws: np.ndarray, wt: np.ndarray, cfg: MatchingConfig) -> list:

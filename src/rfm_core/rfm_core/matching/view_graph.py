@@ -513,9 +513,7 @@ class ViewGraphBuilder:
             return False
         ref = self._ref % len(self.keyframes)
         for j in self._neighbours.get(ref, ()):
-            near = self._edge_pose[ref, j].inverse() @ pose                    # T_j_frame
-            if (np.linalg.norm(near.t) <= cfg.max_translation_m
-                    and np.degrees(abs(wrap_angle(near.yaw))) <= cfg.max_yaw_deg):
+            if (self._edge_pose[ref, j].inverse() @ pose).within(cfg.max_translation_m, cfg.max_yaw_deg):  # T_j_frame
                 return True
         return False
 
