@@ -6,11 +6,14 @@ takes the keyframe with the most object inliers. Here every keyframe verified wi
 ``min_keyframe_inliers`` objects votes for its pose; the pose whose agreeing keyframes
 (within pose averaging's outlier thresholds) verify the most distinct query objects wins,
 needs ``min_inliers`` of them, is averaged over the agreeing keyframes, and is refitted on
-the map's object tracks. Up to ``hypotheses`` such poses (groups of agreeing keyframes) are
-then checked against the whole map: the query's detections placed by each must overlap the
-map's objects, ``min_explained`` of them (all, for a query with fewer); the pose explaining
-the most wins. No ROS here; the mapper (and its node's ``rfm/relocalize``
-service, and localization mode) call :func:`relocalize`.
+the map's object tracks. With ``floor_and_walls``, each keyframe's relative pose and the
+final pose take their height, and their yaw and translation across walls, from the floor
+and the walls the query and the keyframe both measured (as the view graph's edges). Up to
+``hypotheses`` such poses (groups of agreeing keyframes) are then checked against the whole
+map: the query's detections placed by each must overlap the map's objects, ``min_explained``
+of them (all, for a query with fewer); the pose explaining the most wins. No ROS here; the
+mapper (and its node's ``rfm/relocalize`` service, and localization mode) call
+:func:`relocalize`.
 
 :func:`match_to_map` matches a view against the map's objects instead of its keyframes (a
 view may share objects with the map but with no single keyframe): the mapper's tracking
@@ -18,7 +21,7 @@ recovery joins a keyframe that nothing else links to the map with it.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -28,7 +31,9 @@ from rfm_core.mapping.frame_log import camera_to_map
 from rfm_core.mapping.map_index import MapIndex, track_boxes
 from rfm_core.matching.classical import ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose
+from rfm_core.matching.relative_pose import (
+    RelativePose, YawPrior, estimate_relative_pose, with_camera_heights, with_walls,
+)
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
@@ -51,6 +56,10 @@ class RelocalizationConfig:
                                  "map, not only the matched keyframes: a wrong pose from look-alike furniture "
                                  "explains its two or three matches and little else (BENCHMARKS.md); 0: off",
                                  lo=0, hi=100)
+    floor_and_walls: bool = setting(True, 'A relocalized pose takes its height from the query\'s and the keyframe\'s '
+                                    'camera heights above the floor, and its yaw and its translation across walls '
+                                    'from the walls both see, as the view graph\'s edges do '
+                                    '(matching.height_tolerance_m, matching.wall_tolerance_m)')
     hypotheses: int = setting(3, 'Distinct poses (groups of agreeing keyframes, by support) verified against the '
                               'map per query; the one explaining the most detections wins', lo=1, hi=20)
     recovery: bool = setting(True, 'Mapping mode (tracking recovery): a keyframe outside the registered map '
@@ -175,6 +184,8 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, matches, matching)
         if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
             continue
+        if config.floor_and_walls:
+            rel = _with_floor_and_walls(rel, keyframes[k], query, matching)
         # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
         pose = rel.pose.inverse() @ poses[k]
         if prior is None or prior.admits(pose):
@@ -215,8 +226,19 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         return None
     runner_up = max((h[0] for h in hypotheses if not _same(h[2].inverse(), pose.inverse(), config)), default=0)
     k, rel, _ = found[best]
+    if config.floor_and_walls:      # again on the final pose: the refit on the tracks' centres moves it
+        final = replace(rel, pose=poses[k] @ pose.inverse())                     # T_k_query
+        pose = _with_floor_and_walls(final, keyframes[k], query, matching).pose.inverse() @ poses[k]
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count,
                           runner_up)
+
+
+def _with_floor_and_walls(rel: RelativePose, keyframe, query, matching: MatchingConfig) -> RelativePose:
+    """``rel`` (T_keyframe_query, inliers as (query, keyframe) pairs) corrected by the floor
+    and the walls both frames measured, as a view graph edge (keyframe as its source)."""
+    rel.swap_index_order()
+    with_walls(with_camera_heights(rel, keyframe, query, matching), keyframe, query, matching)
+    return rel.swap_index_order()
 
 
 def explained(query: FrameObservations, pose: Pose4, index: MapIndex, matching: MatchingConfig) -> int:
