@@ -1,5 +1,6 @@
 """Localization mode as a stream (rfm_core.mapping.localization): a track, confirmation by a
-later frame, kidnapping; and the whole-map check's floor of three explained detections."""
+later frame, kidnapping; the whole-map check's floor of three explained detections; the floor
+and walls in relocalized poses; the classical matcher where the learned one places nothing."""
 import copy
 from dataclasses import replace
 
@@ -12,6 +13,7 @@ from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import Mapper
 from rfm_core.mapping.relocalization import MotionPrior
+from rfm_core.matching.classical import ObjectMatches
 from rfm_core.sim.capture import CaptureConfig
 
 SCENE = CaptureConfig(seed=40, frames=50, fps=5)
@@ -176,3 +178,29 @@ def test_walls_and_the_floor_a_query_shares_with_the_map_correct_its_pose(saved)
     assert fixed is not None
     assert np.linalg.norm((fixed.pose.inverse() @ truth).t) < 0.01
     assert abs(np.degrees(wrap_angle(fixed.pose.yaw - truth.yaw))) < 0.1
+
+
+class _MatchesNothing:
+    """A relocalization matcher that proposes no match for any pair (as the learned matcher,
+    trained on pairs of one walk, often does between two walks)."""
+
+    def match_many(self, a, others):
+        return [ObjectMatches(np.zeros(0, int), np.zeros(0, int), np.zeros(0)) for _ in others]
+
+
+def test_keyframes_the_learned_matcher_does_not_place_are_matched_again_by_the_classical_one(saved):
+    """A candidate keyframe the (learned) matcher verifies no pose with is matched again by
+    the classical matcher, whose proposals the relative-pose test and the whole-map check
+    sort out: a keyframe's own view, which that matcher cannot match, relocalizes at the
+    keyframe's pose; without the fallback it is refused with the reason."""
+    mapper = Mapper(matcher=_MatchesNothing())
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    k = max(mapper.poses, key=lambda i: len(mapper.keyframes[i]))
+    found = mapper.relocalize(mapper.keyframes[k])
+    assert found is not None and _close(found.pose, mapper.poses[k], metres=0.05, degrees=1.0)
+    mapper.config = replace(mapper.config, relocalization=replace(mapper.config.relocalization,
+                                                                  classical_fallback=False))
+    why = []
+    assert mapper.relocalize(mapper.keyframes[k], why) is None
+    assert why and 'no candidate keyframe' in why[0]

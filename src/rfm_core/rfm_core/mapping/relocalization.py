@@ -29,7 +29,7 @@ from rfm_core.geometry import Pose4, circular_mean, iou_3d_paired, kabsch_4dof, 
 from rfm_core.mapping.averaging import AveragingConfig, agreement
 from rfm_core.mapping.frame_log import camera_to_map
 from rfm_core.mapping.map_index import MapIndex, track_boxes
-from rfm_core.matching.classical import ObjectMatches, size_similarity
+from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import (
     RelativePose, YawPrior, estimate_relative_pose, with_camera_heights, with_walls,
@@ -60,6 +60,11 @@ class RelocalizationConfig:
                                     'camera heights above the floor, and its yaw and its translation across walls '
                                     'from the walls both see, as the view graph\'s edges do '
                                     '(matching.height_tolerance_m, matching.wall_tolerance_m)')
+    classical_fallback: bool = setting(True, 'A candidate keyframe the learned matcher verifies no pose with is '
+                                       'matched again by the classical one (appearance and size, one to one); the '
+                                       'relative-pose test and the whole-map check sort out its many proposals. '
+                                       'The learned matcher, trained on pairs of one walk, matches few objects '
+                                       'between two walks (BENCHMARKS.md)')
     hypotheses: int = setting(3, 'Distinct poses (groups of agreeing keyframes, by support) verified against the '
                               'map per query; the one explaining the most detections wins', lo=1, hi=20)
     recovery: bool = setting(True, 'Mapping mode (tracking recovery): a keyframe outside the registered map '
@@ -180,8 +185,12 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         candidates += [k for k in index.keyframes_near(prior.centre, prior.yaw, prior.reach_m, config.candidates)
                        if k not in candidates]
     found = []
+    fallback = (ClassicalMatcher(matching) if config.classical_fallback and not isinstance(matcher, ClassicalMatcher)
+                else None)
     for k, matches in zip(candidates, matcher.match_many(query, [keyframes[k] for k in candidates])):
         rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, matches, matching)
+        if (rel is None or len(rel.inliers) < config.min_keyframe_inliers) and fallback is not None:
+            rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, fallback.match(query, keyframes[k]), matching)
         if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
             continue
         if config.floor_and_walls:
