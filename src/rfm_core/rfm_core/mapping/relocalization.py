@@ -31,9 +31,7 @@ from rfm_core.mapping.frame_log import camera_to_map
 from rfm_core.mapping.map_index import MapIndex, track_boxes
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import (
-    RelativePose, YawPrior, estimate_relative_pose, with_camera_heights, with_walls,
-)
+from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_floor_and_walls
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
@@ -245,9 +243,7 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
 def _with_floor_and_walls(rel: RelativePose, keyframe, query, matching: MatchingConfig) -> RelativePose:
     """``rel`` (T_keyframe_query, inliers as (query, keyframe) pairs) corrected by the floor
     and the walls both frames measured, as a view graph edge (keyframe as its source)."""
-    rel.swap_index_order()
-    with_walls(with_camera_heights(rel, keyframe, query, matching), keyframe, query, matching)
-    return rel.swap_index_order()
+    return with_floor_and_walls(rel.swap_index_order(), keyframe, query, matching).swap_index_order()
 
 
 def explained(query: FrameObservations, pose: Pose4, index: MapIndex, matching: MatchingConfig) -> int:

@@ -37,7 +37,7 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 
 __all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty',
-           'with_camera_heights', 'with_walls']
+           'with_camera_heights', 'with_walls', 'with_floor_and_walls']
 
 
 @dataclass
@@ -228,11 +228,17 @@ def with_walls(rel: RelativePose | None, source, target, config: MatchingConfig 
     return rel
 
 
+def with_floor_and_walls(rel: RelativePose | None, source, target,
+                         config: MatchingConfig | None = None) -> RelativePose | None:
+    """``rel`` (T_source_target) corrected by all the two frames measured besides boxes:
+    :func:`with_camera_heights`, then :func:`with_walls` (in place; returns ``rel``)."""
+    return with_walls(with_camera_heights(rel, source, target, config), source, target, config)
+
+
 def _wall_pairs(pose: Pose4, ws: np.ndarray, wt: np.ndarray, cfg: MatchingConfig) -> list:
     """(target wall, source wall) index pairs: each target wall, turned by ``pose``'s yaw,
     with the nearest source wall (one-to-one) whose normal and plane it agrees with."""
-    c, s = np.cos(pose.yaw), np.sin(pose.yaw)
-    normals = wt[:, :2] @ np.array([[c, s], [-s, c]])                # target's normals turned: R n
+    normals = wt[:, :2] @ yaw_matrix(pose.yaw)[:2, :2].T              # target's normals turned: R n
     gap = ws[None, :, 2] - wt[:, None, 2] - (ws[:, :2] @ np.asarray(pose.t, float)[:2])[None, :]   # d_s - d_t - n_s . t
     near = (normals @ ws[:, :2].T > np.cos(np.radians(cfg.wall_tolerance_deg))) & (np.abs(gap) <= cfg.wall_tolerance_m)
     pairs, used = [], set()
