@@ -33,6 +33,7 @@ def make_observations(rng, n=4, gravity=(0.1, 0.95, -0.2)):
         backend='ground_truth',
         camera_height=1.47,
         walls=[[0.6, 0.8, 2.5], [-0.8, 0.6, 1.2]],
+        cloud=rng.uniform(-3, 3, (50, 3)),
     )
 
 
@@ -71,6 +72,27 @@ def test_frame_detections_round_trip_preserves_everything():
     np.testing.assert_array_equal(back.object_ids, obs.object_ids)
     assert back.camera_height == pytest.approx(1.47)
     np.testing.assert_allclose(back.walls, obs.walls, atol=1e-9)
+    np.testing.assert_allclose(back.cloud, obs.cloud, atol=1e-5)
+
+
+def test_depth_points_travel_in_the_optical_frame_and_are_validated():
+    """The cloud travels as x y z triplets in the optical frame and comes back in the
+    gravity-aligned frame; a length that is not triplets, a non-finite value or too many
+    points is refused."""
+    obs = make_observations(np.random.default_rng(4))
+    msg = frame_detections_to_msg(obs)
+    optical = np.asarray(msg.cloud, np.float64).reshape(-1, 3)
+    np.testing.assert_allclose(optical @ gravity_aligned_rotation(obs.gravity_cam).T, obs.cloud, atol=1e-5)
+    msg.cloud = []
+    assert frame_detections_from_msg(msg).cloud.shape == (0, 3)     # none (older rfm versions, no depth)
+    for spoil, match in [(lambda m: m.cloud.pop(), 'triplets'),
+                         (lambda m: m.cloud.__setitem__(4, float('inf')), 'finite'),
+                         (lambda m: m.cloud.extend([0.5] * 3 * 20_000), 'at most')]:
+        m = frame_detections_to_msg(obs)
+        m.cloud = list(m.cloud)
+        spoil(m)
+        with pytest.raises(ValueError, match=match):
+            frame_detections_from_msg(m)
 
 
 def test_walls_are_planes_in_the_optical_frame_and_validated():

@@ -167,11 +167,14 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     assert np.isnan(mapper.keyframes[k0].camera_height)        # ground_truth boxes: no floor fit
     mapper.keyframes[k0].camera_height = 1.53
     mapper.keyframes[k0].walls = np.array([[1.0, 0.0, 2.5], [0.0, 1.0, 1.5]])
+    cloud = np.random.default_rng(0).uniform(-3, 3, (40, 3)).astype(np.float32)
+    mapper.keyframes[k0].cloud = cloud
     try:
         path = save_map(mapper, tmp_path / 'room.rfm')
     finally:
         mapper.keyframes[k0].camera_height = float('nan')
         mapper.keyframes[k0].walls = np.zeros((0, 3))
+        mapper.keyframes[k0].cloud = np.zeros((0, 3), np.float32)
     assert not list(tmp_path.glob('*.tmp'))
     fresh = Mapper()
     header = load_map(fresh, path)
@@ -186,6 +189,8 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     assert b.camera_height == 1.53 and np.isnan(fresh.keyframes[max(fresh.keyframes)].camera_height)
     np.testing.assert_allclose(b.walls, [[1.0, 0.0, 2.5], [0.0, 1.0, 1.5]])
     assert fresh.keyframes[max(fresh.keyframes)].walls.shape == (0, 3)
+    np.testing.assert_array_equal(b.cloud, cloud)
+    assert fresh.keyframes[max(fresh.keyframes)].cloud.shape == (0, 3)
     np.testing.assert_allclose(a.boxes, b.boxes)
     np.testing.assert_allclose(a.embeddings, b.embeddings)
     t0, t1 = mapper.tracks(), fresh.tracks()
@@ -212,7 +217,9 @@ def test_map_file_round_trip_and_refusals(mapped, tmp_path):
     # walls: counts that do not add up, or a wall that is no plane
     data = dict(np.load(path))
     for name, change, match in [('walls1.npz', {'kf_wall_counts': data['kf_wall_counts'] + 1}, 'wall arrays'),
-                                ('walls2.npz', {'kf_walls': np.zeros_like(data['kf_walls'])}, 'walls')]:
+                                ('walls2.npz', {'kf_walls': np.zeros_like(data['kf_walls'])}, 'walls'),
+                                ('cloud1.npz', {'kf_cloud_counts': data['kf_cloud_counts'] + 1}, 'cloud arrays'),
+                                ('cloud2.npz', {'kf_clouds': np.full_like(data['kf_clouds'], np.nan)}, 'cloud')]:
         np.savez(tmp_path / name, **{**data, **change})
         with pytest.raises(MapFileError, match=match):
             read_map(tmp_path / name)

@@ -44,6 +44,8 @@ class DetectorNodeConfig:
                            'ground truth + noise model, for evaluation only)', choices=BACKENDS, read_only=True)
     score_threshold: float = same_setting(DetectorConfig, 'score_threshold')
     max_detections: int = same_setting(DetectorConfig, 'max_detections')
+    cloud_voxel_m: float = same_setting(DetectorConfig, 'cloud_voxel_m')
+    cloud_max_range_m: float = same_setting(DetectorConfig, 'cloud_max_range_m')
     image_transport: str = setting('raw', "Colour image transport: 'raw' (rgb/image, sensor_msgs/Image) or "
                                    "'compressed' (rgb/image/compressed: JPEG or PNG); rfm run picks it from the "
                                    'bag', choices=('raw', 'compressed'), read_only=True)

@@ -96,6 +96,10 @@ class FrameObservations:
     #: in the gravity-aligned camera frame, pointing away from the camera, and the plane's
     #: distance d > 0 (points p on it: n . p_xy = d); empty: none measured
     walls: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    #: (P, 3) float32 depth points of the frame, voxel-downsampled, in the gravity-aligned
+    #: camera frame (:func:`rfm_core.matching.points.depth_cloud`); empty: none (no depth)
+    cloud: np.ndarray = field(default_factory=lambda: _empty_f32(0, 3))
+    _point_index: object = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self):
         self.gravity_cam = unit_gravity(self.gravity_cam)
@@ -151,6 +155,12 @@ class FrameObservations:
             raise ValueError('walls need a horizontal normal of unit length and a positive distance')
         walls[:, :2] /= norm[:, None]
         self.walls = walls
+        cloud = np.asarray(self.cloud, dtype=np.float32)
+        if cloud.size == 0:
+            cloud = cloud.reshape(0, 3)
+        if cloud.ndim != 2 or cloud.shape[1] != 3 or not np.all(np.isfinite(cloud)):
+            raise ValueError(f'cloud must be finite (P, 3) points, got shape {cloud.shape}')
+        self.cloud = cloud
         if self.corner_descriptors is not None:
             cd = np.asarray(self.corner_descriptors, dtype=np.float32)
             if cd.ndim != 3 or cd.shape[:2] != (n, 8):
@@ -172,6 +182,14 @@ class FrameObservations:
                        object_ids=self.object_ids[idx],
                        corner_descriptors=None if self.corner_descriptors is None else self.corner_descriptors[idx],
                        full_boxes=None if self.full_boxes is None else self.full_boxes[idx])
+
+    def point_index(self):
+        """The cloud ready to be aligned to (:class:`rfm_core.matching.points.PointIndex`),
+        built once per cloud."""
+        if self._point_index is None or self._point_index.cloud is not self.cloud:
+            from rfm_core.matching.points import PointIndex  # noqa: PLC0415
+            self._point_index = PointIndex(self.cloud)
+        return self._point_index
 
     @property
     def map_boxes(self) -> np.ndarray:

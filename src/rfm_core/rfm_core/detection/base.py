@@ -10,6 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rfm_core.matching.points import depth_cloud
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.settings import setting
 
@@ -50,6 +51,10 @@ class DetectorConfig:
     score_threshold: float = setting(0.25, 'Keep detections scoring at least this', lo=0.0, hi=1.0,
                                      paper='0.25 on CA-1M')
     max_detections: int = setting(100, 'At most this many detections per frame (the best scores)', lo=1, hi=1000)
+    cloud_voxel_m: float = setting(0.12, "Depth points sent with each frame's detections (FrameDetections.cloud, "
+                                   'for relative poses: matching.point_refine): one per cell of this size (m); '
+                                   '0: none', lo=0.0, hi=1.0)
+    cloud_max_range_m: float = setting(6.0, '... from depth up to this range (m)', lo=0.5, hi=100.0)
 
 
 class Detector:
@@ -67,7 +72,8 @@ def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, 
              backend: str, visibility=None, object_ids=None, full_boxes=None,
              camera_height: float = float('nan'), walls=None) -> FrameObservations:
     """Threshold by score, keep the best ``max_detections``, package as FrameObservations
-    (``full_boxes``, ``camera_height``, ``walls``: see :class:`FrameObservations`)."""
+    (``full_boxes``, ``camera_height``, ``walls``: see :class:`FrameObservations`; the
+    frame's depth points as ``cloud`` where it has depth)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     scores = np.asarray(scores, dtype=np.float32).reshape(-1)
     keep = np.flatnonzero(scores >= config.score_threshold)
@@ -86,4 +92,6 @@ def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, 
                     else np.full(len(keep), -1, np.int64)),
         full_boxes=np.asarray(full_boxes, np.float64).reshape(-1, 7)[keep] if full_boxes is not None else None,
         backend=backend, camera_height=camera_height,
-        walls=np.zeros((0, 3)) if walls is None else np.asarray(walls, np.float64).reshape(-1, 3))
+        walls=np.zeros((0, 3)) if walls is None else np.asarray(walls, np.float64).reshape(-1, 3),
+        cloud=depth_cloud(frame.depth, frame.intrinsics, frame.gravity_cam, config.cloud_voxel_m,
+                          config.cloud_max_range_m))

@@ -18,6 +18,7 @@ from rfm_core.geometry import (
     BOX_EDGES, Pose4, box_corners, boxes_from_oriented, gravity_aligned_rotation, matrix_from_quaternion,
     oriented_from_boxes, quaternion_from_matrix,
 )
+from rfm_core.matching.points import MAX_CLOUD_POINTS
 from rfm_core.observations import CameraIntrinsics, FrameObservations, FrameTrack
 
 __all__ = [
@@ -341,6 +342,7 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         # none in messages of older rfm versions; 0, NaN or a non-physical value: not measured
         camera_height=float(getattr(msg, 'camera_height', 0.0)),
         walls=_walls(msg, obs_rotation),
+        cloud=_cloud(msg, obs_rotation),
         **_imu_fields(msg),
     )
 
@@ -364,6 +366,20 @@ def _walls(msg, obs_rotation) -> np.ndarray:
     if np.any(np.abs(n[:, 2]) > np.sin(np.radians(10.0))):
         raise ValueError('wall normals must be perpendicular to gravity (within 10 deg)')
     return np.c_[n[:, :2], d]
+
+
+def _cloud(msg, obs_rotation) -> np.ndarray:
+    """(P, 3) depth points of a FrameDetections in its gravity-aligned frame (none in messages
+    of older rfm versions); ValueError for a length that is not x y z triplets, too many
+    points or non-finite values."""
+    flat = np.asarray(getattr(msg, 'cloud', ()), dtype=np.float32).reshape(-1)
+    if flat.size % 3:
+        raise ValueError(f'cloud holds {flat.size} values: x y z triplets expected')
+    if flat.size > 3 * MAX_CLOUD_POINTS:
+        raise ValueError(f'{flat.size // 3} cloud points in one frame; at most {MAX_CLOUD_POINTS} are read')
+    if not np.all(np.isfinite(flat)):
+        raise ValueError('cloud points must be finite')
+    return (flat.reshape(-1, 3) @ obs_rotation.T.astype(np.float32)).astype(np.float32)
 
 
 def _aligned_boxes(obs_rotation, poses, sizes) -> np.ndarray:
@@ -429,6 +445,7 @@ def frame_detections_to_msg(obs: FrameObservations, make=ROS):
                 camera_height=float(obs.camera_height) if np.isfinite(obs.camera_height) else 0.0,
                 wall_normals=[_vector3(make, camera_from_aligned @ np.r_[w[:2], 0.0]) for w in obs.walls],
                 wall_distances=np.asarray(obs.walls[:, 2], dtype=np.float64),
+                cloud=make.float32_array((obs.cloud @ camera_from_aligned.T.astype(np.float32)).reshape(-1)),
                 detections=detections)
 
 

@@ -71,6 +71,10 @@ def _keyframe_arrays(mapper: Mapper) -> dict:
         # FrameObservations.walls: kf_wall_counts per keyframe, their rows in kf_walls
         'kf_wall_counts': np.array([len(f.walls) for f in frames], np.int64),
         'kf_walls': (np.concatenate([f.walls for f in frames]) if frames else np.zeros((0, 3))).reshape(-1, 3),
+        # FrameObservations.cloud: kf_cloud_counts points per keyframe, their rows in kf_clouds
+        'kf_cloud_counts': np.array([len(f.cloud) for f in frames], np.int64),
+        'kf_clouds': (np.concatenate([f.cloud for f in frames]) if frames else np.zeros((0, 3))).astype(np.float32)
+        .reshape(-1, 3),
         # where each keyframe came from: (view-graph session, its id there); (0, 0) unknown
         'kf_origin': np.array([mapper.origins.get(k, (0, 0)) for k in ids], np.uint64).reshape(-1, 2),
     }, {'kf_frame_ids': [f.frame_id for f in frames],
@@ -297,6 +301,10 @@ def _parse_map(path: Path, data: dict) -> dict:
         wc, walls = data['kf_wall_counts'], data.get('kf_walls', np.zeros(0))
         checks += [(wc.shape == (n_kf,) and wc.dtype.kind in 'iu' and np.all(wc >= 0) and walls.ndim == 2
                     and walls.shape == (int(wc.sum()), 3) and walls.dtype.kind == 'f', 'keyframe wall arrays')]
+    if 'kf_cloud_counts' in data:                             # none in maps of older rfm versions
+        cc, clouds = data['kf_cloud_counts'], data.get('kf_clouds', np.zeros(0))
+        checks += [(cc.shape == (n_kf,) and cc.dtype.kind in 'iu' and np.all(cc >= 0) and clouds.ndim == 2
+                    and clouds.shape == (int(cc.sum()), 3) and clouds.dtype.kind == 'f', 'keyframe cloud arrays')]
     for ok, what in checks:
         if not ok:
             raise MapFileError(f'{path}: inconsistent map file ({what})')
@@ -308,6 +316,7 @@ def _parse_map(path: Path, data: dict) -> dict:
     keyframes = {}
     offsets = np.r_[0, np.cumsum(data['kf_counts'])]
     wall_offsets = np.r_[0, np.cumsum(data['kf_wall_counts'])] if 'kf_wall_counts' in data else None
+    cloud_offsets = np.r_[0, np.cumsum(data['kf_cloud_counts'])] if 'kf_cloud_counts' in data else None
     labels = header['det_labels']
     for i, k in enumerate(data['kf_ids']):
         a, b = offsets[i], offsets[i + 1]
@@ -322,7 +331,9 @@ def _parse_map(path: Path, data: dict) -> dict:
                 full_boxes=data['det_full_boxes'][a:b] if 'kf_full' in data and data['kf_full'][i] else None,
                 camera_height=float(data['kf_camera_height'][i]) if 'kf_camera_height' in data else float('nan'),
                 walls=(data['kf_walls'][wall_offsets[i]:wall_offsets[i + 1]] if wall_offsets is not None
-                       else np.zeros((0, 3))))
+                       else np.zeros((0, 3))),
+                cloud=(data['kf_clouds'][cloud_offsets[i]:cloud_offsets[i + 1]] if cloud_offsets is not None
+                       else np.zeros((0, 3), np.float32)))
         except ValueError as exc:
             raise MapFileError(f'{path}: keyframe {int(k)}: {exc}') from None
     edges = []

@@ -70,6 +70,20 @@ class MatchingConfig:
                                   "far a wall moves the boxes' translation along its normal", lo=1e-4, hi=10.0)
     box_translation_sigma_m: float = setting(0.1, "Error of the boxes' horizontal translation (m), per axis, as "
                                              'it is weighed against walls', lo=1e-4, hi=10.0)
+    # depth points (not in the paper): matching.points
+    point_refine: bool = setting(True, "Refine each relative pose on the two frames' depth points "
+                                 '(FrameDetections.cloud): 4-DoF point-to-plane ICP from the pose the boxes, floor '
+                                 'and walls give. Boxes the image border cuts move from view to view; the '
+                                 "surfaces do not. Frames without clouds keep the boxes' pose")
+    point_search_m: float = setting(0.25, '... first correspondence distance (m), halved down to point_match_m',
+                                    lo=0.01, hi=2.0)
+    point_match_m: float = setting(0.05, '... final correspondence distance (m): a point within it of the other '
+                                   "frame's surface overlaps", lo=0.005, hi=1.0)
+    point_min_overlap: float = setting(0.15, '... kept when at least this share of the points overlaps and no less '
+                                       "than at the boxes' pose", lo=0.0, hi=1.0)
+    point_max_correction_m: float = setting(1.0, "... and it moves the boxes' pose by at most this (m)",
+                                            lo=0.0, hi=10.0)
+    point_max_correction_deg: float = setting(20.0, '... and turns it by at most this (deg)', lo=0.0, hi=180.0)
 
     @property
     def along_rays(self) -> bool:

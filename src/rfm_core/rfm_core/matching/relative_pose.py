@@ -36,7 +36,7 @@ from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 
-__all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty',
+__all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty', 'with_points',
            'with_camera_heights', 'with_walls', 'with_floor_and_walls']
 
 
@@ -228,11 +228,32 @@ def with_walls(rel: RelativePose | None, source, target, config: MatchingConfig 
     return rel
 
 
+def with_points(rel: RelativePose | None, source, target, config: MatchingConfig | None = None) -> RelativePose | None:
+    """``rel`` (T_source_target) refined on the two frames' depth points
+    (``FrameObservations.cloud``; :func:`rfm_core.matching.points.align_points`, in place;
+    returns ``rel``): kept where at least ``point_min_overlap`` of the target's points lie
+    on the source's surfaces, no fewer than at the starting pose, and the correction is
+    within ``point_max_correction_m`` / ``point_max_correction_deg``."""
+    cfg = config or MatchingConfig()
+    if rel is None or not cfg.point_refine or not len(source.cloud) or not len(target.cloud):
+        return rel
+    from rfm_core.matching.points import align_points  # noqa: PLC0415
+    found = align_points(rel.pose, target.cloud, source.point_index(), cfg.point_search_m, cfg.point_match_m)
+    if (found is None or found.overlap < cfg.point_min_overlap or found.overlap < found.overlap_before
+            or np.linalg.norm(np.asarray(found.pose.t) - rel.pose.t) > cfg.point_max_correction_m
+            or np.degrees(abs(found.pose.angle_to(rel.pose))) > cfg.point_max_correction_deg):
+        return rel
+    rel.pose = found.pose
+    return rel
+
+
 def with_floor_and_walls(rel: RelativePose | None, source, target,
                          config: MatchingConfig | None = None) -> RelativePose | None:
     """``rel`` (T_source_target) corrected by all the two frames measured besides boxes:
-    :func:`with_camera_heights`, then :func:`with_walls` (in place; returns ``rel``)."""
-    return with_walls(with_camera_heights(rel, source, target, config), source, target, config)
+    :func:`with_camera_heights`, then :func:`with_walls`, then :func:`with_points` (in place;
+    returns ``rel``)."""
+    rel = with_walls(with_camera_heights(rel, source, target, config), source, target, config)
+    return with_points(rel, source, target, config)
 
 
 def _wall_pairs(pose: Pose4, ws: np.ndarray, wt: np.ndarray, cfg: MatchingConfig) -> list:

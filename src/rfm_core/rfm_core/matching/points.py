@@ -1,0 +1,163 @@
+"""Relative poses refined on the two frames' depth points (not in the paper).
+
+A depth detector's boxes fit the part of each object in view: where the image border cuts
+an object, or another hides part of it, the box's centre moves by a good fraction of the
+object from one view to the next (BENCHMARKS.md: two thirds of the demo's detections are
+cut, their centres 11 cm off from view to view against 4 cm for whole ones). The depth
+points themselves do not move: where two views see the same surface they see it at the same
+place. So a relative pose the boxes found (which already has the right matches and is near
+the truth) is refined by aligning the two frames' depth points, as RGB-D odometry does:
+point-to-plane ICP in 4-DoF (yaw about gravity and translation; both frames are
+gravity-aligned), each point robustly weighted. What the points do not determine (a view of
+the floor and one wall leaves a direction free) stays as the boxes put it, and the result is
+kept only where the points agree with it better than with the boxes' pose.
+
+Clouds: :func:`depth_cloud` (the detector, every frame with depth; ``FrameObservations.cloud``,
+gravity-aligned, voxel-downsampled).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rfm_core.geometry import Pose4, gravity_aligned_rotation, wrap_angle
+
+__all__ = ['depth_cloud', 'PointIndex', 'PointAlignment', 'align_points', 'MAX_CLOUD_POINTS']
+
+#: at most this many points per frame (a message bound; a 12 cm voxel grid of a room holds ~1,500)
+MAX_CLOUD_POINTS = 20_000
+_NORMAL_NEIGHBOURS = 10
+_MAX_CURVATURE = 0.05       #: points whose neighbourhood is not a surface (edges, noise) take no part
+_ROBUST_M = 0.02            #: Cauchy scale of the point-to-plane residuals (m)
+_MAX_MOVING = 500         #: points of the moving cloud aligned (an even subsample: bounded cost)
+
+
+def depth_cloud(depth: np.ndarray, intrinsics, gravity_cam, voxel_m: float, max_range_m: float,
+                stride: int = 2) -> np.ndarray:
+    """(P, 3) float32 points of a depth image (metres, NaN / 0 missing) in the frame's
+    gravity-aligned camera frame (:func:`rfm_core.geometry.gravity_aligned_rotation`): every
+    ``stride``-th pixel within ``max_range_m``, one point per ``voxel_m`` cell (the mean of its
+    points), at most :data:`MAX_CLOUD_POINTS` (a coarser grid past that)."""
+    if depth is None or voxel_m <= 0:
+        return np.zeros((0, 3), np.float32)
+    z = np.asarray(depth, np.float32)[::stride, ::stride]
+    v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
+    ok = np.isfinite(z) & (z > 0.1) & (z <= max_range_m)
+    z = z[ok].astype(np.float64)
+    p = np.stack([(u[ok] - intrinsics.cx) / intrinsics.fx * z, (v[ok] - intrinsics.cy) / intrinsics.fy * z, z], 1)
+    p = p @ gravity_aligned_rotation(gravity_cam).T
+    while True:
+        cells = np.floor(p / voxel_m).astype(np.int64)
+        cells -= cells.min(0) if len(cells) else 0
+        span = cells.max(0) + 1 if len(cells) else np.ones(3, np.int64)
+        key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+        uniq, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+        if len(uniq) <= MAX_CLOUD_POINTS:
+            break
+        voxel_m *= 1.5
+    inv = inv.ravel()
+    out = np.stack([np.bincount(inv, weights=p[:, k], minlength=len(uniq)) for k in range(3)], 1)
+    return (out / np.maximum(count, 1)[:, None]).astype(np.float32)
+
+
+class PointIndex:
+    """A frame's cloud ready to be aligned to: a k-d tree and each point's surface normal
+    (from its neighbours; points off a surface are left out)."""
+
+    def __init__(self, cloud: np.ndarray):
+        from scipy.spatial import cKDTree  # noqa: PLC0415
+        self.cloud = cloud                    #: the array it was built from
+        self.points = np.asarray(cloud, np.float64).reshape(-1, 3)
+        self.tree = cKDTree(self.points) if len(self.points) else None
+        self.normals = np.zeros_like(self.points)
+        self.usable = np.zeros(len(self.points), bool)
+        if len(self.points) > _NORMAL_NEIGHBOURS:
+            _, idx = self.tree.query(self.points, k=_NORMAL_NEIGHBOURS)
+            nb = self.points[idx] - self.points[idx].mean(1, keepdims=True)
+            values, vectors = np.linalg.eigh(np.einsum('nki,nkj->nij', nb, nb))
+            self.normals = vectors[:, :, 0]
+            self.usable = values[:, 0] <= _MAX_CURVATURE * np.maximum(values.sum(1), 1e-12)
+
+    def __len__(self) -> int:
+        return int(self.usable.sum())
+
+
+@dataclass(frozen=True)
+class PointAlignment:
+    pose: Pose4            #: the refined pose
+    overlap: float         #: share of the moved points within ``match_m`` of a surface, refined
+    overlap_before: float  #: ... at the starting pose
+    residual_m: float      #: median |point-to-plane| distance of those points, refined
+    free: int              #: directions (of yaw, x, y, z) the points left to the starting pose
+
+
+def _moved(points, yaw, t):
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.c_[c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1], points[:, 2]] + t
+
+
+def _pairs(index: PointIndex, moved: np.ndarray, max_m: float):
+    dist, j = index.tree.query(moved, distance_upper_bound=max_m)
+    ok = np.isfinite(dist)
+    ok[ok] &= index.usable[j[ok]]
+    return ok, j
+
+
+def _overlap(index: PointIndex, moved: np.ndarray, match_m: float) -> tuple[float, float]:
+    ok, j = _pairs(index, moved, match_m)
+    if not ok.any():
+        return 0.0, float('inf')
+    r = np.abs(np.sum(index.normals[j[ok]] * (moved[ok] - index.points[j[ok]]), axis=1))
+    return float(np.mean(ok)), float(np.median(r))
+
+
+def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: float = 0.25,
+                 match_m: float = 0.05, iterations: int = 5, min_points: int = 50) -> PointAlignment | None:
+    """Refine ``pose`` (maps ``moving``'s frame into ``fixed``'s) by 4-DoF point-to-plane ICP:
+    correspondences within ``search_m``, then half that and so on down to ``match_m``, at
+    most ``iterations`` steps at each (fewer once a step moves less than 0.5 mm / 0.01 deg);
+    Cauchy-weighted residuals; Levenberg-damped steps; at most 1,000 moving points (an even
+    subsample). Directions the points do not
+    constrain (the smallest eigenvalues of their information, with the yaw at a 1 m lever
+    arm, below 1% of the largest) keep ``pose``'s value. None with fewer than ``min_points``
+    correspondences."""
+    moving = np.asarray(moving, np.float64).reshape(-1, 3)
+    if len(moving) > _MAX_MOVING:
+        moving = moving[np.linspace(0, len(moving) - 1, _MAX_MOVING).astype(int)]
+    if len(moving) < min_points or fixed.tree is None or len(fixed) < min_points:
+        return None
+    yaw0, t0 = float(pose.yaw), np.asarray(pose.t, np.float64)
+    before = _overlap(fixed, _moved(moving, yaw0, t0), match_m)
+    yaw, t = yaw0, t0.copy()
+    levels = [search_m]
+    while levels[-1] / 2 > match_m:
+        levels.append(levels[-1] / 2)
+    levels.append(match_m)
+    info = None
+    for max_m in levels:
+        for _ in range(iterations):
+            q = _moved(moving, yaw, t)
+            ok, j = _pairs(fixed, q, max_m)
+            if ok.sum() < min_points:
+                return None
+            q, n, p = q[ok], fixed.normals[j[ok]], fixed.points[j[ok]]
+            r = np.sum(n * (q - p), axis=1)
+            jac = np.c_[n[:, 1] * q[:, 0] - n[:, 0] * q[:, 1], n]      # d r / d(yaw about z, t)
+            w = 1.0 / (1.0 + (r / _ROBUST_M) ** 2)
+            info = (jac * w[:, None]).T @ jac
+            step = -np.linalg.solve(info + 1e-3 * w.sum() * np.diag([1.0, 0.1, 0.1, 0.1]), (jac * w[:, None]).T @ r)
+            c, s = np.cos(step[0]), np.sin(step[0])
+            t = np.array([c * t[0] - s * t[1], s * t[0] + c * t[1], t[2]]) + step[1:]
+            yaw += step[0]
+            if abs(step[0]) < 2e-4 and np.linalg.norm(step[1:]) < 5e-4:
+                break
+    # what the points leave free stays as the boxes put it
+    delta = np.r_[wrap_angle(yaw - yaw0), t - t0]
+    values, vectors = np.linalg.eigh(info)
+    free = values < 1e-2 * max(values.max(), 1e-12)
+    if free.any():
+        delta -= vectors[:, free] @ (vectors[:, free].T @ delta)
+    yaw, t = yaw0 + delta[0], t0 + delta[1:]
+    overlap, residual = _overlap(fixed, _moved(moving, yaw, t), match_m)
+    return PointAlignment(Pose4(float(wrap_angle(yaw)), t), overlap, before[0], residual, int(free.sum()))

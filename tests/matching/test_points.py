@@ -1,0 +1,162 @@
+"""Relative poses refined on depth points (rfm_core.matching.points, relative_pose.with_points)."""
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from rfm_core.detection import make_detector
+from rfm_core.geometry import Pose4
+from rfm_core.matching.classical import ObjectMatches
+from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.points import PointIndex, align_points, depth_cloud
+from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose, with_floor_and_walls, with_points
+from rfm_core.observations import CameraIntrinsics, FrameObservations
+from rfm_core.sim.capture import Capture, CaptureConfig
+
+INTR = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+
+
+def _room(rng, walls=(True, True), boxes=True, spacing=0.05):
+    """Points of a room corner in a gravity-aligned camera frame: the floor 1.5 m below,
+    walls across x = 3 and y = 2 (as asked) and two boxes on the floor."""
+    g = np.arange(-1.0, 3.0, spacing)
+    parts = [np.c_[np.stack(np.meshgrid(g, g - 1.0), -1).reshape(-1, 2), np.full(len(g) ** 2, -1.5)]]
+    h = np.arange(-1.5, 1.0, spacing)
+    if walls[0]:
+        parts.append(np.c_[np.full(len(g) * len(h), 3.0), np.stack(np.meshgrid(g - 1.0, h), -1).reshape(-1, 2)])
+    if walls[1]:
+        parts.append(np.c_[np.stack(np.meshgrid(g, h), -1).reshape(-1, 2)[:, :1], np.full(len(g) * len(h), 2.0),
+                           np.stack(np.meshgrid(g, h), -1).reshape(-1, 2)[:, 1:]])
+    if boxes:
+        for cx, cy, size in ((1.5, 0.5, 0.6), (2.2, -0.6, 0.4)):
+            s = np.arange(-size / 2, size / 2, spacing / 2)
+            u, v = (a.ravel() for a in np.meshgrid(s, s))
+            for sign in (-1, 1):               # two faces and the top
+                parts.append(np.c_[cx + sign * size / 2 + 0 * u, cy + u, -1.5 + size / 2 + v])
+            parts.append(np.c_[cx + u, cy + v, np.full(len(u), -1.5 + size)])
+    pts = np.concatenate(parts)
+    return pts + rng.normal(0, 0.003, pts.shape)
+
+
+def _seen_from(points, pose: Pose4, rng):
+    """The points in a frame whose pose in theirs is ``pose`` (T_theirs_frame), re-sampled."""
+    moved = pose.inverse().transform_points(points)
+    return moved[rng.permutation(len(moved))[: len(moved) * 3 // 4]]
+
+
+def test_depth_cloud_is_the_image_in_the_gravity_aligned_frame_one_point_per_cell():
+    depth = np.full((240, 320), 2.0, np.float32)                 # a wall 2 m ahead of a level camera
+    depth[:10] = np.nan
+    depth[-10:] = 9.0                                           # beyond the range: dropped
+    cloud = depth_cloud(depth, INTR, [0.0, 1.0, 0.0], voxel_m=0.1, max_range_m=6.0)
+    assert cloud.dtype == np.float32 and cloud.shape[1] == 3
+    np.testing.assert_allclose(cloud[:, 0], 2.0, atol=1e-5)     # x: forward
+    # the wall spans 3.2 x ~2.2 m in view: about one point per 10 cm cell
+    assert 500 < len(cloud) < 800
+    assert np.all(cloud[:, 2] <= 1.2 + 1e-6) and np.all(cloud[:, 2] >= -1.0 - 0.06)   # z up, no far rows
+    assert depth_cloud(depth, INTR, [0.0, 1.0, 0.0], voxel_m=0.0, max_range_m=6.0).shape == (0, 3)
+
+
+def test_points_align_two_views_from_a_pose_centimetres_and_degrees_off():
+    rng = np.random.default_rng(0)
+    room = _room(rng)
+    truth = Pose4(np.radians(15.0), (0.4, -0.3, 0.05))            # T_fixed_moving
+    moving = _seen_from(room, truth, rng)
+    start = Pose4(truth.yaw + np.radians(6.0), np.asarray(truth.t) + [0.15, -0.12, 0.04])
+    found = align_points(start, moving, PointIndex(room))
+    assert found is not None and found.free == 0
+    assert np.degrees(found.pose.angle_to(truth)) < 0.05
+    assert np.linalg.norm(np.asarray(found.pose.t) - truth.t) < 0.005
+    assert found.overlap > 0.9 and found.overlap > found.overlap_before and found.residual_m < 0.005
+
+
+def test_what_the_points_do_not_fix_stays_where_the_start_put_it():
+    """The floor and one wall across x fix the height, x and the yaw; nothing fixes y, which
+    keeps the starting pose's value instead of drifting."""
+    rng = np.random.default_rng(1)
+    room = _room(rng, walls=(True, False), boxes=False)
+    truth = Pose4(np.radians(5.0), (0.3, 0.2, 0.0))
+    moving = _seen_from(room, truth, rng)
+    start = Pose4(truth.yaw + np.radians(2.0), np.asarray(truth.t) + [0.08, 0.1, 0.03])
+    found = align_points(start, moving, PointIndex(room))
+    assert found is not None and found.free == 1
+    t = np.asarray(found.pose.t)
+    assert abs(t[0] - truth.t[0]) < 0.01 and abs(t[2] - truth.t[2]) < 0.005
+    assert np.degrees(found.pose.angle_to(truth)) < 0.1
+    assert t[1] == pytest.approx(start.t[1], abs=0.02)            # the boxes' y, not a slide along the wall
+
+
+def test_a_relative_pose_is_refined_where_the_points_overlap_and_kept_where_they_do_not():
+    rng = np.random.default_rng(2)
+    room = _room(rng)
+    truth = Pose4(np.radians(-10.0), (0.25, 0.35, -0.02))          # T_source_target
+    source = FrameObservations(0, 'c', INTR, [0, 0, -1], cloud=room)
+    target = FrameObservations(1, 'c', INTR, [0, 0, -1], cloud=_seen_from(room, truth, rng))
+    boxes = RelativePose(Pose4(truth.yaw + np.radians(2.5), np.asarray(truth.t) + [0.09, -0.07, 0.02]),
+                         np.zeros((0, 2), int), np.zeros(0), np.zeros(0), 0.0, 2)
+    fixed = with_points(replace(boxes), source, target)
+    assert np.linalg.norm(np.asarray(fixed.pose.t) - truth.t) < 0.005
+    assert np.degrees(fixed.pose.angle_to(truth)) < 0.05
+    # another place altogether (the points 3 m away): nothing overlaps, the boxes' pose stays
+    elsewhere = FrameObservations(1, 'c', INTR, [0, 0, -1], cloud=target.cloud + [3.0, 3.0, 0.0])
+    assert with_points(replace(boxes), source, elsewhere).pose == boxes.pose
+    # switched off, or a frame without points: the boxes' pose
+    assert with_points(replace(boxes), source, target, MatchingConfig(point_refine=False)).pose == boxes.pose
+    assert with_points(replace(boxes), source, FrameObservations(1, 'c', INTR, [0, 0, -1])).pose == boxes.pose
+    # a correction beyond the bounds is refused
+    tight = MatchingConfig(point_max_correction_m=0.05)
+    assert with_points(replace(boxes), source, target, tight).pose == boxes.pose
+    with pytest.raises(ValueError, match='cloud'):
+        FrameObservations(1, 'c', INTR, [0, 0, -1], cloud=[[0.0, np.nan, 1.0]])
+
+
+def test_depth_points_correct_the_boxes_relative_pose_between_rendered_views():
+    """Two views of a simulated handheld walk 1.2 s apart through the depth detector: the
+    boxes, floor and walls put the second camera centimetres off; the points put it within
+    about a centimetre (median of the pairs), and never further off than the boxes did by
+    more than a centimetre."""
+    cap = Capture(CaptureConfig(seed=44, frames=40, fps=10.0, room_style='textured'))
+    frames = list(cap.frames())
+    det = make_detector('depth_clusters')
+    obs = [det.detect(f.detector_input()) for f in frames]
+    assert all(len(o.cloud) > 300 for o in obs)
+    off = MatchingConfig(point_refine=False)
+    errors = []
+    for i in range(0, 28, 3):
+        a, b = obs[i], obs[i + 12]
+        m = ObjectMatches(*_true_matches(a, b, frames[i], frames[i + 12]))
+        rel = estimate_relative_pose(b.boxes, a.boxes, m, off)
+        if rel is None:
+            continue
+        rel.swap_index_order()
+        truth = frames[i].aligned_from_map() @ frames[i + 12].aligned_from_map().inverse()   # T_a_b
+        with_floor_and_walls(rel, a, b, off)
+        before = np.linalg.norm(np.asarray(rel.pose.t) - truth.t)
+        with_points(rel, a, b)
+        after = np.linalg.norm(np.asarray(rel.pose.t) - truth.t)
+        errors.append((before, after, np.degrees(rel.pose.angle_to(truth))))
+    errors = np.array(errors)
+    assert len(errors) >= 5, errors
+    assert np.median(errors[:, 1]) < 0.012 and np.median(errors[:, 1]) < np.median(errors[:, 0]), errors
+    assert np.all(errors[:, 1] < errors[:, 0] + 0.01) and np.median(errors[:, 2]) < 0.3, errors
+
+
+def _true_matches(a, b, fa, fb):
+    """Matches of b's detections to a's by the simulator's boxes: the nearest true object."""
+    ids_a, ids_b = _object_ids(a, fa), _object_ids(b, fb)
+    pairs = [(j, i) for j, ob in enumerate(ids_b) for i, oa in enumerate(ids_a) if ob >= 0 and ob == oa]
+    rows = np.array([p[0] for p in pairs], int)
+    cols = np.array([p[1] for p in pairs], int)
+    return rows, cols, np.ones(len(pairs))
+
+
+def _object_ids(obs, frame):
+    truth = frame.ground_truth
+    out = []
+    for box in obs.boxes:
+        d = np.linalg.norm(truth.boxes[:, :3] - box[:3], axis=1) if len(truth.boxes) else np.array([9.0])
+        out.append(int(truth.object_ids[np.argmin(d)]) if d.min() < 0.3 else -1)
+    ids = np.array(out)
+    dup = [k for k in set(ids) if k >= 0 and np.sum(ids == k) > 1]
+    ids[np.isin(ids, dup)] = -1                       # ambiguous: no match
+    return ids
