@@ -9,7 +9,7 @@ from rfm_core.geometry import Pose4
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.points import PointIndex, align_points, depth_cloud
-from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose, with_floor_and_walls, with_points
+from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose, with_surfaces, with_points
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.sim.capture import Capture, CaptureConfig
 
@@ -130,7 +130,7 @@ def test_depth_points_correct_the_boxes_relative_pose_between_rendered_views():
             continue
         rel.swap_index_order()
         truth = frames[i].aligned_from_map() @ frames[i + 12].aligned_from_map().inverse()   # T_a_b
-        with_floor_and_walls(rel, a, b, off)
+        with_surfaces(rel, a, b, off)
         before = np.linalg.norm(np.asarray(rel.pose.t) - truth.t)
         with_points(rel, a, b)
         after = np.linalg.norm(np.asarray(rel.pose.t) - truth.t)

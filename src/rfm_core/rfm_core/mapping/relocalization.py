@@ -7,8 +7,8 @@ takes the keyframe with the most object inliers. Here every keyframe verified wi
 (within pose averaging's outlier thresholds) verify the most distinct query objects wins,
 needs ``min_inliers`` of them, is averaged over the agreeing keyframes, and is refitted on
 the map's object tracks. With ``floor_and_walls``, each keyframe's relative pose and the
-final pose take their height, and their yaw and translation across walls, from the floor
-and the walls the query and the keyframe both measured (as the view graph's edges). Up to
+final pose are corrected by the floor, the walls and the depth points the query and the
+keyframe both measured (as the view graph's edges: ``relative_pose.with_surfaces``). Up to
 ``hypotheses`` such poses (groups of agreeing keyframes) are then checked against the whole
 map: the query's detections placed by each must overlap the map's objects, ``min_explained``
 of them (all, for a query with fewer); the pose explaining the most wins. No ROS here; the
@@ -31,7 +31,7 @@ from rfm_core.mapping.frame_log import camera_to_map
 from rfm_core.mapping.map_index import MapIndex, track_boxes
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_floor_and_walls
+from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_surfaces
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
@@ -55,9 +55,10 @@ class RelocalizationConfig:
                                  "explains its two or three matches and little else (BENCHMARKS.md); 0: off",
                                  lo=0, hi=100)
     floor_and_walls: bool = setting(True, 'A relocalized pose takes its height from the query\'s and the keyframe\'s '
-                                    'camera heights above the floor, and its yaw and its translation across walls '
-                                    'from the walls both see, as the view graph\'s edges do '
-                                    '(matching.height_tolerance_m, matching.wall_tolerance_m)')
+                                    'camera heights above the floor, its yaw and its translation across walls '
+                                    'from the walls both see, and then the whole pose from their depth points '
+                                    'where they overlap, as the view graph\'s edges do '
+                                    '(matching.height_tolerance_m, matching.wall_tolerance_m, matching.point_refine)')
     classical_fallback: bool = setting(True, 'A candidate keyframe the learned matcher verifies no pose with is '
                                        'matched again by the classical one (appearance and size, one to one); the '
                                        'relative-pose test and the whole-map check sort out its many proposals. '
@@ -192,7 +193,7 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
             continue
         if config.floor_and_walls:
-            rel = _with_floor_and_walls(rel, keyframes[k], query, matching)
+            rel = _with_surfaces(rel, keyframes[k], query, matching)
         # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
         pose = rel.pose.inverse() @ poses[k]
         if prior is None or prior.admits(pose):
@@ -235,15 +236,16 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
     k, rel, _ = found[best]
     if config.floor_and_walls:      # again on the final pose: the refit on the tracks' centres moves it
         final = replace(rel, pose=poses[k] @ pose.inverse())                     # T_k_query
-        pose = _with_floor_and_walls(final, keyframes[k], query, matching).pose.inverse() @ poses[k]
+        pose = _with_surfaces(final, keyframes[k], query, matching).pose.inverse() @ poses[k]
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count,
                           runner_up)
 
 
-def _with_floor_and_walls(rel: RelativePose, keyframe, query, matching: MatchingConfig) -> RelativePose:
-    """``rel`` (T_keyframe_query, inliers as (query, keyframe) pairs) corrected by the floor
-    and the walls both frames measured, as a view graph edge (keyframe as its source)."""
-    return with_floor_and_walls(rel.swap_index_order(), keyframe, query, matching).swap_index_order()
+def _with_surfaces(rel: RelativePose, keyframe, query, matching: MatchingConfig) -> RelativePose:
+    """``rel`` (T_keyframe_query, inliers as (query, keyframe) pairs) corrected by the floor,
+    the walls and the depth points both frames measured, as a view graph edge (keyframe as
+    its source)."""
+    return with_surfaces(rel.swap_index_order(), keyframe, query, matching).swap_index_order()
 
 
 def explained(query: FrameObservations, pose: Pose4, index: MapIndex, matching: MatchingConfig) -> int:

@@ -34,13 +34,15 @@ _MAX_MOVING = 500         #: points of the moving cloud aligned (an even subsamp
 
 
 def depth_cloud(depth: np.ndarray, intrinsics, gravity_cam, voxel_m: float, max_range_m: float,
-                stride: int = 2) -> np.ndarray:
+                columns: int = 160) -> np.ndarray:
     """(P, 3) float32 points of a depth image (metres, NaN / 0 missing) in the frame's
-    gravity-aligned camera frame (:func:`rfm_core.geometry.gravity_aligned_rotation`): every
-    ``stride``-th pixel within ``max_range_m``, one point per ``voxel_m`` cell (the mean of its
-    points), at most :data:`MAX_CLOUD_POINTS` (a coarser grid past that)."""
+    gravity-aligned camera frame (:func:`rfm_core.geometry.gravity_aligned_rotation`): pixels
+    on a grid about ``columns`` wide (every second of a 320-pixel image, every fourth of a
+    640) within ``max_range_m``, one point per ``voxel_m`` cell (the mean of its points), at
+    most :data:`MAX_CLOUD_POINTS` (a coarser grid past that)."""
     if depth is None or voxel_m <= 0:
         return np.zeros((0, 3), np.float32)
+    stride = max(1, int(round(depth.shape[1] / columns)))
     z = np.asarray(depth, np.float32)[::stride, ::stride]
     v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
     ok = np.isfinite(z) & (z > 0.1) & (z <= max_range_m)
@@ -115,8 +117,8 @@ def _overlap(index: PointIndex, moved: np.ndarray, match_m: float) -> tuple[floa
 def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: float = 0.25,
                  match_m: float = 0.05, iterations: int = 5, min_points: int = 50) -> PointAlignment | None:
     """Refine ``pose`` (maps ``moving``'s frame into ``fixed``'s) by 4-DoF point-to-plane ICP:
-    correspondences within ``search_m``, then half that and so on down to ``match_m``, at
-    most ``iterations`` steps at each (fewer once a step moves less than 0.5 mm / 0.01 deg);
+    two steps with correspondences within ``search_m``, two within half that, then at most
+    ``iterations`` within ``match_m`` (fewer once a step moves less than 1 mm / 0.03 deg);
     Cauchy-weighted residuals; Levenberg-damped steps; at most 1,000 moving points (an even
     subsample). Directions the points do not
     constrain (the smallest eigenvalues of their information, with the yaw at a 1 m lever
@@ -128,17 +130,17 @@ def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: f
     if len(moving) < min_points or fixed.tree is None or len(fixed) < min_points:
         return None
     yaw0, t0 = float(pose.yaw), np.asarray(pose.t, np.float64)
-    before = _overlap(fixed, _moved(moving, yaw0, t0), match_m)
     yaw, t = yaw0, t0.copy()
-    levels = [search_m]
-    while levels[-1] / 2 > match_m:
-        levels.append(levels[-1] / 2)
-    levels.append(match_m)
-    info = None
-    for max_m in levels:
-        for _ in range(iterations):
+    levels = [search_m, max(search_m / 2, match_m), match_m]
+    info, before = None, None
+    for level, max_m in enumerate(levels):
+        for _ in range(iterations if level == len(levels) - 1 else 2):
             q = _moved(moving, yaw, t)
-            ok, j = _pairs(fixed, q, max_m)
+            dist, j = fixed.tree.query(q, distance_upper_bound=max_m)
+            ok = np.isfinite(dist)
+            ok[ok] &= fixed.usable[j[ok]]
+            if before is None:                                  # the starting pose's overlap
+                before = float(np.mean(ok & (dist <= match_m)))
             if ok.sum() < min_points:
                 return None
             q, n, p = q[ok], fixed.normals[j[ok]], fixed.points[j[ok]]
@@ -150,7 +152,7 @@ def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: f
             c, s = np.cos(step[0]), np.sin(step[0])
             t = np.array([c * t[0] - s * t[1], s * t[0] + c * t[1], t[2]]) + step[1:]
             yaw += step[0]
-            if abs(step[0]) < 2e-4 and np.linalg.norm(step[1:]) < 5e-4:
+            if abs(step[0]) < 5e-4 and np.linalg.norm(step[1:]) < 1e-3:
                 break
     # what the points leave free stays as the boxes put it
     delta = np.r_[wrap_angle(yaw - yaw0), t - t0]
@@ -160,4 +162,4 @@ def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: f
         delta -= vectors[:, free] @ (vectors[:, free].T @ delta)
     yaw, t = yaw0 + delta[0], t0 + delta[1:]
     overlap, residual = _overlap(fixed, _moved(moving, yaw, t), match_m)
-    return PointAlignment(Pose4(float(wrap_angle(yaw)), t), overlap, before[0], residual, int(free.sum()))
+    return PointAlignment(Pose4(float(wrap_angle(yaw)), t), overlap, before, residual, int(free.sum()))

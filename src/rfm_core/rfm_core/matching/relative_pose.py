@@ -37,7 +37,7 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 
 __all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty', 'with_points',
-           'with_camera_heights', 'with_walls', 'with_floor_and_walls']
+           'with_camera_heights', 'with_walls', 'with_surfaces']
 
 
 @dataclass
@@ -247,11 +247,10 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
     return rel
 
 
-def with_floor_and_walls(rel: RelativePose | None, source, target,
-                         config: MatchingConfig | None = None) -> RelativePose | None:
-    """``rel`` (T_source_target) corrected by all the two frames measured besides boxes:
-    :func:`with_camera_heights`, then :func:`with_walls`, then :func:`with_points` (in place;
-    returns ``rel``)."""
+def with_surfaces(rel: RelativePose | None, source, target, config: MatchingConfig | None = None) -> RelativePose | None:
+    """``rel`` (T_source_target) corrected by the surfaces the two frames measured besides
+    their boxes: the floor (:func:`with_camera_heights`), the walls (:func:`with_walls`), then
+    every depth point (:func:`with_points`; in place, returns ``rel``)."""
     rel = with_walls(with_camera_heights(rel, source, target, config), source, target, config)
     return with_points(rel, source, target, config)
 

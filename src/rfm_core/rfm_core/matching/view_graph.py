@@ -34,7 +34,7 @@ from scipy.optimize import linear_sum_assignment
 
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_floor_and_walls
+from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_surfaces
 from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import setting
@@ -301,7 +301,7 @@ class ViewGraphBuilder:
         if rel is None:
             return None
         rel.swap_index_order()                                       # as (source, target) index pairs
-        return with_floor_and_walls(rel, source, target, self.matching)
+        return with_surfaces(rel, source, target, self.matching)
 
     def _reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
@@ -705,7 +705,7 @@ class ViewGraphBuilder:
             return None
         self.stats.motion_edges += 1
         rel = RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
-        return with_floor_and_walls(rel, self.reference.observations, obs, self.matching)
+        return with_surfaces(rel, self.reference.observations, obs, self.matching)
 
     def _new_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None, stream: bool) -> GraphStep:
         start = time.perf_counter()
