@@ -7,8 +7,9 @@ takes the keyframe with the most object inliers. Here every keyframe verified wi
 (within pose averaging's outlier thresholds) verify the most distinct query objects wins,
 needs ``min_inliers`` of them, is averaged over the agreeing keyframes, and is refitted on
 the map's object tracks. With ``floor_and_walls``, each keyframe's relative pose and the
-final pose are corrected by the floor, the walls and the depth points the query and the
-keyframe both measured (as the view graph's edges: ``relative_pose.with_surfaces``). Up to
+final pose are corrected by the floor and the walls the query and the keyframe both
+measured, and the final pose by their depth points too (as the view graph's edges:
+``relative_pose.with_surfaces``). Up to
 ``hypotheses`` such poses (groups of agreeing keyframes) are then checked against the whole
 map: the query's detections placed by each must overlap the map's objects, ``min_explained``
 of them (all, for a query with fewer); the pose explaining the most wins. No ROS here; the
@@ -56,8 +57,8 @@ class RelocalizationConfig:
                                  lo=0, hi=100)
     floor_and_walls: bool = setting(True, 'A relocalized pose takes its height from the query\'s and the keyframe\'s '
                                     'camera heights above the floor, its yaw and its translation across walls '
-                                    'from the walls both see, and then the whole pose from their depth points '
-                                    'where they overlap, as the view graph\'s edges do '
+                                    'from the walls both see, and then (the final pose) the whole pose from their '
+                                    'depth points where they overlap, as the view graph\'s edges do '
                                     '(matching.height_tolerance_m, matching.wall_tolerance_m, matching.point_refine)')
     classical_fallback: bool = setting(True, 'A candidate keyframe the learned matcher verifies no pose with is '
                                        'matched again by the classical one (appearance and size, one to one); the '
@@ -192,8 +193,8 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
             rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, fallback.match(query, keyframes[k]), matching)
         if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
             continue
-        if config.floor_and_walls:
-            rel = _with_surfaces(rel, keyframes[k], query, matching)
+        if config.floor_and_walls:      # the depth points only on the final pose: each costs ~3 ms
+            rel = _with_surfaces(rel, keyframes[k], query, matching, points=False)
         # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
         pose = rel.pose.inverse() @ poses[k]
         if prior is None or prior.admits(pose):
@@ -241,11 +242,11 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
                           runner_up)
 
 
-def _with_surfaces(rel: RelativePose, keyframe, query, matching: MatchingConfig) -> RelativePose:
+def _with_surfaces(rel: RelativePose, keyframe, query, matching: MatchingConfig, points: bool = True) -> RelativePose:
     """``rel`` (T_keyframe_query, inliers as (query, keyframe) pairs) corrected by the floor,
-    the walls and the depth points both frames measured, as a view graph edge (keyframe as
-    its source)."""
-    return with_surfaces(rel.swap_index_order(), keyframe, query, matching).swap_index_order()
+    the walls and (``points``) the depth points both frames measured, as a view graph edge
+    (keyframe as its source)."""
+    return with_surfaces(rel.swap_index_order(), keyframe, query, matching, points).swap_index_order()
 
 
 def explained(query: FrameObservations, pose: Pose4, index: MapIndex, matching: MatchingConfig) -> int:

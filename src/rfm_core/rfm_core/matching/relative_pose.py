@@ -247,12 +247,13 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
     return rel
 
 
-def with_surfaces(rel: RelativePose | None, source, target, config: MatchingConfig | None = None) -> RelativePose | None:
+def with_surfaces(rel: RelativePose | None, source, target, config: MatchingConfig | None = None,
+                  points: bool = True) -> RelativePose | None:
     """``rel`` (T_source_target) corrected by the surfaces the two frames measured besides
     their boxes: the floor (:func:`with_camera_heights`), the walls (:func:`with_walls`), then
-    every depth point (:func:`with_points`; in place, returns ``rel``)."""
+    (``points``) every depth point (:func:`with_points`; in place, returns ``rel``)."""
     rel = with_walls(with_camera_heights(rel, source, target, config), source, target, config)
-    return with_points(rel, source, target, config)
+    return with_points(rel, source, target, config) if points else rel
 
 
 def _wall_pairs(pose: Pose4, ws: np.ndarray, wt: np.ndarray, cfg: MatchingConfig) -> list:
