@@ -153,6 +153,7 @@ def test_the_recorder_stops_a_topic_at_its_size_cap(tmp_path):
     finally:
         rclpy.try_shutdown()
     assert counts['/cam'] == 3 and counts['/txt'] == 10, counts
+    assert recorder.received['/cam'] == 10              # what rfm run counts as frames: every one received
     written = bag_messages(tmp_path / 'out')
     assert len(written['/cam']) == 3 and len(written['/txt']) == 10
 

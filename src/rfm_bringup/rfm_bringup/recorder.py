@@ -35,7 +35,8 @@ class BagRecorder(Node):
 
         self.path = path
         self.wanted = set(topics)
-        self.counts: dict = {}
+        self.counts: dict = {}                 #: messages written per topic
+        self.received: dict = {}               #: messages received per topic (capped topics too)
         self.bytes: dict = {}
         self.max_bytes = dict(max_bytes or {})
         self._bag = BagWriter(path, compression_level=compression_level).__enter__()
@@ -108,6 +109,7 @@ class BagRecorder(Node):
     def _write_locked(self, topic: str, raw: bytes) -> None:
         if self._closed:
             return
+        self.received[topic] = self.received.get(topic, 0) + 1
         size = self.bytes.get(topic, 0) + len(raw)
         cap = self.max_bytes.get(topic)
         if cap is not None and size > cap:

@@ -32,6 +32,9 @@ BAG_REMAPS = {'rgb/image': CAMERA_TOPICS['color'], 'rgb/camera_info': CAMERA_TOP
               'depth/image': CAMERA_TOPICS['depth'], 'imu': CAMERA_TOPICS['imu'],
               'ground_truth/detections': GROUND_TRUTH_TOPICS['gt_detections']}
 # What outputs.mcap records (with --live --record-images also the colour images, which a bag already has).
+# A live run keeps the first LIVE_DETECTIONS_MB of rfm/detections (each carries the frame's depth
+# points, 12-30 kB: half a megabyte a second at 30 Hz); the rest of the outputs are small.
+LIVE_DETECTIONS_MB = 1000
 OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames',
                  '/rfm/keyframe_poses', '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map',
                  '/rfm/object_markers', '/rfm/status', '/rfm/detection_markers', '/tf', '/tf_static']
@@ -378,11 +381,13 @@ def run_graph(args) -> int:
     play_start = None                              # the first frame detected
     try:
         images = remaps['rgb/image'] if bag is None and args.record_images else None
+        caps = {'/rfm/detections': LIVE_DETECTIONS_MB * 1e6} if bag is None else {}
+        if images:
+            caps[images] = args.record_images * 1e6
         recorder = BagRecorder(str(output / 'outputs.mcap'), topics=OUTPUT_TOPICS + ([images] if images else []),
                                node_name='rfm_run_recorder', compression_level=1,   # beside the graph: cheap
-                               batch_period_s=0.1,
-                               max_bytes={images: args.record_images * 1e6} if images else None)
-        graph = (_ProcessGraph(params, remaps, output, lambda: recorder.counts.get('/rfm/detections', 0))
+                               batch_period_s=0.1, max_bytes=caps)
+        graph = (_ProcessGraph(params, remaps, output, lambda: recorder.received.get('/rfm/detections', 0))
                  if args.processes else _InProcessGraph(params, remaps))
         graph.add(recorder)
         graph.start()
