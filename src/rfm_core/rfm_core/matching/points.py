@@ -30,7 +30,7 @@ MAX_CLOUD_POINTS = 20_000
 _NORMAL_NEIGHBOURS = 10
 _MAX_CURVATURE = 0.05       #: points whose neighbourhood is not a surface (edges, noise) take no part
 _ROBUST_M = 0.02            #: Cauchy scale of the point-to-plane residuals (m)
-_MAX_MOVING = 500         #: points of the moving cloud aligned (an even subsample: bounded cost)
+_MAX_MOVING = 500           #: points of the moving cloud aligned (an even subsample: bounded cost)
 
 
 def depth_cloud(depth: np.ndarray, intrinsics, gravity_cam, voxel_m: float, max_range_m: float,

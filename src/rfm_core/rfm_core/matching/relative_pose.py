@@ -35,6 +35,7 @@ from rfm_core.geometry import (
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
+from rfm_core.matching.points import align_points
 
 __all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty', 'with_points',
            'with_camera_heights', 'with_walls', 'with_surfaces']
@@ -237,7 +238,6 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
     cfg = config or MatchingConfig()
     if rel is None or not cfg.point_refine or not len(source.cloud) or not len(target.cloud):
         return rel
-    from rfm_core.matching.points import align_points  # noqa: PLC0415
     found = align_points(rel.pose, target.cloud, source.point_index(), cfg.point_search_m, cfg.point_match_m)
     if (found is None or found.overlap < cfg.point_min_overlap or found.overlap < found.overlap_before
             or np.linalg.norm(np.asarray(found.pose.t) - rel.pose.t) > cfg.point_max_correction_m
