@@ -94,20 +94,16 @@ class PointAlignment:
     free: int              #: directions (of yaw, x, y, z) the points left to the starting pose
 
 
-def _moved(points, yaw, t):
-    c, s = np.cos(yaw), np.sin(yaw)
-    return np.c_[c * points[:, 0] - s * points[:, 1], s * points[:, 0] + c * points[:, 1], points[:, 2]] + t
-
-
 def _pairs(index: PointIndex, moved: np.ndarray, max_m: float):
+    """(usable, nearest index, distance) of each moved point's nearest surface point within ``max_m``."""
     dist, j = index.tree.query(moved, distance_upper_bound=max_m)
     ok = np.isfinite(dist)
     ok[ok] &= index.usable[j[ok]]
-    return ok, j
+    return ok, j, dist
 
 
 def _overlap(index: PointIndex, moved: np.ndarray, match_m: float) -> tuple[float, float]:
-    ok, j = _pairs(index, moved, match_m)
+    ok, j, _ = _pairs(index, moved, match_m)
     if not ok.any():
         return 0.0, float('inf')
     r = np.abs(np.sum(index.normals[j[ok]] * (moved[ok] - index.points[j[ok]]), axis=1))
@@ -119,26 +115,22 @@ def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: f
     """Refine ``pose`` (maps ``moving``'s frame into ``fixed``'s) by 4-DoF point-to-plane ICP:
     two steps with correspondences within ``search_m``, two within half that, then at most
     ``iterations`` within ``match_m`` (fewer once a step moves less than 1 mm / 0.03 deg);
-    Cauchy-weighted residuals; Levenberg-damped steps; at most 1,000 moving points (an even
-    subsample). Directions the points do not
-    constrain (the smallest eigenvalues of their information, with the yaw at a 1 m lever
-    arm, below 1% of the largest) keep ``pose``'s value. None with fewer than ``min_points``
-    correspondences."""
+    Cauchy-weighted residuals; Levenberg-damped steps; at most 500 moving points (an even
+    subsample). Directions the points do not constrain (the smallest eigenvalues of their
+    information, with the yaw at a 1 m lever arm, below 1% of the largest) keep ``pose``'s
+    value. None with fewer than ``min_points`` correspondences."""
     moving = np.asarray(moving, np.float64).reshape(-1, 3)
     if len(moving) > _MAX_MOVING:
         moving = moving[np.linspace(0, len(moving) - 1, _MAX_MOVING).astype(int)]
     if len(moving) < min_points or fixed.tree is None or len(fixed) < min_points:
         return None
-    yaw0, t0 = float(pose.yaw), np.asarray(pose.t, np.float64)
-    yaw, t = yaw0, t0.copy()
+    current = pose
     levels = [search_m, max(search_m / 2, match_m), match_m]
     info, before = None, None
     for level, max_m in enumerate(levels):
         for _ in range(iterations if level == len(levels) - 1 else 2):
-            q = _moved(moving, yaw, t)
-            dist, j = fixed.tree.query(q, distance_upper_bound=max_m)
-            ok = np.isfinite(dist)
-            ok[ok] &= fixed.usable[j[ok]]
+            q = current.transform_points(moving)
+            ok, j, dist = _pairs(fixed, q, max_m)
             if before is None:                                  # the starting pose's overlap
                 before = float(np.mean(ok & (dist <= match_m)))
             if ok.sum() < min_points:
@@ -149,17 +141,15 @@ def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: f
             w = 1.0 / (1.0 + (r / _ROBUST_M) ** 2)
             info = (jac * w[:, None]).T @ jac
             step = -np.linalg.solve(info + 1e-3 * w.sum() * np.diag([1.0, 0.1, 0.1, 0.1]), (jac * w[:, None]).T @ r)
-            c, s = np.cos(step[0]), np.sin(step[0])
-            t = np.array([c * t[0] - s * t[1], s * t[0] + c * t[1], t[2]]) + step[1:]
-            yaw += step[0]
+            current = Pose4(step[0], step[1:]) @ current                # the step, in the fixed frame
             if abs(step[0]) < 5e-4 and np.linalg.norm(step[1:]) < 1e-3:
                 break
     # what the points leave free stays as the boxes put it
-    delta = np.r_[wrap_angle(yaw - yaw0), t - t0]
+    delta = np.r_[wrap_angle(current.yaw - pose.yaw), current.t - pose.t]
     values, vectors = np.linalg.eigh(info)
     free = values < 1e-2 * max(values.max(), 1e-12)
     if free.any():
         delta -= vectors[:, free] @ (vectors[:, free].T @ delta)
-    yaw, t = yaw0 + delta[0], t0 + delta[1:]
-    overlap, residual = _overlap(fixed, _moved(moving, yaw, t), match_m)
-    return PointAlignment(Pose4(float(wrap_angle(yaw)), t), overlap, before, residual, int(free.sum()))
+    refined = Pose4(float(wrap_angle(pose.yaw + delta[0])), pose.t + delta[1:])
+    overlap, residual = _overlap(fixed, refined.transform_points(moving), match_m)
+    return PointAlignment(refined, overlap, before, residual, int(free.sum()))
