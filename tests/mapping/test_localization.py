@@ -8,12 +8,13 @@ import numpy as np
 import pytest
 
 from rfm_core.evaluation.pipeline import run_capture
-from rfm_core.geometry import wrap_angle, yaw_matrix
+from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
 from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import Mapper
 from rfm_core.mapping.relocalization import MotionPrior
 from rfm_core.matching.classical import ObjectMatches
+from rfm_core.observations import FrameObservations
 from rfm_core.sim.capture import CaptureConfig
 
 SCENE = CaptureConfig(seed=40, frames=50, fps=5)
@@ -204,3 +205,55 @@ def test_keyframes_the_learned_matcher_does_not_place_are_matched_again_by_the_c
     why = []
     assert mapper.relocalize(mapper.keyframes[k], why) is None
     assert why and 'no candidate keyframe' in why[0]
+
+
+def _room_points(centres: np.ndarray, spacing: float = 0.15) -> np.ndarray:
+    """A room around the keyframes' camera centres (map frame): floor, four walls, two boxes."""
+    lo, hi = centres[:, :2].min(0) - 1.5, centres[:, :2].max(0) + 1.5
+    floor_z = centres[:, 2].min() - 1.3
+    x, y = np.arange(lo[0], hi[0], spacing), np.arange(lo[1], hi[1], spacing)
+    z = np.arange(floor_z, floor_z + 2.5, spacing)
+    parts = [np.c_[np.stack(np.meshgrid(x, y), -1).reshape(-1, 2), np.full(len(x) * len(y), floor_z)]]
+    for wall_x in (lo[0], hi[0]):
+        parts.append(np.c_[np.full(len(y) * len(z), wall_x), np.stack(np.meshgrid(y, z), -1).reshape(-1, 2)])
+    for wall_y in (lo[1], hi[1]):
+        xz = np.stack(np.meshgrid(x, z), -1).reshape(-1, 2)
+        parts.append(np.c_[xz[:, 0], np.full(len(xz), wall_y), xz[:, 1]])
+    for cx, cy in ((lo[0] + 1.0, lo[1] + 1.0), (hi[0] - 1.0, lo[1] + 1.2)):
+        s = np.arange(-0.3, 0.3, spacing / 2)
+        u, v = (a.ravel() for a in np.meshgrid(s, s))
+        parts += [np.c_[cx + 0.3 + 0 * u, cy + u, floor_z + 0.3 + v],
+                  np.c_[cx + u, cy + v, np.full(len(u), floor_z + 0.6)]]
+    return np.concatenate(parts)
+
+
+def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
+    """A frame of a live track without detections (the detector was behind and sent its
+    depth points only) is aligned to the nearest map keyframe's points from the predicted
+    pose and accepted: within a centimetre of where it is. Switched off, it is not placed."""
+    mapper = Mapper()
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
+    for k, pose in mapper.poses.items():                               # each keyframe sees the room
+        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
+    views = _views(mapper)
+    rng = np.random.default_rng(0)
+    last, last_pose = views[1]
+    seen = last_pose.inverse()                                         # T_map_view, moved on a little
+    truth = Pose4(seen.yaw + np.radians(2.0), seen.t + np.array([0.12, -0.08, 0.01])).inverse()
+    cloud = truth.transform_points(room) + rng.normal(0, 0.005, room.shape)
+    query = FrameObservations(last.stamp_ns + STEP_NS, last.frame_id, last.intrinsics, last.gravity_cam,
+                              cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
+    for point_tracking in (True, False):
+        mapper.config = replace(mapper.config, matching=replace(mapper.config.matching, point_tracking=point_tracking))
+        stream = StreamLocalizer(mapper)
+        for view, _ in views[:2]:                                      # the track: the second confirms the first
+            stream.step(view)
+        assert len(stream.track) == 2
+        placed = stream.step(query)
+        if not point_tracking:
+            assert placed == [] and stream.counts['points'] == 0
+            continue
+        assert len(placed) == 1 and placed[0][1].num_inliers == 0 and stream.counts['points'] == 1
+        assert _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2)

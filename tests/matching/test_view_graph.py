@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from rfm_core.detection import make_detector
+from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 from rfm_core.sim.capture import Capture, CaptureConfig
 
@@ -350,3 +351,32 @@ def test_a_keyframe_is_made_at_the_last_frame_that_tracked_well(stream):
     assert off_graph.stats.bridged < graph.stats.bridged
     on, off = np.mean(reference_inliers(graph, steps)), np.mean(reference_inliers(off_graph, off_steps))
     assert on > off, f'objects per edge to the previous keyframe: {on:.2f} with, {off:.2f} without'   # 6.6 vs 4.9
+
+
+def test_frames_sent_with_their_depth_points_only_are_tracked_on_them():
+    """The detector sends a frame it is behind on with its depth points and no detections
+    (``Detector.points_only``); the view graph tracks it on the points from the predicted
+    pose (``matching.point_tracking``): here two frames in three, each placed within
+    centimetres of the truth against its keyframe. Switched off, they are not localized."""
+    det = make_detector('depth_clusters')
+    frames = list(Capture(CaptureConfig(seed=33, frames=36, fps=12)).frames())
+    observations = []
+    for i, f in enumerate(frames):
+        obs = det.detect(f.detector_input()) if i % 3 == 0 else det.points_only(f.detector_input())
+        obs.imu_rotation, obs.imu_epoch = f.rotation, 1
+        observations.append(obs)
+    assert all(len(o) == 0 and len(o.cloud) > 100 for o in observations[1::3])
+    by_stamp = {f.stamp_ns: f for f in frames}
+    on, off = ViewGraphBuilder(), ViewGraphBuilder(MatchingConfig(point_tracking=False))
+    errors, placed_off = [], 0
+    for obs in observations:
+        track, without = on.add(obs).track, off.add(obs).track
+        placed_off += len(obs) == 0 and without is not None
+        if len(obs) == 0 and track is not None:
+            assert track.num_inliers == 0 and not track.is_keyframe
+            truth = (by_stamp[track.keyframe_stamp_ns].aligned_from_map()
+                     @ by_stamp[obs.stamp_ns].aligned_from_map().inverse())
+            errors.append((np.linalg.norm(track.pose.t - truth.t), np.degrees(track.pose.angle_to(truth))))
+    errors = np.array(errors)
+    assert len(errors) >= 0.8 * 24 and on.stats.point_tracked == len(errors) and placed_off == 0
+    assert np.median(errors[:, 0]) < 0.02 and errors[:, 0].max() < 0.04 and errors[:, 1].max() < 0.5

@@ -20,6 +20,12 @@ robot's localization does with its odometry:
 - **Kidnapping.** A track that nothing confirms for ``stream_max_gap_s`` is dropped; poses
   against the whole map that contradict a live track are held and confirmed the same way,
   and two that agree replace the track.
+- **Depth points.** A frame of a live track that its objects do not place (a frame the
+  detector sent with its depth points only, or too few detections) is aligned on its depth
+  points to the map keyframe nearest the predicted pose (``matching.point_tracking``:
+  :func:`rfm_core.matching.relative_pose.track_on_points`), and accepted where the points fix
+  every direction and the pose is within the prediction's bounds: the map's own surfaces
+  place it, so a run of such frames does not drift.
 
 No ROS here: :class:`rfm_core.session.MapSession` calls :meth:`StreamLocalizer.step` for
 each frame in localization mode (``rfm/detections``), and ``rfm eval-reloc --offline`` does
@@ -32,14 +38,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rfm_core.geometry import wrap_angle
+from rfm_core.geometry import Pose4, wrap_angle
 from rfm_core.mapping.relocalization import MotionPrior, Relocalization, RelocalizationConfig
+from rfm_core.matching.relative_pose import track_on_points
 from rfm_core.observations import FrameObservations, imu_relative_yaw
 
 __all__ = ['StreamLocalizer', 'motion_prior']
 
 HELD = 8                        #: unconfirmed poses held at most (the newest)
 TRACK = 10                      #: accepted frames the track predicts yaw from (the newest)
+POINT_KEYFRAMES = 2             #: map keyframes (the nearest the prediction) a frame is aligned to on its points
 
 
 def motion_prior(track: list, obs: FrameObservations, config: RelocalizationConfig) -> MotionPrior:
@@ -88,7 +96,8 @@ class StreamLocalizer:
     def reset(self) -> None:
         self.track: list = []                     # the newest accepted frames: (observations, T_view_map)
         self.held: list[_Held] = []               # poses waiting for a frame that agrees
-        self.counts = dict(tracked=0, confirmed=0, held=0)          # frames, by what became of them
+        self.counts = dict(tracked=0, points=0, confirmed=0, held=0)      # frames, by what became of them
+        self._centres = (None, None, None)        # (map revision, keyframe ids, camera centres) of those with points
 
     def _live(self, obs: FrameObservations) -> bool:
         return (bool(self.track)
@@ -98,6 +107,35 @@ class StreamLocalizer:
         self.track = (self.track + [(o, r.pose) for o, r in frames])[-TRACK:]
         self.held = []
         return list(frames)
+
+    def _keyframes_near(self, centre: np.ndarray) -> list:
+        """Ids of the registered keyframes with depth points, nearest ``centre`` first (at most
+        :data:`POINT_KEYFRAMES`)."""
+        mapper = self.mapper
+        if self._centres[0] != mapper.revision:
+            ids = [k for k in mapper.poses if len(mapper.keyframes[k].cloud)]
+            self._centres = (mapper.revision, ids,
+                             np.array([mapper.poses[k].inverse().t for k in ids]).reshape(-1, 3))
+        _, ids, centres = self._centres
+        order = np.argsort(np.linalg.norm(centres - centre, axis=1))[:POINT_KEYFRAMES]
+        return [ids[i] for i in order]
+
+    def _on_points(self, obs: FrameObservations, prior: MotionPrior) -> Relocalization | None:
+        """A frame of the live track placed on its depth points (see the module), or None."""
+        matching = self.mapper.config.matching
+        if not matching.point_tracking or not len(obs.cloud):
+            return None
+        t_map_view = Pose4(prior.yaw, prior.centre)              # the prediction: the gyroscope's yaw, held
+        near = self._keyframes_near(prior.centre)
+        for k in near:
+            t_k_map = self.mapper.poses[k]
+            found = track_on_points(t_k_map @ t_map_view, self.mapper.keyframes[k], obs, matching)
+            if found is None or found.free:
+                continue
+            pose = found.pose.inverse() @ t_k_map                  # T_view_map
+            if prior.admits(pose):
+                return Relocalization(pose, k, 0, np.zeros((0, 2), int), candidates=len(near))
+        return None
 
     def step(self, obs: FrameObservations, why: list | None = None) -> list:
         """Localize one frame: the frames accepted by it, oldest first, as (observations,
@@ -111,9 +149,14 @@ class StreamLocalizer:
             reloc = relocalize(obs, why)
             return [(obs, reloc)] if reloc is not None else []
         if self._live(obs):
-            reloc = relocalize(obs, why, motion_prior(self.track, obs, cfg))
+            prior = motion_prior(self.track, obs, cfg)
+            reloc = relocalize(obs, why, prior) if len(obs) >= 2 else None
             if reloc is not None:
                 self.counts['tracked'] += 1
+                return self._accept((obs, reloc))
+            reloc = self._on_points(obs, prior)
+            if reloc is not None:
+                self.counts['points'] += 1
                 return self._accept((obs, reloc))
         reloc = relocalize(obs, why)
         if reloc is None:

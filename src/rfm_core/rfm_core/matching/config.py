@@ -84,6 +84,20 @@ class MatchingConfig:
     point_max_correction_m: float = setting(1.0, "... and it moves the boxes' pose by at most this (m)",
                                             lo=0.0, hi=10.0)
     point_max_correction_deg: float = setting(20.0, '... and turns it by at most this (deg)', lo=0.0, hi=180.0)
+    point_tracking: bool = setting(True, 'Within a stream, a frame that objects do not localize (too few '
+                                   'detections, tracking failed, or a frame the detector sent with its depth points '
+                                   'only) is tracked on its depth points: aligned from the pose the gyroscope and the '
+                                   "recent motion predict to the reference keyframe's (matcher) or the nearest map "
+                                   "keyframe's (localization mode), 6-DoF so that the two frames' gravity may differ "
+                                   'by a degree or two; it becomes no keyframe (not in the paper)')
+    point_track_min_overlap: float = setting(0.25, '... kept when at least this share of its points lie on the '
+                                             "keyframe's surfaces (within point_match_m), about as many as at the "
+                                             'predicted pose, the motion is plausible, and the points fix every '
+                                             'direction (the matcher: all but one, which keeps the prediction within '
+                                             'keyframes.max_motion_edge_s of the last frame placed in full). On '
+                                             'tuning scenes poses the points fix in full were within 2 deg / 5 cm of '
+                                             'the truth at every overlap from 0.2 (BENCHMARKS.md, session 30)',
+                                             lo=0.0, hi=1.0)
 
     @property
     def along_rays(self) -> bool:

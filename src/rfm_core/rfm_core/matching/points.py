@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rfm_core.geometry import Pose4, gravity_aligned_rotation, wrap_angle
+from rfm_core.geometry import Pose4, gravity_aligned_rotation
 
 __all__ = ['depth_cloud', 'PointIndex', 'PointAlignment', 'align_points', 'MAX_CLOUD_POINTS']
 
@@ -91,7 +91,8 @@ class PointAlignment:
     overlap: float         #: share of the moved points within ``match_m`` of a surface, refined
     overlap_before: float  #: ... at the starting pose
     residual_m: float      #: median |point-to-plane| distance of those points, refined
-    free: int              #: directions (of yaw, x, y, z) the points left to the starting pose
+    free: int              #: directions (yaw, x, y, z; with ``tilt`` the two tilts too) the points left free
+    tilt_deg: float = 0.0  #: with ``tilt``: the tilt between the two frames' gravity the points found (deg)
 
 
 def _pairs(index: PointIndex, moved: np.ndarray, max_m: float):
@@ -110,26 +111,53 @@ def _overlap(index: PointIndex, moved: np.ndarray, match_m: float) -> tuple[floa
     return float(np.mean(ok)), float(np.median(r))
 
 
+def _rotation(w: np.ndarray) -> np.ndarray:
+    """The rotation by rotation vector ``w`` (Rodrigues)."""
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = w / angle
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * kx @ kx
+
+
+def _rotation_vector(r: np.ndarray) -> np.ndarray:
+    """The rotation vector of rotation matrix ``r`` (small angles: exact enough to 180 deg)."""
+    angle = float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return v * (0.5 if angle < 1e-9 else angle / (2.0 * np.sin(angle)))
+
+
 def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: float = 0.25,
-                 match_m: float = 0.05, iterations: int = 5, min_points: int = 50) -> PointAlignment | None:
+                 match_m: float = 0.05, iterations: int = 5, min_points: int = 50,
+                 tilt: bool = False) -> PointAlignment | None:
     """Refine ``pose`` (maps ``moving``'s frame into ``fixed``'s) by 4-DoF point-to-plane ICP:
     two steps with correspondences within ``search_m``, two within half that, then at most
     ``iterations`` within ``match_m`` (fewer once a step moves less than 1 mm / 0.03 deg);
     Cauchy-weighted residuals; Levenberg-damped steps; at most 500 moving points (an even
     subsample). Directions the points do not constrain (the smallest eigenvalues of their
-    information, with the yaw at a 1 m lever arm, below 1% of the largest) keep ``pose``'s
-    value. None with fewer than ``min_points`` correspondences."""
+    information, with the rotations at a 1 m lever arm, below 1% of the largest) keep
+    ``pose``'s value. None with fewer than ``min_points`` correspondences.
+
+    ``tilt``: the two frames' gravity may disagree by a degree or two (each frame's gravity is
+    the IMU filter's estimate), which at a few metres moves points by more than ``match_m``;
+    the alignment then also turns the moving cloud about the two horizontal axes through its
+    camera (6-DoF), and returns the yaw and translation (the camera's position) of that
+    alignment, its overlap, and the tilt it found."""
     moving = np.asarray(moving, np.float64).reshape(-1, 3)
     if len(moving) > _MAX_MOVING:
         moving = moving[np.linspace(0, len(moving) - 1, _MAX_MOVING).astype(int)]
     if len(moving) < min_points or fixed.tree is None or len(fixed) < min_points:
         return None
-    current = pose
+    rot, t = pose.rotation, np.asarray(pose.t, float)
+    axes = slice(0, 3) if tilt else slice(2, 3)            # rotations about x, y, z or about z only
+    n_rot = 3 if tilt else 1
+    damping = np.diag([1.0] * n_rot + [0.1] * 3)
     levels = [search_m, max(search_m / 2, match_m), match_m]
     info, before = None, None
     for level, max_m in enumerate(levels):
         for _ in range(iterations if level == len(levels) - 1 else 2):
-            q = current.transform_points(moving)
+            q = moving @ rot.T + t
             ok, j, dist = _pairs(fixed, q, max_m)
             if before is None:                                  # the starting pose's overlap
                 before = float(np.mean(ok & (dist <= match_m)))
@@ -137,19 +165,30 @@ def align_points(pose: Pose4, moving: np.ndarray, fixed: PointIndex, search_m: f
                 return None
             q, n, p = q[ok], fixed.normals[j[ok]], fixed.points[j[ok]]
             r = np.sum(n * (q - p), axis=1)
-            jac = np.c_[n[:, 1] * q[:, 0] - n[:, 0] * q[:, 1], n]      # d r / d(yaw about z, t)
+            jac = np.c_[np.cross(q, n)[:, axes], n]         # d r / d(rotation about the fixed axes, t)
             w = 1.0 / (1.0 + (r / _ROBUST_M) ** 2)
             info = (jac * w[:, None]).T @ jac
-            step = -np.linalg.solve(info + 1e-3 * w.sum() * np.diag([1.0, 0.1, 0.1, 0.1]), (jac * w[:, None]).T @ r)
-            current = Pose4(step[0], step[1:]) @ current                # the step, in the fixed frame
-            if abs(step[0]) < 5e-4 and np.linalg.norm(step[1:]) < 1e-3:
+            step = -np.linalg.solve(info + 1e-3 * w.sum() * damping, (jac * w[:, None]).T @ r)
+            turn = _rotation(np.r_[np.zeros(3 - n_rot), step[:n_rot]])     # the step, in the fixed frame
+            rot, t = turn @ rot, turn @ t + step[n_rot:]
+            if np.linalg.norm(step[:n_rot]) < 5e-4 and np.linalg.norm(step[n_rot:]) < 1e-3:
                 break
-    # what the points leave free stays as the boxes put it
-    delta = np.r_[wrap_angle(current.yaw - pose.yaw), current.t - pose.t]
+    # what the points leave free stays as the start put it (with tilt: each rotation weighed at the
+    # points' lever arm, so that a turn and a shift compare as the displacement they cause)
+    delta = np.r_[_rotation_vector(rot @ pose.rotation.T)[axes], t - pose.t]
+    if tilt:
+        arm = np.r_[[float(np.sqrt(np.mean(np.sum(q ** 2, axis=1))))] * n_rot, [1.0] * 3]
+        info = info / np.outer(arm, arm)
+        delta = delta * arm
     values, vectors = np.linalg.eigh(info)
     free = values < 1e-2 * max(values.max(), 1e-12)
     if free.any():
         delta -= vectors[:, free] @ (vectors[:, free].T @ delta)
-    refined = Pose4(float(wrap_angle(pose.yaw + delta[0])), pose.t + delta[1:])
-    overlap, residual = _overlap(fixed, refined.transform_points(moving), match_m)
-    return PointAlignment(refined, overlap, before, residual, int(free.sum()))
+    if tilt:
+        delta = delta / arm
+    rot = _rotation(np.r_[np.zeros(3 - n_rot), delta[:n_rot]]) @ pose.rotation
+    t = pose.t + delta[n_rot:]
+    overlap, residual = _overlap(fixed, moving @ rot.T + t, match_m)
+    yaw = float(np.arctan2(rot[1, 0] - rot[0, 1], rot[0, 0] + rot[1, 1]))   # the nearest turn about z
+    tilt_deg = float(np.degrees(np.arccos(np.clip(rot[2, 2], -1.0, 1.0))))
+    return PointAlignment(Pose4(yaw, t), overlap, before, residual, int(free.sum()), tilt_deg)

@@ -38,7 +38,7 @@ from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_
 from rfm_core.matching.points import align_points
 
 __all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty', 'with_points',
-           'with_camera_heights', 'with_walls', 'with_surfaces']
+           'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
 
 
 @dataclass
@@ -53,6 +53,7 @@ class RelativePose:
     mean_error: float            #: mean 1 - IoU3D over all matches of the winning sample
     num_matches: int
     corner_inliers: list = field(default_factory=list)  #: (ia, corner_a, ib, corner_b, error_m)
+    on_points: bool = False      #: the two frames' depth points fixed every direction of ``pose`` (:func:`with_points`)
 
     @property
     def inlier_ratio(self) -> float:
@@ -229,31 +230,76 @@ def with_walls(rel: RelativePose | None, source, target, config: MatchingConfig 
     return rel
 
 
-def with_points(rel: RelativePose | None, source, target, config: MatchingConfig | None = None) -> RelativePose | None:
+def with_points(rel: RelativePose | None, source, target, config: MatchingConfig | None = None,
+                predicted: Pose4 | None = None) -> RelativePose | None:
     """``rel`` (T_source_target) refined on the two frames' depth points
     (``FrameObservations.cloud``; :func:`rfm_core.matching.points.align_points`, in place;
     returns ``rel``): kept where at least ``point_min_overlap`` of the target's points lie
     on the source's surfaces, no fewer than at the starting pose, and the correction is
-    within ``point_max_correction_m`` / ``point_max_correction_deg``."""
+    within ``point_max_correction_m`` / ``point_max_correction_deg``. ``predicted`` (a
+    stream's motion prediction of T_source_target): where it differs from the boxes' pose
+    by more than ``point_match_m`` or 1 deg, the points are aligned from it as well, and the
+    alignment that puts more points on the source's surfaces is kept (two boxes cut by the
+    image border can place a frame decimetres off; the prediction from the frame before
+    does not drift that far). ``rel.on_points``: the points fixed every direction."""
     cfg = config or MatchingConfig()
     if rel is None or not cfg.point_refine or not len(source.cloud) or not len(target.cloud):
         return rel
-    found = align_points(rel.pose, target.cloud, source.point_index(), cfg.point_search_m, cfg.point_match_m)
-    if (found is None or found.overlap < cfg.point_min_overlap or found.overlap < found.overlap_before
-            or np.linalg.norm(np.asarray(found.pose.t) - rel.pose.t) > cfg.point_max_correction_m
-            or np.degrees(abs(found.pose.angle_to(rel.pose))) > cfg.point_max_correction_deg):
-        return rel
-    rel.pose = found.pose
+    starts = [rel.pose]
+    if predicted is not None and (np.linalg.norm(np.asarray(predicted.t) - rel.pose.t) > cfg.point_match_m
+                                  or np.degrees(abs(predicted.angle_to(rel.pose))) > 1.0):
+        starts.append(predicted)
+    best = None
+    for start in starts:
+        found = align_points(start, target.cloud, source.point_index(), cfg.point_search_m, cfg.point_match_m)
+        if (found is None or found.overlap < cfg.point_min_overlap or found.overlap < found.overlap_before
+                or np.linalg.norm(np.asarray(found.pose.t) - rel.pose.t) > cfg.point_max_correction_m
+                or np.degrees(abs(found.pose.angle_to(rel.pose))) > cfg.point_max_correction_deg):
+            continue
+        if best is None or found.overlap > best.overlap:
+            best = found
+    if best is not None:
+        rel.pose = best.pose
+        rel.on_points = best.free == 0
     return rel
 
 
+#: point tracking: a refined overlap this much below the predicted pose's still counts (a fit a
+#: little tighter than the prediction's may hold a few points fewer within ``point_match_m``)
+_OVERLAP_NOISE = 0.05
+
+
+def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | None = None):
+    """``target``'s frame placed in ``source``'s on the depth points alone, from ``predicted``
+    (T_source_target, a stream's motion prediction; :attr:`MatchingConfig.point_tracking`):
+    aligned both in 4-DoF and in 6-DoF (the frames' gravity may differ by a degree or two;
+    where the points pin the tilt poorly, its fit can slide instead), the alignment that puts
+    more points on the source's surfaces kept, and returned as a
+    :class:`~rfm_core.matching.points.PointAlignment` where at least ``point_track_min_overlap``
+    of the target's points, and about as many as at the prediction, lie on those surfaces;
+    None otherwise. The caller checks the directions left free and the motion."""
+    cfg = config or MatchingConfig()
+    if not cfg.point_tracking or not len(source.cloud) or not len(target.cloud):
+        return None
+    index = source.point_index()
+    found = None
+    for tilt in (True, False):
+        a = align_points(predicted, target.cloud, index, cfg.point_search_m, cfg.point_match_m, tilt=tilt)
+        if a is not None and (found is None or a.overlap > found.overlap):
+            found = a
+    if found is None or found.overlap < max(cfg.point_track_min_overlap, found.overlap_before - _OVERLAP_NOISE):
+        return None
+    return found
+
+
 def with_surfaces(rel: RelativePose | None, source, target, config: MatchingConfig | None = None,
-                  points: bool = True) -> RelativePose | None:
+                  points: bool = True, predicted: Pose4 | None = None) -> RelativePose | None:
     """``rel`` (T_source_target) corrected by the surfaces the two frames measured besides
     their boxes: the floor (:func:`with_camera_heights`), the walls (:func:`with_walls`), then
-    (``points``) every depth point (:func:`with_points`; in place, returns ``rel``)."""
+    (``points``) every depth point (:func:`with_points`, also from ``predicted``; in place,
+    returns ``rel``)."""
     rel = with_walls(with_camera_heights(rel, source, target, config), source, target, config)
-    return with_points(rel, source, target, config) if points else rel
+    return with_points(rel, source, target, config, predicted) if points else rel
 
 
 def _wall_pairs(pose: Pose4, ws: np.ndarray, wt: np.ndarray, cfg: MatchingConfig) -> list:

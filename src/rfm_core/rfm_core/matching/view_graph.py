@@ -34,7 +34,8 @@ from scipy.optimize import linear_sum_assignment
 
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_surfaces
+from rfm_core.matching.relative_pose import (
+    RelativePose, YawPrior, estimate_relative_pose, track_on_points, with_surfaces)
 from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
 from rfm_core.settings import setting
@@ -211,6 +212,7 @@ class _Stats:
     implausible: int = 0
     imu_rejected: int = 0             #: relative poses whose yaw the gyroscope contradicted
     predicted_tracking: int = 0       #: frames tracked with predicted matches (no object matcher)
+    point_tracked: int = 0            #: frames tracked on their depth points alone (objects did not place them)
     motion_edges: int = 0             #: keyframes placed by the motion alone (tracking lost a moment)
     reused: int = 0                   #: frames that made an older keyframe the reference (revisits)
     handovers: int = 0                #: edges from the reference left to the keyframe revisited
@@ -286,11 +288,12 @@ class ViewGraphBuilder:
         return self.keyframes[self._ref]
 
     def _relative(self, source: FrameObservations, target: FrameObservations,
-                  matches=None, stream: bool = False) -> RelativePose | None:
+                  matches=None, stream: bool = False, predicted: Pose4 | None = None) -> RelativePose | None:
         """T_source_target from matching target against source (or from ``matches`` of
         target against source, already computed). ``stream``: the two frames belong to one
         stream segment, so the gyroscope's rotation between them (when both carry it)
-        constrains the yaw."""
+        constrains the yaw; ``predicted``: the motion's prediction of it (the depth points
+        are aligned from it too: :func:`with_points`)."""
         if matches is None:
             matches = self.matcher.match(target, source)
         prior = None
@@ -301,7 +304,7 @@ class ViewGraphBuilder:
         if rel is None:
             return None
         rel.swap_index_order()                                       # as (source, target) index pairs
-        return with_surfaces(rel, source, target, self.matching)
+        return with_surfaces(rel, source, target, self.matching, predicted=predicted)
 
     def _reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
@@ -356,12 +359,12 @@ class ViewGraphBuilder:
         dt = (obs.stamp_ns - prev.stamp_ns) / 1e9
         return Pose4(measured[0], np.asarray(prev.pose.t) + self._velocity() * max(dt, 0.0))
 
-    def _predicted_matches(self, keyframe: FrameObservations, obs: FrameObservations) -> ObjectMatches | None:
-        """Matches of the frame's boxes to the last keyframe's where the predicted pose puts
-        them (:meth:`_predicted_pose`; nearest centre, one-to-one, within the distance the
-        camera can have moved plus the detector's noise): tracking without the object
-        matcher. None when nothing predicts the pose."""
-        predicted = self._predicted_pose(obs)                         # T_keyframe_frame
+    def _predicted_matches(self, keyframe: FrameObservations, obs: FrameObservations,
+                           predicted: Pose4 | None) -> ObjectMatches | None:
+        """Matches of the frame's boxes to the last keyframe's where the predicted pose
+        (T_keyframe_frame, :meth:`_predicted_pose`) puts them (nearest centre, one-to-one,
+        within the distance the camera can have moved plus the detector's noise): tracking
+        without the object matcher. None when nothing predicts the pose."""
         if predicted is None or len(obs) == 0 or len(keyframe) == 0:
             return None
         moved = predicted.transform_points(obs.boxes[:, :3])          # frame boxes in the keyframe
@@ -381,14 +384,15 @@ class ViewGraphBuilder:
         needs ``min_retrieved_inliers`` objects."""
         last = self.reference
         rel = None
-        predicted = self._predicted_matches(last.observations, obs) if stream else None
+        pose = self._predicted_pose(obs) if stream else None
+        predicted = self._predicted_matches(last.observations, obs, pose)
         if predicted is not None and len(predicted) >= 2:
-            rel = self._relative(last.observations, obs, predicted, stream=stream)
+            rel = self._relative(last.observations, obs, predicted, stream=stream, predicted=pose)
             if rel is not None and len(rel.inliers) < max(2, 0.5 * len(predicted)):
                 rel = None
             self.stats.predicted_tracking += rel is not None
         if rel is None:
-            rel = self._relative(last.observations, obs, stream=stream)
+            rel = self._relative(last.observations, obs, stream=stream, predicted=pose)
         if rel is None:
             return None
         if not stream:
@@ -468,8 +472,9 @@ class ViewGraphBuilder:
         self.stats.frames += 1
         stream = self._continues_stream(obs.stamp_ns)
         if len(obs) < self.config.min_detections:
-            self.stats.skipped += 1
-            return GraphStep(None, [], None)
+            step = self._point_tracked(obs, stream)
+            self.stats.skipped += step is None
+            return step if step is not None else GraphStep(None, [], None)
         # the pose to the last keyframe localizes the frame, decides whether it becomes a
         # keyframe, and is reused as that candidate's edge
         start = time.perf_counter()
@@ -489,14 +494,51 @@ class ViewGraphBuilder:
             revisit = self._revisit(obs, stream, last_rel)
             if revisit is not None:
                 return revisit
-        if stream and self._tracking is not None and self._tracking.observations is not None and (
-                last_rel is None or self._promotes_previous(last_rel)):
+        prev = self._tracking
+        if (stream and prev is not None and prev.observations is not None
+                and len(prev.observations) >= self.config.min_detections
+                and (last_rel is None or self._promotes_previous(last_rel))):
             bridged = self._bridge(obs)
             if bridged is not None:
                 return bridged
         if self._too_soon(obs) or self._weak(obs, stream):          # lost, but no keyframe (yet)
-            return GraphStep(None, [], None)
+            step = self._point_tracked(obs, stream)
+            return step if step is not None else GraphStep(None, [], None)
         return self._new_keyframe(obs, last_rel, stream)
+
+    def _point_tracked(self, obs: FrameObservations, stream: bool) -> GraphStep | None:
+        """A frame of a stream that objects did not localize, tracked on its depth points
+        (:func:`track_on_points`): aligned to the reference keyframe's from the predicted pose
+        (:meth:`_predicted_pose`), where the motion is plausible; None otherwise. A direction
+        the points leave free (at most one) keeps the prediction, and only within
+        ``max_motion_edge_s`` of the last frame placed in full. The frame becomes no keyframe;
+        a bridge from it to a later frame weighs its pose as a motion edge (no object matches)."""
+        cfg, prev = self.config, self._tracking
+        if not (stream and self.keyframes and prev is not None):
+            return None
+        ref = self.reference
+        predicted = self._predicted_pose(obs)                         # T_ref_frame
+        if predicted is None:
+            return None
+        start = time.perf_counter()
+        found = track_on_points(predicted, ref.observations, obs, self.matching)
+        self.stats.tracking_s += time.perf_counter() - start
+        if found is None:
+            return None
+        full = found.free == 0
+        if found.free > 1 or not full and obs.stamp_ns - prev.last_verified_ns > cfg.max_motion_edge_s * 1e9:
+            return None
+        if not (self._reachable(prev.pose.inverse() @ found.pose, prev.stamp_ns, obs.stamp_ns)
+                and self._imu_agrees(found.pose, ref.observations, obs)):
+            return None
+        rel = RelativePose(found.pose, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
+        verified_ns = self._verified_through(ref.keyframe_id) if full else prev.last_verified_ns
+        self._tracking = _Tracking(ref.keyframe_id, found.pose, obs.stamp_ns, obs, rel, verified_ns=verified_ns)
+        self.stats.tracked += 1
+        self.stats.point_tracked += 1
+        return GraphStep(None, [], FrameTrack(
+            obs.stamp_ns, obs.frame_id, obs.gravity_cam, ref.keyframe_id, ref.observations.stamp_ns, found.pose, 0,
+            is_keyframe=False, continuous=True))
 
     def _weak(self, obs: FrameObservations, stream: bool, pose: Pose4 | None = None) -> bool:
         """Whether a frame of a stream has too few detections to become a new keyframe
@@ -695,17 +737,21 @@ class ViewGraphBuilder:
     def _motion_edge(self, obs: FrameObservations) -> RelativePose | None:
         """Where the camera went while tracking was lost for a moment: the last keyframe to
         this frame as the gyroscope's yaw and the last tracked frame's position, moved on at
-        the camera's recent velocity, predict it (at most ``max_motion_edge_s`` after the
-        last frame that objects placed: motion edges never chain longer). It has no object
-        matches and the least weight in the averaging: it only places a stretch that nothing
-        else links."""
+        the camera's recent velocity, predict it, refined on the two frames' surfaces. Where
+        the depth points fix every direction (``rel.on_points``) it is a measurement;
+        otherwise at most ``max_motion_edge_s`` after the last frame that objects (or points)
+        placed: motion edges never chain longer. It has no object matches and the least
+        weight in the averaging: it only places a stretch that nothing else links."""
         predicted = self._predicted_pose(obs)
+        if predicted is None:
+            return None
+        rel = RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
+        rel = with_surfaces(rel, self.reference.observations, obs, self.matching)
         # measured from the last frame objects placed: motion edges never chain past it
-        if predicted is None or obs.stamp_ns - self._tracking.last_verified_ns > self.config.max_motion_edge_s * 1e9:
+        if not rel.on_points and obs.stamp_ns - self._tracking.last_verified_ns > self.config.max_motion_edge_s * 1e9:
             return None
         self.stats.motion_edges += 1
-        rel = RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
-        return with_surfaces(rel, self.reference.observations, obs, self.matching)
+        return rel
 
     def _new_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None, stream: bool) -> GraphStep:
         start = time.perf_counter()
@@ -740,7 +786,8 @@ class ViewGraphBuilder:
             motion = self._motion_edge(obs)
             if motion is not None:
                 edges.append(Edge(self.reference.keyframe_id, keyframe.keyframe_id, motion))
-                self._motion_placed.add(keyframe.keyframe_id)
+                if not motion.on_points:                           # placed by the motion alone
+                    self._motion_placed.add(keyframe.keyframe_id)
                 # the camera keeps its velocity through the new keyframe (a vector: rotated only)
                 self._carried = (keyframe.keyframe_id, yaw_matrix(motion.pose.yaw).T @ self._velocity())
         n = len(self.keyframes)
