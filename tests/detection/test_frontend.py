@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from rfm_core.detection import make_detector
-from rfm_core.detection.frontend import DetectorFrontend, LatestWorker
+from rfm_core.detection.frontend import DetectorFrontend, FrameWorker
 from rfm_core.sim.capture import TOPICS, Capture, CaptureConfig
 
 rosbags = pytest.importorskip('rosbags')
@@ -73,17 +73,35 @@ def test_every_nth_frame_and_a_looping_bag(bag_messages):
     assert frontend.counts['dropped_out_of_order'] == 0 and len(frames) == 6
 
 
-def test_the_newest_job_wins_while_the_worker_is_busy():
-    release, done, replaced = threading.Event(), [], []
-    worker = LatestWorker(lambda job: (release.wait(5), done.append(job)), lambda: replaced.append(1))
+def _run_worker(backlog: int) -> tuple:
+    """Jobs submitted while the worker is blocked on the first: (done, replaced, waiting seen by each job)."""
+    release, done, replaced, waiting = threading.Event(), [], [], []
+    worker = None
+
+    def work(job):
+        release.wait(5)
+        waiting.append(worker.waiting)
+        done.append(job)
+    worker = FrameWorker(work, lambda: replaced.append(1), backlog=backlog)
     worker.submit('first')                            # taken at once, blocks the worker
     deadline = threading.Event()
-    while worker.busy and not deadline.wait(0.01):
+    while worker.waiting and not deadline.wait(0.01):
         pass
     for job in ('second', 'third', 'fourth'):
         worker.submit(job)
     release.set()
-    while len(done) < 2 and not deadline.wait(0.01):
+    while not worker.idle and not deadline.wait(0.01):
         pass
     worker.stop()
-    assert done == ['first', 'fourth'] and len(replaced) == 2
+    return done, len(replaced), waiting
+
+
+def test_the_newest_job_wins_while_the_worker_is_busy():
+    done, replaced, waiting = _run_worker(backlog=1)
+    assert done == ['first', 'fourth'] and replaced == 2 and waiting == [1, 0]
+
+
+def test_a_backlog_keeps_the_newest_jobs_in_order_and_tells_work_it_is_behind():
+    done, replaced, waiting = _run_worker(backlog=2)
+    assert done == ['first', 'third', 'fourth'] and replaced == 1
+    assert waiting == [2, 1, 0]                       # each ran with the later ones waiting: behind

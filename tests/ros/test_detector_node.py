@@ -121,6 +121,25 @@ def test_detections_from_bgr8_and_32fc1_in_the_camera_frame(graph, scene):
     assert matched >= 6          # boxes land on the true objects: the frames are right
 
 
+def test_frames_it_is_behind_on_go_out_with_their_depth_points_only(graph, scene):
+    """A burst of 30 Hz frames while the worker detects one: the oldest waiting are dropped,
+    one taken while another waits is sent with its depth points and no detections, and the
+    newest is detected in full; every frame sent in stamp order."""
+    cap, frames = scene
+    detector, pubs, got, _ = graph(imu_tau_s=0.02)
+    stamps = [frames[0].stamp_ns + i * 33_000_000 for i in range(6)]        # a 30 Hz camera
+    for i, stamp in enumerate(stamps):
+        publish_frame(pubs, cap, frames[i // 3], stamp=stamp)
+    assert wait_for(lambda: detector.worker.idle and len(got) >= 3), (detector.counts, len(got))
+    time.sleep(0.5)                                   # (a sensor-data queue may lose one of the burst)
+    sent = [frame_detections_from_msg(m) for m in got]
+    assert [o.stamp_ns for o in sent] == sorted(o.stamp_ns for o in sent)
+    points_only = [o for o in sent if len(o) == 0]
+    assert points_only and all(len(o.cloud) > 100 for o in points_only)
+    assert len(sent[-1]) > 0                          # the newest (nothing waits after it): in full
+    assert detector.counts['points_only'] == len(points_only) and detector.counts['dropped_busy'] >= 1
+
+
 def test_bad_input_is_dropped_and_the_next_good_frame_served(graph, scene):
     cap, frames = scene
     detector, pubs, got, diags = graph(imu_max_age_s=0.3)

@@ -215,6 +215,7 @@ class _InProcessGraph:
         mp = self.mapper.mapper
         dropped = self.detector.frontend.dropped()
         return {'received': self.detector.counts['received'], 'frames': self.detector.counts['processed'],
+                'points_only': self.detector.counts['points_only'],
                 'dropped': sum(dropped.values()), 'dropped_by_reason': dropped,
                 'detections': self.detector.counts['published'], 'keyframes': self.matcher.graph.stats.keyframes,
                 'registered': len(mp.poses), 'objects': self.mapper.num_objects, 'lost': self.mapper.num_lost,
@@ -491,6 +492,7 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
     summary = {'input': str(bag) if bag else 'live camera', 'date': datetime.datetime.now().isoformat(timespec='seconds'),
                'backend': params['detector']['backend'], 'matcher': params['matcher']['matcher'], 'posed': posed,
                'input_frames': input_frames, 'received': progress.get('received'), 'frames': progress.get('frames', 0),
+               'points_only': progress.get('points_only'),
                'detections': progress.get('detections', 0), 'dropped': progress.get('dropped', 0),
                'dropped_by_reason': progress.get('dropped_by_reason', {}),
                'lost_between_nodes': progress.get('lost', 0), 'cpu_s_by_thread': progress.get('cpu_s', {}),

@@ -50,6 +50,12 @@ class DetectorNodeConfig:
                                    "'compressed' (rgb/image/compressed: JPEG or PNG); rfm run picks it from the "
                                    'bag', choices=('raw', 'compressed'), read_only=True)
     every_nth_frame: int = setting(1, 'Process one synchronised frame in n', lo=1, hi=100)
+    points_only_when_behind: bool = setting(
+        True, 'A frame the detector is behind on (the next one already waits) is sent with its depth points '
+        'and no detections, at a fraction of the cost; the matcher tracks it on the points '
+        '(matching.point_tracking). A 30 Hz camera is then localized at its rate while detection runs as '
+        'often as the CPU allows. Backends with depth only; false: the newest frame waits, the others are '
+        'dropped', read_only=True)
     queue_size: int = setting(10, 'Synchroniser queue per input', lo=1, hi=100, read_only=True)
     sync_slop_s: float = setting(0.05, 'Max stamp difference between image, camera_info and depth (s)',
                                  lo=0.0, hi=1.0, read_only=True)

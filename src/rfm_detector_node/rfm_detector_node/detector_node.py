@@ -10,8 +10,12 @@ Publishes:
   rfm/detections (rfm_msgs/FrameDetections), rfm/detection_markers (MarkerArray),
   /diagnostics (diagnostic_msgs/DiagnosticArray: counters, latency).
 
-Frames are processed by one worker thread; a frame arriving while it is busy replaces the
-waiting one (newest wins) and is counted as dropped, so nothing queues without bound.
+Frames are processed by one worker thread. With depth (points_only_when_behind), two frames
+may wait: a frame taken while the next one already waits is sent with its depth points and no
+detections (a few ms; the matcher tracks it on the points), the frame it catches up on is
+detected in full, and a third frame arriving pushes out the oldest waiting (counted as
+dropped). Without, a frame arriving while the worker is busy replaces the waiting one (newest
+wins). Nothing queues without bound.
 Thin rclpy adapter: frames through rfm_core.detection.frontend, detections out.
 """
 from __future__ import annotations
@@ -33,7 +37,7 @@ from visualization_msgs.msg import MarkerArray
 
 from rfm_core.config import DetectorNodeConfig
 from rfm_core.detection import make_detector
-from rfm_core.detection.frontend import DetectorFrontend, LatestWorker
+from rfm_core.detection.frontend import DetectorFrontend, FrameWorker
 from rfm_core.geometry import box_corners
 from rfm_core.io.messages import box_markers_msg, frame_detections_to_msg
 from rfm_core.io.parameters import declare_config
@@ -99,7 +103,10 @@ class DetectorNode(Node):
                 self.create_subscription(Imu, 'imu', self._on_imu, sensor)
             inputs += ', imu' if self.backend != 'ground_truth' else ', imu (optional)'
         self.create_timer(self.diagnostics_period, self._publish_diagnostics)
-        self.worker = LatestWorker(self._work, self._replaced, name='detector_worker')
+        self.points_only = (cfg.points_only_when_behind and self.detector.needs_depth and cfg.cloud_voxel_m > 0
+                            and self.backend != 'ground_truth')
+        self.worker = FrameWorker(self._work, self._replaced, name='detector_worker',
+                                  backlog=2 if self.points_only else 1)
         self.get_logger().info(f'detector ready: backend={self.backend}, inputs: {inputs}')
 
     def _take_imu(self) -> None:
@@ -125,10 +132,12 @@ class DetectorNode(Node):
         self.counts['dropped_busy'] += 1
 
     def _work(self, kind, payload) -> None:
-        """One frame on the worker thread: detect, publish."""
+        """One frame on the worker thread: detect (its depth points only when the next frame
+        already waits), publish."""
         start = time.perf_counter()
+        points_only = self.points_only and self.worker.waiting > 0
         try:
-            obs = self.frontend.detect(kind, payload)
+            obs = self.frontend.detect(kind, payload, points_only)
         except (ValueError, RuntimeError) as exc:
             self.counts['dropped_invalid'] += 1
             self._warn(f'frame dropped: {exc}')
@@ -140,12 +149,13 @@ class DetectorNode(Node):
         if obs is None:
             return
         self.counts['processed'] += 1
-        self.last_latency_ms = 1e3 * (time.perf_counter() - start)
-        self.last_detections = len(obs)
+        if not points_only:
+            self.last_latency_ms = 1e3 * (time.perf_counter() - start)
+            self.last_detections = len(obs)
         try:
             self.pub.publish(frame_detections_to_msg(obs))
             self.counts['published'] += 1
-            if self.marker_pub is not None:
+            if self.marker_pub is not None and not points_only:
                 self.marker_pub.publish(self._markers(obs))
         except Exception as exc:  # noqa: BLE001 - e.g. publishing during shutdown
             self.get_logger().debug(f'publish failed: {exc!r}')

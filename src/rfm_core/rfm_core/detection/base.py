@@ -67,6 +67,13 @@ class Detector:
     def detect(self, frame: DetectorInput) -> FrameObservations:  # pragma: no cover
         raise NotImplementedError
 
+    def points_only(self, frame: DetectorInput) -> FrameObservations:
+        """The frame without detections: its stamp, gravity and depth points (``cloud``), for
+        a frame the detector is behind on (the matcher tracks it on the points)."""
+        frame.validate(needs_depth=True)
+        return finalize(frame, np.zeros((0, 7)), np.zeros(0), [], np.zeros((0, 0), np.float32), np.zeros((0, 4)),
+                        self.config, self.name)
+
 
 def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, config: DetectorConfig,
              backend: str, visibility=None, object_ids=None, full_boxes=None,

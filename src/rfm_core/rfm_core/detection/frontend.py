@@ -7,14 +7,18 @@ frames without recent IMU data) or a fixed vector; the gyroscope's orientation i
 to each frame's detections (the matcher checks relative yaws with it). Messages are read by
 their fields (:mod:`rfm_core.io`), so rclpy and rosbags messages both work.
 
-:class:`LatestWorker` runs the detector on one thread, newest frame first: a frame arriving
-while it is busy replaces the waiting one (and is counted as dropped), so nothing queues
-without bound.
+:class:`FrameWorker` runs the detector on one thread with a short backlog (the oldest frame
+waiting is dropped and counted when a new one arrives and the backlog is full), so nothing
+queues without bound. A frame the detector is behind on (others wait after it) is sent with
+its depth points and no detections (:meth:`DetectorFrontend.detect`, ``points_only``): the
+matcher tracks it on the points (``matching.point_tracking``) at a fraction of the cost,
+and the frames the detector catches up on are detected in full.
 """
 from __future__ import annotations
 
 import threading
 import time
+from collections import deque
 from typing import Callable
 
 import numpy as np
@@ -26,7 +30,7 @@ from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_m
 from rfm_core.io.sync import ApproximateTimeSynchronizer
 from rfm_core.observations import FrameObservations
 
-__all__ = ['DetectorFrontend', 'LatestWorker', 'TIME_JUMP_NS']
+__all__ = ['DetectorFrontend', 'FrameWorker', 'TIME_JUMP_NS']
 
 TIME_JUMP_NS = 2_000_000_000      #: a stamp this much older than the last one: the bag looped
 
@@ -52,7 +56,7 @@ class DetectorFrontend:
         # takes the IMU samples queued so far (into add_imu): before each frame and while waiting for them
         self.poll_imu = poll_imu or (lambda: None)
         self.gravity_filter = GravityFilter(tau_s=imu_tau_s)
-        self.counts = dict(received=0, processed=0, published=0, dropped_busy=0, dropped_invalid=0,
+        self.counts = dict(received=0, processed=0, published=0, points_only=0, dropped_busy=0, dropped_invalid=0,
                            dropped_no_gravity=0, dropped_out_of_order=0, skipped_nth=0)
         # colour, camera_info and depth when needed (ground truth arrives as one message)
         self.sync = (None if detector.name == 'ground_truth' else
@@ -106,9 +110,11 @@ class DetectorFrontend:
 
     # ------------------------------------------------------------------ detection
 
-    def detect(self, kind: str, payload) -> FrameObservations | None:
+    def detect(self, kind: str, payload, points_only: bool = False) -> FrameObservations | None:
         """Detections of one frame, the gyroscope's orientation attached when the IMU is
-        recent; None when it has no gravity. ValueError for a malformed frame."""
+        recent; None when it has no gravity. ValueError for a malformed frame.
+        ``points_only``: the frame's depth points and no detections (:meth:`Detector.points_only`;
+        a frame with no depth is detected in full)."""
         self.poll_imu()
         if kind == 'ground_truth':
             obs = self.detector.perturb(frame_detections_from_msg(payload))
@@ -122,7 +128,11 @@ class DetectorFrontend:
             frame = DetectorInput(stamp, rgb_msg.header.frame_id, camera_info_intrinsics(info), gravity,
                                   rgb=image_to_rgb(rgb_msg),
                                   depth=depth_to_meters(depth_msg) if depth_msg is not None else None)
-            obs = self.detector.detect(frame)
+            if points_only and frame.depth is not None:
+                obs = self.detector.points_only(frame)
+                self.counts['points_only'] += 1
+            else:
+                obs = self.detector.detect(frame)
         found = self.gravity_filter.orientation_at(obs.stamp_ns)
         if found is not None:
             obs.imu_rotation, obs.imu_epoch = found
@@ -158,13 +168,16 @@ class DetectorFrontend:
                     out_of_order=c['dropped_out_of_order'], every_nth=c['skipped_nth'], unsynchronised=unsynchronised)
 
 
-class LatestWorker:
-    """Runs ``work(job)`` on its own thread for the newest job submitted: a job submitted
-    while another waits replaces it (``on_replaced`` is called), so nothing queues."""
+class FrameWorker:
+    """Runs ``work(job)`` on its own thread, oldest job first, with at most ``backlog`` jobs
+    waiting: a job submitted while the backlog is full pushes out the oldest waiting one
+    (``on_replaced`` is called), so nothing queues without bound. ``backlog`` 1: the newest
+    job wins. :attr:`waiting` tells ``work`` whether it is behind."""
 
-    def __init__(self, work: Callable, on_replaced: Callable[[], None], name: str = 'worker'):
+    def __init__(self, work: Callable, on_replaced: Callable[[], None], name: str = 'worker', backlog: int = 1):
         self.work, self.on_replaced = work, on_replaced
-        self._pending = None
+        self.backlog = max(int(backlog), 1)
+        self._pending: deque = deque()
         self._running = False
         self._stop = False
         self._cv = threading.Condition()
@@ -172,21 +185,22 @@ class LatestWorker:
         self._thread.start()
 
     @property
-    def busy(self) -> bool:
-        """Whether a job is waiting."""
-        return self._pending is not None
+    def waiting(self) -> int:
+        """Jobs waiting (not counting the one running)."""
+        return len(self._pending)
 
     @property
     def idle(self) -> bool:
         """No job waiting and none running."""
         with self._cv:
-            return self._pending is None and not self._running
+            return not self._pending and not self._running
 
     def submit(self, *job) -> None:
         with self._cv:
-            if self._pending is not None:
-                self.on_replaced()                  # newest wins
-            self._pending = job
+            if len(self._pending) >= self.backlog:
+                self._pending.popleft()
+                self.on_replaced()
+            self._pending.append(job)
             self._cv.notify()
 
     def stop(self) -> None:
@@ -197,11 +211,11 @@ class LatestWorker:
     def _run(self) -> None:
         while True:
             with self._cv:
-                while self._pending is None and not self._stop:
+                while not self._pending and not self._stop:
                     self._cv.wait()
                 if self._stop:
                     return
-                job, self._pending = self._pending, None
+                job = self._pending.popleft()
                 self._running = True
             try:
                 self.work(*job)

@@ -218,7 +218,10 @@ def write_report(path, summary: dict) -> Path:
     lines = [f'# rfm run: {s.get("input", "")}', '',
              f'- date: {s.get("date", "")}', f'- detector: `{s.get("backend", "")}`, matcher: `{s.get("matcher", "")}`, '
              f'mode: {"posed" if s.get("posed") else "un-posed"}',
-             f'- frames processed by the detector: {processed}{share}; frames dropped: {s.get("dropped", 0)}'
+             f'- frames processed by the detector: {processed}{share}'
+             + (f' ({s["points_only"]} of them sent with their depth points only: the detector was behind)'
+                if s.get('points_only') else '')
+             + f'; frames dropped: {s.get("dropped", 0)}'
              + _reasons(s.get('dropped_by_reason'))
              + (f'; colour images received: {s["received"]}' if s.get('received') is not None else '')
              + (f'; keyframes, edges and tracked frames lost between matcher and mapper: {s["lost_between_nodes"]}'
