@@ -88,8 +88,9 @@ class MatchingConfig:
                                    'detections, tracking failed, or a frame the detector sent with its depth points '
                                    'only) is tracked on its depth points: aligned from the pose the gyroscope and the '
                                    "recent motion predict to the reference keyframe's (matcher) or the nearest map "
-                                   "keyframe's (localization mode), 6-DoF so that the two frames' gravity may differ "
-                                   'by a degree or two; it becomes no keyframe (not in the paper)')
+                                   "keyframe's (localization mode), in 4-DoF and in 6-DoF (the two frames' gravity "
+                                   'may differ by a degree or two), the alignment with more points on surfaces kept; '
+                                   'it becomes no keyframe (not in the paper)')
     point_track_min_overlap: float = setting(0.25, '... kept when at least this share of its points lie on the '
                                              "keyframe's surfaces (within point_match_m), about as many as at the "
                                              'predicted pose, the motion is plausible, and the points fix every '
