@@ -103,8 +103,7 @@ class DetectorNode(Node):
                 self.create_subscription(Imu, 'imu', self._on_imu, sensor)
             inputs += ', imu' if self.backend != 'ground_truth' else ', imu (optional)'
         self.create_timer(self.diagnostics_period, self._publish_diagnostics)
-        self.points_only = (cfg.points_only_when_behind and self.detector.needs_depth and cfg.cloud_voxel_m > 0
-                            and self.backend != 'ground_truth')
+        self.points_only = cfg.points_only_when_behind and self.detector.needs_depth and cfg.cloud_voxel_m > 0
         self.worker = FrameWorker(self._work, self._replaced, name='detector_worker',
                                   backlog=2 if self.points_only else 1)
         self.get_logger().info(f'detector ready: backend={self.backend}, inputs: {inputs}')

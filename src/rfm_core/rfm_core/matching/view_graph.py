@@ -165,6 +165,12 @@ def _reversed(rel: RelativePose) -> RelativePose:
                         rel.mean_error, rel.num_matches)
 
 
+def _without_objects(pose: Pose4) -> RelativePose:
+    """A relative pose no object match supports (the motion's, or the depth points'): the least
+    weight in the averaging."""
+    return RelativePose(pose, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
+
+
 def bag_of_objects(obs: FrameObservations) -> np.ndarray:
     """Retrieval descriptor of a frame: the unit mean of its object embeddings (zeros when
     it has none)."""
@@ -531,7 +537,7 @@ class ViewGraphBuilder:
         if not (self._reachable(prev.pose.inverse() @ found.pose, prev.stamp_ns, obs.stamp_ns)
                 and self._imu_agrees(found.pose, ref.observations, obs)):
             return None
-        rel = RelativePose(found.pose, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
+        rel = _without_objects(found.pose)
         verified_ns = self._verified_through(ref.keyframe_id) if full else prev.last_verified_ns
         self._tracking = _Tracking(ref.keyframe_id, found.pose, obs.stamp_ns, obs, rel, verified_ns=verified_ns)
         self.stats.tracked += 1
@@ -745,7 +751,7 @@ class ViewGraphBuilder:
         predicted = self._predicted_pose(obs)
         if predicted is None:
             return None
-        rel = RelativePose(predicted, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
+        rel = _without_objects(predicted)
         rel = with_surfaces(rel, self.reference.observations, obs, self.matching)
         # measured from the last frame objects placed: motion edges never chain past it
         if not rel.on_points and obs.stamp_ns - self._tracking.last_verified_ns > self.config.max_motion_edge_s * 1e9:
