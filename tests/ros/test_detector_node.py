@@ -122,11 +122,12 @@ def test_detections_from_bgr8_and_32fc1_in_the_camera_frame(graph, scene):
 
 
 def test_frames_it_is_behind_on_go_out_with_their_depth_points_only(graph, scene):
-    """A burst of 30 Hz frames while the worker detects one: the oldest waiting are dropped,
-    one taken while another waits is sent with its depth points and no detections, and the
-    newest is detected in full; every frame sent in stamp order."""
+    """A burst of 30 Hz frames while the worker detects one: the oldest beyond
+    points_only_backlog (3 here) are dropped, each taken while another waits is sent with its
+    depth points and no detections, and the newest is detected in full; every frame sent in
+    stamp order."""
     cap, frames = scene
-    detector, pubs, got, _ = graph(imu_tau_s=0.02)
+    detector, pubs, got, _ = graph(imu_tau_s=0.02, points_only_backlog=3)
     stamps = [frames[0].stamp_ns + i * 33_000_000 for i in range(6)]        # a 30 Hz camera
     for i, stamp in enumerate(stamps):
         publish_frame(pubs, cap, frames[i // 3], stamp=stamp)

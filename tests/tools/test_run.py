@@ -101,7 +101,6 @@ def user_bag(short_bag, tmp_path_factory):
 
 
 @pytest.mark.slow
-@pytest.mark.slow
 @pytest.mark.parametrize('compressed', [False, True], ids=['raw', 'jpeg'])
 def test_rfm_run_on_a_bag_without_ground_truth_writes_every_output(short_bag, tmp_path, compressed):
     """A user's bag (no /ground_truth/*, depth a few ms off colour, an unrelated topic, colour
@@ -215,6 +214,23 @@ def test_relocalization_maps_every_room_from_a_whole_walk():
         assert walk.capture == 'handheld' and walk.frames / walk.fps == pytest.approx(30.0), walk
         assert walk.camera_height and (walk.seed, walk.room_style, walk.width, walk.hfov_deg, walk.noise) == (
             room.seed, room.room_style, room.width, room.hfov_deg, room.noise)
+
+
+def test_eval_writes_the_bags_before_it_replays_any(tmp_path):
+    """`rfm eval` / `rfm eval-reloc` write every scene's bag first (in parallel processes), so
+    that no scene is rendered while another replays in real time on the same cores; a
+    complete bag in the work folder is reused."""
+    from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
+    from rfm_core.evaluation.suite import eval_configs, write_bags  # noqa: PLC0415
+    configs = eval_configs(2, 40, frames=8, fps=8.0, world='boxes')
+    bags = [tmp_path / str(c.seed) / 'bag' for c in configs]
+    write_bags(list(zip(configs, bags)), processes=2)
+    for config, bag in zip(configs, bags):
+        assert (bag / 'metadata.yaml').is_file()
+        assert len(read_ground_truth(bag).camera_poses) == config.frames
+    stamps = [(b / 'metadata.yaml').stat().st_mtime_ns for b in bags]
+    write_bags(list(zip(configs, bags)), processes=2)
+    assert [(b / 'metadata.yaml').stat().st_mtime_ns for b in bags] == stamps
 
 
 def test_eval_settings_by_exact_name_or_part_of_names():

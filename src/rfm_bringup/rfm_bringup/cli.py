@@ -485,7 +485,7 @@ def cmd_eval_reloc(args) -> int:
     import tempfile  # noqa: PLC0415
 
     from rfm_core.evaluation.suite import (  # noqa: PLC0415
-        eval_configs, relocalization_scene, relocalization_scene_graph)
+        eval_configs, query_capture, relocalization_scene, relocalization_scene_graph, scene_name, write_bags)
 
     # every room mapped from a walk around it (--frames / --fps seconds at the scene's rate)
     configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps, world=args.world, capture='handheld')
@@ -500,6 +500,10 @@ def cmd_eval_reloc(args) -> int:
         scene_fn = relocalization_scene_graph
         work = [(c, args.detector, args.query_frames, folder, base + i, args.param or ())
                 for i, c in enumerate(configs)]
+        scenes = [Path(folder) / scene_name(c) for c in configs]
+        write_bags([(c, d / 'map_bag') for c, d in zip(configs, scenes)]
+                   + [(query_capture(c, args.query_frames), d / 'query_bag') for c, d in zip(configs, scenes)],
+                   args.jobs)
     rows = []
     try:
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:

@@ -56,6 +56,11 @@ class DetectorNodeConfig:
         '(matching.point_tracking). A 30 Hz camera is then localized at its rate while detection runs as '
         'often as the CPU allows. Backends with depth only; false: the newest frame waits, the others are '
         'dropped', read_only=True)
+    points_only_backlog: int = setting(
+        8, '... frames that may wait for the detector (with points_only_when_behind): each taken while another '
+        'waits goes out with its points only, so the frames a slow detector falls behind on are localized '
+        'on their points instead of dropped; a frame arriving when this many wait pushes out the oldest '
+        '(counted as dropped). At 30 Hz, 8 frames hold 0.27 s', lo=1, hi=64, read_only=True)
     queue_size: int = setting(10, 'Synchroniser queue per input', lo=1, hi=100, read_only=True)
     sync_slop_s: float = setting(0.05, 'Max stamp difference between image, camera_info and depth (s)',
                                  lo=0.0, hi=1.0, read_only=True)

@@ -10,12 +10,12 @@ Publishes:
   rfm/detections (rfm_msgs/FrameDetections), rfm/detection_markers (MarkerArray),
   /diagnostics (diagnostic_msgs/DiagnosticArray: counters, latency).
 
-Frames are processed by one worker thread. With depth (points_only_when_behind), two frames
-may wait: a frame taken while the next one already waits is sent with its depth points and no
-detections (a few ms; the matcher tracks it on the points), the frame it catches up on is
-detected in full, and a third frame arriving pushes out the oldest waiting (counted as
-dropped). Without, a frame arriving while the worker is busy replaces the waiting one (newest
-wins). Nothing queues without bound.
+Frames are processed by one worker thread. With depth (points_only_when_behind), up to
+points_only_backlog frames may wait: a frame taken while the next one already waits is sent
+with its depth points and no detections (a few ms; the matcher tracks it on the points), the
+frame it catches up on is detected in full, and a frame arriving while the backlog is full
+pushes out the oldest waiting (counted as dropped). Without, a frame arriving while the worker
+is busy replaces the waiting one (newest wins). Nothing queues without bound.
 Thin rclpy adapter: frames through rfm_core.detection.frontend, detections out.
 """
 from __future__ import annotations
@@ -105,7 +105,7 @@ class DetectorNode(Node):
         self.create_timer(self.diagnostics_period, self._publish_diagnostics)
         self.points_only = cfg.points_only_when_behind and self.detector.needs_depth and cfg.cloud_voxel_m > 0
         self.worker = FrameWorker(self._work, self._replaced, name='detector_worker',
-                                  backlog=2 if self.points_only else 1)
+                                  backlog=cfg.points_only_backlog if self.points_only else 1)
         self.get_logger().info(f'detector ready: backend={self.backend}, inputs: {inputs}')
 
     def _take_imu(self) -> None:

@@ -225,6 +225,25 @@ def _written_bag(config, bag: Path) -> Path:
     return bag
 
 
+def _write_bag(job) -> str:
+    config, bag = job
+    return str(_written_bag(config, Path(bag)))
+
+
+def write_bags(jobs, processes: int = 1) -> None:
+    """Write every bag of ``jobs`` ((capture config, bag folder) pairs) that is not complete
+    yet, ``processes`` at a time, before any of them is replayed: on a small machine a scene
+    rendered while another replays in real time takes the CPU that graph needs, and its
+    detector drops frames a user's machine would process."""
+    jobs = [(c, Path(b)) for c, b in jobs if not (Path(b) / 'metadata.yaml').is_file()]
+    if processes > 1 and len(jobs) > 1:
+        with ProcessPoolExecutor(min(processes, len(jobs))) as pool:
+            list(pool.map(_write_bag, jobs))
+    else:
+        for job in jobs:
+            _write_bag(job)
+
+
 def _rfm_in_domain(domain: int) -> tuple[str, dict]:
     """The ``rfm`` executable and an environment that keeps its nodes in ROS domain
     ``domain``, discovering on this machine only."""
@@ -278,6 +297,7 @@ def run_graph_suite(configs, settings=SETTINGS, work=None, jobs: int = 1, progre
     temporary = tempfile.TemporaryDirectory(prefix='rfm-eval-') if work is None else None
     work_dir = Path(temporary.name if temporary else work)
     results = [None] * len(configs)
+    write_bags([(c, work_dir / scene_name(c) / 'bag') for c in configs], jobs)
 
     def one(i):
         domain = domains.get()

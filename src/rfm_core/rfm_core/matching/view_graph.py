@@ -10,7 +10,10 @@ so the cost per keyframe stays bounded however large the map grows. A frame of a
 that would become a keyframe is first tried against older keyframes (a revisit): one that
 verifies it becomes the reference instead, and the frame sends the edges a keyframe there
 would have added, measured through itself, so that a map that stops growing still gets
-the repeated measurements that outvote a wrong edge.
+the repeated measurements that outvote a wrong edge. Where its objects verify no older
+keyframe, its depth points may: the view graph's own edges put older keyframes near it,
+and one whose surfaces it aligns to becomes the reference all the same (no edge: nothing
+verified the objects), so that the same place seen again adds no keyframe.
 
 Whether the frames come from a continuous stream (a camera moving through the room) or are
 separate views (photos seconds apart, an unordered collection) is decided from the frame
@@ -26,6 +29,7 @@ keyframe that starts a segment retrieves ``unordered_retrieved_keyframes`` candi
 from __future__ import annotations
 
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -114,6 +118,15 @@ class KeyframeConfig:
                                  'against (edges measured through the frame); at most this many measurements of one '
                                  'keyframe pair (0: none). Without them a map that stops growing keeps its first '
                                  'edges unchallenged', lo=0, hi=16)
+    revisit_on_points: bool = setting(True, 'Revisits on depth points: a frame of a stream that would still become a '
+                                      'keyframe (its objects verified no older keyframe) is aligned on its depth '
+                                      'points (as matching.point_tracking) to the older keyframes the view graph '
+                                      'puts within max_translation_m and max_yaw_deg of it (their poses composed '
+                                      'along verified edges from the reference; the newest recent_keyframes '
+                                      'excluded: a revisit, not the walk ahead). One whose surfaces it aligns to '
+                                      'in every direction becomes the reference and the frame is tracked against '
+                                      'it: the same place seen again adds no keyframe when its objects fail to '
+                                      'verify. Needs matching.point_tracking')
     through_frames: int = setting(0, 'A new keyframe of a stream is linked to the reference again through this '
                                   'many frames tracked on the reference since it (the latest and ones '
                                   'between: each measures T_reference_keyframe as its tracked pose and its own '
@@ -221,6 +234,7 @@ class _Stats:
     point_tracked: int = 0            #: frames tracked on their depth points alone (objects did not place them)
     motion_edges: int = 0             #: keyframes placed by the motion alone (tracking lost a moment)
     reused: int = 0                   #: frames that made an older keyframe the reference (revisits)
+    reused_on_points: int = 0         #: ... of them aligned to it on their depth points (objects did not verify)
     handovers: int = 0                #: edges from the reference left to the keyframe revisited
     through: int = 0                  #: edges between keyframes measured through a revisiting frame
     last_candidates: list = field(default_factory=list)
@@ -498,6 +512,8 @@ class ViewGraphBuilder:
                 len(last_rel.inliers), is_keyframe=False, continuous=stream))
         if self.config.reuse_keyframes and stream and len(self.keyframes) > 1:
             revisit = self._revisit(obs, stream, last_rel)
+            if revisit is None and self.config.revisit_on_points:
+                revisit = self._revisit_on_points(obs, last_rel)
             if revisit is not None:
                 return revisit
         prev = self._tracking
@@ -591,6 +607,67 @@ class ViewGraphBuilder:
                     found = (i, rel)
         self.stats.tracking_s += time.perf_counter() - start
         return None if found is None else self._revisited(obs, stream, *found, last_rel, verified)
+
+    def _graph_poses(self) -> dict:
+        """{keyframe index: T_reference_keyframe} of the keyframes verified edges connect to the
+        reference, composed along the fewest edges (breadth first)."""
+        ref = self._ref % len(self.keyframes)
+        poses, queue = {ref: Pose4(0.0, (0.0, 0.0, 0.0))}, deque([ref])
+        while queue:
+            i = queue.popleft()
+            for j in self._neighbours.get(i, ()):
+                if j not in poses:
+                    poses[j] = poses[i] @ self._edge_pose[i, j]
+                    queue.append(j)
+        return poses
+
+    def _revisit_on_points(self, obs: FrameObservations, last_rel: RelativePose | None) -> GraphStep | None:
+        """A frame of a stream about to become a keyframe, aligned on its depth points to an
+        older keyframe the view graph places near it (:attr:`KeyframeConfig.revisit_on_points`):
+        of the three nearest within ``max_translation_m`` and ``max_yaw_deg`` of its pose to the
+        reference (``last_rel``, else predicted), the one whose surfaces it aligns to in every
+        direction with the most of its points becomes the reference, and the frame is tracked
+        against it (no edge: no object verified it); None where none aligns."""
+        cfg, prev = self.config, self._tracking
+        pose = last_rel.pose if last_rel is not None else self._predicted_pose(obs)           # T_ref_frame
+        if pose is None or prev is None or not self.matching.point_tracking:
+            return None
+        start = time.perf_counter()
+        recent = set(range(max(0, len(self.keyframes) - cfg.recent_keyframes), len(self.keyframes)))
+        near = []
+        for j, t_ref_j in self._graph_poses().items():
+            t_j_frame = t_ref_j.inverse() @ pose
+            if j not in recent and j != self._ref % len(self.keyframes) and t_j_frame.within(
+                    cfg.max_translation_m, cfg.max_yaw_deg):
+                near.append((float(np.linalg.norm(t_j_frame.t)), j, t_ref_j, t_j_frame))
+        ref_id = self.reference.keyframe_id
+        found = None
+        for _, j, t_ref_j, t_j_frame in sorted(near, key=lambda n: n[0])[:3]:
+            kf = self.keyframes[j].observations
+            a = track_on_points(t_j_frame, kf, obs, self.matching)
+            if a is None or a.free or not self._imu_agrees(a.pose, kf, obs):
+                continue
+            # the motion from the previous frame (on the reference) through the graph must be plausible
+            if prev.keyframe_id == ref_id and not self._reachable(prev.pose.inverse() @ t_ref_j @ a.pose,
+                                                                  prev.stamp_ns, obs.stamp_ns):
+                continue
+            if found is None or a.overlap > found[1].overlap:
+                found = (j, a)
+        self.stats.tracking_s += time.perf_counter() - start
+        if found is None:
+            return None
+        j, a = found
+        kf = self.keyframes[j]
+        self._ref = j
+        self._tracking = _Tracking(kf.keyframe_id, a.pose, obs.stamp_ns, obs, _without_objects(a.pose),
+                                   verified_ns=self._verified_through(kf.keyframe_id))
+        self._since_ref = []
+        self.stats.tracked += 1
+        self.stats.reused += 1
+        self.stats.reused_on_points += 1
+        return GraphStep(None, [], FrameTrack(
+            obs.stamp_ns, obs.frame_id, obs.gravity_cam, kf.keyframe_id, kf.observations.stamp_ns, a.pose, 0,
+            is_keyframe=False, continuous=True))
 
     def _revisited(self, obs: FrameObservations, stream: bool, i: int, rel: RelativePose,
                    last_rel: RelativePose | None, verified: list) -> GraphStep:
