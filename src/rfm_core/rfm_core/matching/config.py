@@ -92,7 +92,9 @@ class MatchingConfig:
                                    'may differ by a degree or two), the alignment with more points on surfaces kept; '
                                    'it becomes no keyframe (not in the paper)')
     point_track_min_overlap: float = setting(0.25, '... kept when at least this share of its points lie on the '
-                                             "keyframe's surfaces (within point_match_m), about as many as at the "
+                                             "keyframe's surfaces (within point_match_m; a share of what those "
+                                             "surfaces can hold: divided by the share of the keyframe's own points "
+                                             'on a surface, lower for noisy depth), about as many as at the '
                                              'predicted pose, the motion is plausible, and the points fix every '
                                              'direction (the matcher: all but one, which keeps the prediction within '
                                              'keyframes.max_motion_edge_s of the last frame placed in full). On '

@@ -23,7 +23,7 @@ sizes, and the second object takes the quarter turn closest to the proposed yaw.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 
 import numpy as np
@@ -277,7 +277,13 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
     more points on the source's surfaces kept, and returned as a
     :class:`~rfm_core.matching.points.PointAlignment` where at least ``point_track_min_overlap``
     of the target's points, and about as many as at the prediction, lie on those surfaces;
-    None otherwise. The caller checks the directions left free and the motion."""
+    None otherwise. The caller checks the directions left free and the motion.
+
+    The overlaps are shares of what the source's surfaces can hold: divided by the share of
+    the source's own points that lie on a surface (a cloud aligned to itself scores exactly
+    that). Noisy depth (an active-stereo camera at a few metres) leaves half its points off
+    any surface the normals trust, against a fifth for clean depth, so a raw share would ask
+    noisier frames to overlap more."""
     cfg = config or MatchingConfig()
     if not cfg.point_tracking or not len(source.cloud) or not len(target.cloud):
         return None
@@ -287,7 +293,12 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
         a = align_points(predicted, target.cloud, index, cfg.point_search_m, cfg.point_match_m, tilt=tilt)
         if a is not None and (found is None or a.overlap > found.overlap):
             found = a
-    if found is None or found.overlap < max(cfg.point_track_min_overlap, found.overlap_before - _OVERLAP_NOISE):
+    if found is None:
+        return None
+    surface = max(float(index.usable.mean()), 1e-3)
+    found = replace(found, overlap=min(found.overlap / surface, 1.0),
+                    overlap_before=min(found.overlap_before / surface, 1.0))
+    if found.overlap < max(cfg.point_track_min_overlap, found.overlap_before - _OVERLAP_NOISE):
         return None
     return found
 
