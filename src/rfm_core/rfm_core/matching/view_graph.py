@@ -553,13 +553,19 @@ class ViewGraphBuilder:
         if not (self._reachable(prev.pose.inverse() @ found.pose, prev.stamp_ns, obs.stamp_ns)
                 and self._imu_agrees(found.pose, ref.observations, obs)):
             return None
-        rel = _without_objects(found.pose)
-        verified_ns = self._verified_through(ref.keyframe_id) if full else prev.last_verified_ns
-        self._tracking = _Tracking(ref.keyframe_id, found.pose, obs.stamp_ns, obs, rel, verified_ns=verified_ns)
-        self.stats.tracked += 1
         self.stats.point_tracked += 1
+        verified_ns = self._verified_through(ref.keyframe_id) if full else prev.last_verified_ns
+        return self._placed_on_points(obs, ref, found.pose, verified_ns)
+
+    def _placed_on_points(self, obs: FrameObservations, keyframe: Keyframe, pose: Pose4,
+                          verified_ns: int | None) -> GraphStep:
+        """The frame tracked against ``keyframe`` at ``pose`` (T_keyframe_frame), which its
+        depth points gave: no object verified it."""
+        self._tracking = _Tracking(keyframe.keyframe_id, pose, obs.stamp_ns, obs, _without_objects(pose),
+                                   verified_ns=verified_ns)
+        self.stats.tracked += 1
         return GraphStep(None, [], FrameTrack(
-            obs.stamp_ns, obs.frame_id, obs.gravity_cam, ref.keyframe_id, ref.observations.stamp_ns, found.pose, 0,
+            obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, keyframe.observations.stamp_ns, pose, 0,
             is_keyframe=False, continuous=True))
 
     def _weak(self, obs: FrameObservations, stream: bool, pose: Pose4 | None = None) -> bool:
@@ -633,12 +639,12 @@ class ViewGraphBuilder:
         if pose is None or prev is None or not self.matching.point_tracking:
             return None
         start = time.perf_counter()
-        recent = set(range(max(0, len(self.keyframes) - cfg.recent_keyframes), len(self.keyframes)))
+        n = len(self.keyframes)
+        skip = set(range(max(0, n - cfg.recent_keyframes), n)) | {self._ref % n}      # the recent ones, the reference
         near = []
         for j, t_ref_j in self._graph_poses().items():
             t_j_frame = t_ref_j.inverse() @ pose
-            if j not in recent and j != self._ref % len(self.keyframes) and t_j_frame.within(
-                    cfg.max_translation_m, cfg.max_yaw_deg):
+            if j not in skip and t_j_frame.within(cfg.max_translation_m, cfg.max_yaw_deg):
                 near.append((float(np.linalg.norm(t_j_frame.t)), j, t_ref_j, t_j_frame))
         ref_id = self.reference.keyframe_id
         found = None
@@ -658,16 +664,10 @@ class ViewGraphBuilder:
             return None
         j, a = found
         kf = self.keyframes[j]
-        self._ref = j
-        self._tracking = _Tracking(kf.keyframe_id, a.pose, obs.stamp_ns, obs, _without_objects(a.pose),
-                                   verified_ns=self._verified_through(kf.keyframe_id))
-        self._since_ref = []
-        self.stats.tracked += 1
+        self._ref, self._since_ref = j, []
         self.stats.reused += 1
         self.stats.reused_on_points += 1
-        return GraphStep(None, [], FrameTrack(
-            obs.stamp_ns, obs.frame_id, obs.gravity_cam, kf.keyframe_id, kf.observations.stamp_ns, a.pose, 0,
-            is_keyframe=False, continuous=True))
+        return self._placed_on_points(obs, kf, a.pose, self._verified_through(kf.keyframe_id))
 
     def _revisited(self, obs: FrameObservations, stream: bool, i: int, rel: RelativePose,
                    last_rel: RelativePose | None, verified: list) -> GraphStep:
