@@ -94,10 +94,10 @@ class MatchingConfig:
     point_track_min_overlap: float = setting(0.25, '... kept when at least this share of its points lie on the '
                                              "keyframe's surfaces (within point_match_m; a share of what those "
                                              "surfaces can hold: divided by the share of the keyframe's own points "
-                                             'on a surface, lower for noisy depth), about as many as at the '
-                                             'predicted pose, the motion is plausible, and the points fix every '
-                                             'direction (the matcher: all but one, which keeps the prediction within '
-                                             'keyframes.max_motion_edge_s of the last frame placed in full). On '
+                                             'on a surface, lower for noisy depth), the motion is plausible, and '
+                                             'the points fix every direction (the matcher: all but one, which keeps '
+                                             'the prediction within keyframes.max_motion_edge_s of the last frame '
+                                             'placed in full). On '
                                              'tuning scenes poses the points fix in full were within 2 deg / 5 cm of '
                                              'the truth at every overlap from 0.2 (BENCHMARKS.md, session 30)',
                                              lo=0.0, hi=1.0)

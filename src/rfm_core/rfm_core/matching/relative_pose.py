@@ -264,11 +264,6 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
     return rel
 
 
-#: point tracking: a refined overlap this much below the predicted pose's still counts (a fit a
-#: little tighter than the prediction's may hold a few points fewer within ``point_match_m``)
-_OVERLAP_NOISE = 0.05
-
-
 def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | None = None):
     """``target``'s frame placed in ``source``'s on the depth points alone, from ``predicted``
     (T_source_target, a stream's motion prediction; :attr:`MatchingConfig.point_tracking`):
@@ -276,8 +271,11 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
     where the points pin the tilt poorly, its fit can slide instead), the alignment that puts
     more points on the source's surfaces kept, and returned as a
     :class:`~rfm_core.matching.points.PointAlignment` where at least ``point_track_min_overlap``
-    of the target's points, and about as many as at the prediction, lie on those surfaces;
-    None otherwise. The caller checks the directions left free and the motion.
+    of the target's points lie on those surfaces; None otherwise. The caller checks the
+    directions left free and the motion. (The refined overlap is not compared with the
+    prediction's: on 1,539 points-only frames of eight handheld tuning captures, a fit that
+    holds 5-25 points fewer in a hundred than its start was as close to the truth, 1.6 cm
+    median, as one that holds more.)
 
     The overlaps are shares of what the source's surfaces can hold: divided by the share of
     the source's own points that lie on a surface (a cloud aligned to itself scores exactly
@@ -298,9 +296,7 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
     surface = max(float(index.usable.mean()), 1e-3)
     found = replace(found, overlap=min(found.overlap / surface, 1.0),
                     overlap_before=min(found.overlap_before / surface, 1.0))
-    if found.overlap < max(cfg.point_track_min_overlap, found.overlap_before - _OVERLAP_NOISE):
-        return None
-    return found
+    return found if found.overlap >= cfg.point_track_min_overlap else None
 
 
 def with_surfaces(rel: RelativePose | None, source, target, config: MatchingConfig | None = None,
