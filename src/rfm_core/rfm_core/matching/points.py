@@ -28,6 +28,7 @@ __all__ = ['depth_cloud', 'PointIndex', 'PointAlignment', 'align_points', 'MAX_C
 #: at most this many points per frame (a message bound; a 12 cm voxel grid of a room holds ~1,500)
 MAX_CLOUD_POINTS = 20_000
 _NORMAL_NEIGHBOURS = 10
+_WIDE_NEIGHBOURS = 30      #: ... tried for points whose nearest ten are no surface
 _MAX_CURVATURE = 0.05       #: points whose neighbourhood is not a surface (edges, noise) take no part
 _ROBUST_M = 0.02            #: Cauchy scale of the point-to-plane residuals (m)
 _MAX_MOVING = 500           #: points of the moving cloud aligned (an even subsample: bounded cost)
@@ -75,11 +76,23 @@ class PointIndex:
         self.normals = np.zeros_like(self.points)
         self.usable = np.zeros(len(self.points), bool)
         if len(self.points) > _NORMAL_NEIGHBOURS:
-            _, idx = self.tree.query(self.points, k=_NORMAL_NEIGHBOURS)
-            nb = self.points[idx] - self.points[idx].mean(1, keepdims=True)
-            values, vectors = np.linalg.eigh(np.einsum('nki,nkj->nij', nb, nb))
-            self.normals = vectors[:, :, 0]
-            self.usable = values[:, 0] <= _MAX_CURVATURE * np.maximum(values.sum(1), 1e-12)
+            self.normals, self.usable = self._surfaces(np.arange(len(self.points)), _NORMAL_NEIGHBOURS)
+        if len(self.points) > _WIDE_NEIGHBOURS:
+            # noisy depth (an active-stereo camera at 4-6 m) turns a wall into a slab a few
+            # cells thick whose ten nearest points form no surface; its thirty nearest do
+            # (the noise across stays, the extent along grows), while an edge's stay two surfaces
+            rest = np.flatnonzero(~self.usable)
+            if len(rest):
+                normals, usable = self._surfaces(rest, _WIDE_NEIGHBOURS)
+                self.normals[rest[usable]] = normals[usable]
+                self.usable[rest[usable]] = True
+
+    def _surfaces(self, which: np.ndarray, k: int):
+        """Normals of points ``which`` from their ``k`` nearest, and whether those lie on a surface."""
+        _, idx = self.tree.query(self.points[which], k=k)
+        nb = self.points[idx] - self.points[idx].mean(1, keepdims=True)
+        values, vectors = np.linalg.eigh(np.einsum('nki,nkj->nij', nb, nb))
+        return vectors[:, :, 0], values[:, 0] <= _MAX_CURVATURE * np.maximum(values.sum(1), 1e-12)
 
     def __len__(self) -> int:
         return int(self.usable.sum())
