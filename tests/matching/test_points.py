@@ -201,3 +201,34 @@ def _object_ids(obs, frame):
     dup = [k for k in set(ids) if k >= 0 and np.sum(ids == k) > 1]
     ids[np.isin(ids, dup)] = -1                       # ambiguous: no match
     return ids
+
+
+def _corner_depth(rng, intr, camera_xy=(0.0, 0.0), noise_per_m2=0.0, block=3):
+    """Depth image (m) of a level camera 1.4 m above the floor, facing a wall 5 m ahead,
+    another 2 m to its right, moved ``camera_xy`` (right, forward); depth noise of std
+    ``noise_per_m2`` x z^2 in blocks of ``block`` pixels (as an active-stereo camera's)."""
+    v, u = np.mgrid[0:intr.height, 0:intr.width].astype(float)
+    dx, dy = (u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy
+    z = np.full(dx.shape, 5.0 - camera_xy[1])
+    z = np.where(dy > 1e-6, np.minimum(z, 1.4 / np.maximum(dy, 1e-6)), z)
+    z = np.where(dx > 1e-6, np.minimum(z, (2.0 - camera_xy[0]) / np.maximum(dx, 1e-6)), z)
+    noise = np.kron(rng.normal(0, 1, (intr.height // block + 1, intr.width // block + 1)), np.ones((block, block)))
+    return (z + noise_per_m2 * z ** 2 * noise[:intr.height, :intr.width]).astype(np.float32)
+
+
+def test_noisy_walls_far_away_are_surfaces_that_fix_the_camera():
+    """Depth noise of 3.8 cm at 5 m (an active-stereo camera) turns the far walls into slabs a
+    few 12 cm cells thick: the ten nearest points of most wall points form no surface (0.37 of
+    them usable that way), and a frame seeing the floor and the walls would leave a horizontal
+    direction free. Their thirty nearest do form one: the walls are kept and fix the camera."""
+    intr = CameraIntrinsics(380.0, 380.0, 320.0, 240.0, 640, 480)
+    rng = np.random.default_rng(0)
+    clouds = [depth_cloud(_corner_depth(rng, intr, xy, noise_per_m2=0.0015), intr, [0.0, 1.0, 0.0], 0.12, 6.0)
+              for xy in ((0.0, 0.0), (0.1, -0.15))]
+    index = PointIndex(clouds[0])
+    walls = clouds[0][:, 2] > -1.2                                  # off the floor (z up, 1.4 m below)
+    assert index.usable[walls].mean() > 0.8 and index.usable[~walls].mean() > 0.7
+    found = align_points(Pose4(0.0, (0.0, 0.0, 0.0)), clouds[1], index)
+    assert found is not None and found.free == 0
+    # the second camera 10 cm right of and 15 cm behind the first: (x forward, y left)
+    assert np.linalg.norm(np.asarray(found.pose.t[:2]) - (-0.15, -0.1)) < 0.03, found.pose.t
