@@ -2,6 +2,7 @@
 score the frames it localizes (an ablation tool: the same detections for every variant).
 
     ros_ws/env.sh python bench/replay_runs.py WORK [--scenes 40_plain_handheld ...] [--json OUT]
+    ros_ws/env.sh python bench/replay_runs.py WORK --setting map_run --bag map_bag   (rfm eval-reloc's mapping walks)
 
 WORK is an `rfm eval --work WORK` directory (each scene's `bag` and the run's
 `rgb_d__depth_clusters/outputs.mcap`, which holds every `rfm/detections` message the detector
@@ -40,10 +41,10 @@ def recorded_detections(run: Path) -> list:
     return sorted(out, key=lambda o: o.stamp_ns)
 
 
-def replay(scene: Path, setting: str = 'rgb_d__depth_clusters', matcher: str = 'learned') -> dict:
+def replay(scene: Path, setting: str = 'rgb_d__depth_clusters', bag: str = 'bag', matcher: str = 'learned') -> dict:
     """One scene's recorded detections through a Session; its localization scored."""
     observations = recorded_detections(scene / setting)
-    truth = read_ground_truth(scene / 'bag').camera_poses
+    truth = read_ground_truth(scene / bag).camera_poses
     session = Session(MapperConfig(), matcher=make_matcher(matcher))
     for obs in observations:
         session.step(obs)
@@ -60,13 +61,14 @@ def main() -> int:
     parser.add_argument('work', type=Path)
     parser.add_argument('--scenes', nargs='*', help='scene folders of WORK (default: all with a recorded run)')
     parser.add_argument('--setting', default='rgb_d__depth_clusters', help="the run's folder in each scene")
+    parser.add_argument('--bag', default='bag', help="the scene's bag folder (its ground truth scores the replay)")
     parser.add_argument('--json', type=Path, help='write the per-scene results here')
     args = parser.parse_args()
     scenes = [args.work / s for s in args.scenes] if args.scenes else sorted(
-        p for p in args.work.iterdir() if (p / args.setting / 'outputs.mcap').exists() and (p / 'bag').exists())
+        p for p in args.work.iterdir() if (p / args.setting / 'outputs.mcap').exists() and (p / args.bag).exists())
     rows = []
     for scene in scenes:
-        r = replay(scene, args.setting)
+        r = replay(scene, args.setting, args.bag)
         rows.append(r)
         print(f"{r['scene']:26s} localized {100 * r['registered']:5.1f}%  ARE {r['ARE_median']:5.2f} deg  "
               f"ATE {100 * r['ATE_median']:5.1f} cm  wrong {100 * r['wrong']:5.1f}%  on points "

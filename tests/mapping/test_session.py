@@ -278,6 +278,34 @@ def test_culling_passes_over_a_registered_keyframe_whose_edges_all_fell_out():
     assert mapped.localization['registered'] >= 0.8 and mapped.localization['ATE_median'] < 0.1, mapped.localization
 
 
+def test_the_last_keyframes_made_are_culled_once_the_camera_has_gone_on(round_walk):
+    """The newest ``keep_newest`` keyframes are not culled while their edges still arrive, but
+    only for ``keep_newest_s`` of frames after them: where revisits have stopped growing the
+    map, the last keyframes made are the ones most likely redundant, and kept for good they
+    decide where a long capture ends (the soak: 13 -> 16 keyframes after the first loop, all of
+    it the last three made; 13 -> 14 now). Here one of the walk's last three keyframes is culled
+    (none when they are kept for good), and the map is as accurate."""
+    from dataclasses import replace
+
+    from rfm_core.evaluation.trajectory import trajectory_errors
+    from rfm_core.mapping.mapper import MapperConfig
+    from rfm_core.session import Session
+    frames, truth = round_walk
+    runs = []
+    for seconds in (0.0, MapperConfig().culling.keep_newest_s):
+        config = MapperConfig()
+        session = Session(replace(config, culling=replace(config.culling, keep_newest_s=seconds)))
+        made = [s.keyframe.keyframe_id for s in map(session.step, frames) if s.keyframe is not None]
+        session.finish()
+        runs.append((session.mapper, set(made[-3:]) & set(session.mapper.merged),
+                     trajectory_errors(session.mapper.frame_poses(), truth, align='4dof')))
+    (kept, kept_last, kept_errors), (culled, culled_last, errors) = runs
+    assert not kept_last and culled_last and len(culled.keyframes) < len(kept.keyframes)
+    assert errors['registered'] >= kept_errors['registered'] - 0.02, (errors, kept_errors)
+    assert errors['ATE_median'] <= max(1.3 * kept_errors['ATE_median'], 0.05), (errors, kept_errors)
+    assert errors['ARE_median'] <= max(1.3 * kept_errors['ARE_median'], 1.5), (errors, kept_errors)
+
+
 def test_a_keyframe_where_another_already_is_is_culled(round_walk):
     """Colocated culling (#19 item 4): after two loops the walk's detector loses objects at
     random (as depth_clusters' fragments come and go), so revisits fail to verify and

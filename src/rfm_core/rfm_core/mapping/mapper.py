@@ -54,8 +54,12 @@ class CullingConfig:
                             'tracked frames are carried over through its pose relative to it, and its views still '
                             'count for its objects. Revisits then stop growing the map')
     min_views: int = setting(3, 'Other keyframes that must see each object of a keyframe culled', lo=1, hi=1000)
-    keep_newest: int = setting(3, 'The newest keyframes (by id) are never culled: their edges are still arriving',
+    keep_newest: int = setting(3, 'The newest keyframes (by id) are not culled: their edges are still arriving ...',
                                lo=1, hi=1000)
+    keep_newest_s: float = setting(10.0, '... until the camera has gone on this long (s, frame stamps) without a newer '
+                                   'one: where revisits stop growing the map, the last keyframes made are the ones '
+                                   "most likely redundant, and later edges naming them are carried over (0: kept for "
+                                   'good)', lo=0.0, hi=3600.0)
     colocated_m: float = setting(0.4, 'A keyframe whose objects fewer than min_views others see is culled all the '
                                  'same when a keyframe that sees one of its objects is within this distance (m, '
                                  'the averaged poses) and colocated_deg, and no published object rests on it '
@@ -460,13 +464,15 @@ class Mapper:
         over the same way
         (:attr:`merged`). Only keyframes that new edges touched since the last pass are
         checked; the first registered keyframe (the map's anchor) and the ``keep_newest``
-        newest are kept; nothing is solved again (the kept keyframes keep their poses)."""
+        newest are kept (while newer than ``keep_newest_s`` before the newest frame); nothing is
+        solved again (the kept keyframes keep their poses)."""
         cfg = self.config.culling
         poses = self.averager.poses
         if not cfg.enabled or self.mode != 'mapping' or self.config.posed or len(poses) <= cfg.keep_newest + 1:
             return False
         ids = sorted(self.keyframes)
-        protected = set(ids[-cfg.keep_newest:]) | {min(poses)}
+        protected = {min(poses)} | {k for k in ids[-cfg.keep_newest:] if cfg.keep_newest_s <= 0
+                                    or self._newest_stamp_ns - self.keyframes[k].stamp_ns < cfg.keep_newest_s * 1e9}
         due = sorted((self._cull_due & set(poses) & self.streamed) - protected, reverse=True)
         self._cull_due &= protected
         if not due:
