@@ -79,8 +79,9 @@ class MatchingConfig:
                                     lo=0.01, hi=2.0)
     point_match_m: float = setting(0.05, '... final correspondence distance (m): a point within it of the other '
                                    "frame's surface overlaps", lo=0.005, hi=1.0)
-    point_min_overlap: float = setting(0.15, '... kept when at least this share of the points overlaps and no less '
-                                       "than at the boxes' pose", lo=0.0, hi=1.0)
+    point_min_overlap: float = setting(0.15, '... kept when at least this share of the points overlaps (however '
+                                       "that compares with the boxes' pose: BENCHMARKS.md, session 32)",
+                                       lo=0.0, hi=1.0)
     point_max_correction_m: float = setting(1.0, "... and it moves the boxes' pose by at most this (m)",
                                             lo=0.0, hi=10.0)
     point_max_correction_deg: float = setting(20.0, '... and turns it by at most this (deg)', lo=0.0, hi=180.0)

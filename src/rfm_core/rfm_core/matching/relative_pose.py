@@ -235,8 +235,10 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
     """``rel`` (T_source_target) refined on the two frames' depth points
     (``FrameObservations.cloud``; :func:`rfm_core.matching.points.align_points`, in place;
     returns ``rel``): kept where at least ``point_min_overlap`` of the target's points lie
-    on the source's surfaces, no fewer than at the starting pose, and the correction is
-    within ``point_max_correction_m`` / ``point_max_correction_deg``. ``predicted`` (a
+    on the source's surfaces and the correction is within ``point_max_correction_m`` /
+    ``point_max_correction_deg`` (not compared with the starting pose's overlap: a fit closer
+    to the truth often holds fewer points within ``point_match_m``, as in
+    :func:`track_on_points`). ``predicted`` (a
     stream's motion prediction of T_source_target): where it differs from the boxes' pose
     by more than ``point_match_m`` or 1 deg, the points are aligned from it as well, and the
     alignment that puts more points on the source's surfaces is kept (two boxes cut by the
@@ -252,7 +254,7 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
     best = None
     for start in starts:
         found = align_points(start, target.cloud, source.point_index(), cfg.point_search_m, cfg.point_match_m)
-        if (found is None or found.overlap < cfg.point_min_overlap or found.overlap < found.overlap_before
+        if (found is None or found.overlap < cfg.point_min_overlap
                 or np.linalg.norm(np.asarray(found.pose.t) - rel.pose.t) > cfg.point_max_correction_m
                 or np.degrees(abs(found.pose.angle_to(rel.pose))) > cfg.point_max_correction_deg):
             continue
