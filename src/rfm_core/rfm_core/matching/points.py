@@ -10,7 +10,8 @@ the truth) is refined by aligning the two frames' depth points, as RGB-D odometr
 point-to-plane ICP in 4-DoF (yaw about gravity and translation; both frames are
 gravity-aligned), each point robustly weighted. What the points do not determine (a view of
 the floor and one wall leaves a direction free) stays as the boxes put it, and the result is
-kept only where the points agree with it better than with the boxes' pose.
+kept where enough of the points lie on the other frame's surfaces (however many lay there at
+the boxes' pose: on noisy depth a fit closer to the truth often holds fewer).
 
 Clouds: :func:`depth_cloud` (the detector, every frame with depth; ``FrameObservations.cloud``,
 gravity-aligned, voxel-downsampled).
