@@ -15,25 +15,17 @@ import argparse
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReader
 
-from rfm_core.io.bag import rfm_typestore
+from rfm_core.io.bag import topic_messages
 from rfm_core.io.messages import stamp_to_ns
 
 
 def _per_frame(bag: Path, topic: str) -> dict:
     """stamp_ns -> [visibility of each detection] of a detections topic (1.0 where it has none)."""
-    out = {}
     if not bag.exists():
-        return out
-    with AnyReader([bag], default_typestore=rfm_typestore()) as reader:
-        conns = [c for c in reader.connections if c.topic == topic]
-        if not conns:                     # (an empty list would make rosbags read every topic)
-            return out
-        for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            out[stamp_to_ns(msg.header.stamp)] = [float(getattr(d, 'visibility', 1.0)) for d in msg.detections]
-    return out
+        return {}
+    return {stamp_to_ns(msg.header.stamp): [float(getattr(d, 'visibility', 1.0)) for d in msg.detections]
+            for msg in topic_messages(bag, topic)}
 
 
 def main() -> int:

@@ -19,11 +19,10 @@ import json
 from pathlib import Path
 
 import numpy as np
-from rosbags.highlevel import AnyReader
 
 from rfm_core.evaluation.report import read_ground_truth
 from rfm_core.evaluation.trajectory import trajectory_errors
-from rfm_core.io.bag import rfm_typestore
+from rfm_core.io.bag import topic_messages
 from rfm_core.io.messages import frame_detections_from_msg
 from rfm_core.mapping.mapper import MapperConfig
 from rfm_core.matching.factory import make_matcher
@@ -32,12 +31,7 @@ from rfm_core.session import Session
 
 def recorded_detections(run: Path) -> list:
     """The FrameObservations of every ``rfm/detections`` message a run recorded, by stamp."""
-    out = []
-    with AnyReader([run / 'outputs.mcap'], default_typestore=rfm_typestore()) as reader:
-        conns = [c for c in reader.connections if c.topic == '/rfm/detections']
-        if conns:                         # (an empty list would make rosbags read every topic)
-            for conn, _, raw in reader.messages(connections=conns):
-                out.append(frame_detections_from_msg(reader.deserialize(raw, conn.msgtype)))
+    out = [frame_detections_from_msg(msg) for msg in topic_messages(run / 'outputs.mcap', '/rfm/detections')]
     return sorted(out, key=lambda o: o.stamp_ns)
 
 

@@ -400,19 +400,11 @@ def query_capture(config, frames: int):
 def camera_poses_of_run(output) -> dict:
     """{stamp_ns: 4x4 camera-to-map} of every ``rfm/camera_pose`` an ``rfm run`` recorded (its
     ``outputs.mcap`` bag folder)."""
-    from rosbags.highlevel import AnyReader  # noqa: PLC0415
-
-    from rfm_core.io.bag import rfm_typestore  # noqa: PLC0415
+    from rfm_core.io.bag import topic_messages  # noqa: PLC0415
     from rfm_core.io.messages import pose_to_matrix, stamp_to_ns  # noqa: PLC0415
 
-    poses = {}
-    with AnyReader([Path(output) / 'outputs.mcap'], default_typestore=rfm_typestore()) as reader:
-        conns = [c for c in reader.connections if c.topic == '/rfm/camera_pose']
-        if conns:
-            for conn, _, raw in reader.messages(connections=conns):
-                msg = reader.deserialize(raw, conn.msgtype)
-                poses[stamp_to_ns(msg.header.stamp)] = pose_to_matrix(msg.pose)
-    return poses
+    return {stamp_to_ns(msg.header.stamp): pose_to_matrix(msg.pose)
+            for msg in topic_messages(Path(output) / 'outputs.mcap', '/rfm/camera_pose')}
 
 
 def relocalization_scene_graph(args) -> dict:

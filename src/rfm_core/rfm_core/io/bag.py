@@ -16,7 +16,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from rfm_core.io.messages import BagMessages
 
-__all__ = ['rfm_msgs_dir', 'rfm_typestore', 'BagWriter', 'qos_profile', 'bag_custom_data']
+__all__ = ['rfm_msgs_dir', 'rfm_typestore', 'BagWriter', 'qos_profile', 'bag_custom_data', 'topic_messages']
 
 _INFINITE = QosTime(0x7FFFFFFF, 0xFFFFFFFF)
 
@@ -112,6 +112,19 @@ def bag_custom_data(path) -> dict:
     with open(Path(path) / 'metadata.yaml') as f:
         info = yaml.safe_load(f)['rosbag2_bagfile_information']
     return dict(info.get('custom_data') or {})
+
+
+def topic_messages(path, topic: str):
+    """The deserialised messages of one topic of a bag (rosbag2 folder or file), in bag order;
+    nothing when the bag has no such topic (``reader.messages(connections=[])`` would read
+    every topic)."""
+    from rosbags.highlevel import AnyReader  # noqa: PLC0415
+
+    with AnyReader([Path(path)], default_typestore=rfm_typestore()) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        if conns:
+            for conn, _, raw in reader.messages(connections=conns):
+                yield reader.deserialize(raw, conn.msgtype)
 
 
 def iter_camera_frames(path, color_topic: str, depth_topic: str | None, info_topic: str,
