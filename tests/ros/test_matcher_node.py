@@ -60,6 +60,8 @@ def test_keyframes_and_edges_agree_with_ground_truth():
         test.destroy_node()
         rclpy.try_shutdown()
     assert matcher.graph.stats.frames == len(frames)
+    # rclpy's message info reached the node: every message counted, none lost, none skipped
+    assert matcher.shedder.counts == dict(received=len(frames) + 1, processed=len(frames) + 1, shed=0, lost=0)
     assert 3 <= len(keyframes) < len(frames)
     assert len(edges) >= len(keyframes) - 1
     # numbered per topic within the matcher's session, for the mapper's delivery check

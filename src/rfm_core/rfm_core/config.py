@@ -100,6 +100,17 @@ class MatcherNodeConfig:
                            'similarity + size gate, Hungarian)', choices=MATCHERS, read_only=True)
     matcher_weights: str = setting('', "Learned matcher checkpoint (rfm train-matcher); empty: the shipped "
                                    "weights for the frames' detector", read_only=True)
+    shed_after_s: float = setting(0.5, 'Under load: once a frame has waited longer than this in the queue, '
+                                  'frames with depth points only (no detections) are skipped where they follow '
+                                  'the last frame processed by less than an interval growing with the wait (0 '
+                                  'here, shed_max_gap_s at twice the wait): the matcher thins the stream evenly '
+                                  'to what it keeps up with, where the transport would drop bursts of the oldest '
+                                  'frames (a gap longer than keyframes.max_frame_gap_s breaks tracking). Frames '
+                                  'with detections are never skipped; 0: never skip', lo=0.0, hi=60.0)
+    shed_max_gap_s: float = setting(0.2, '... the longest that interval (keep it below keyframes.max_frame_gap_s)',
+                                    lo=0.0, hi=60.0)
+    queue_depth: int = setting(300, 'rfm/detections messages held for the matcher (10 s of a 30 Hz camera); '
+                               'beyond it the oldest are lost', lo=1, hi=100000, read_only=True)
     matching: MatchingConfig = section(MatchingConfig, 'object matching and verification (paper 3.2-3.4)')
     keyframes: KeyframeConfig = section(KeyframeConfig, 'keyframes, candidates, motion prior, tracking')
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import random
 import sys
+import time
 
 import rclpy
 from rclpy.executors import ExternalShutdownException
@@ -23,10 +24,12 @@ from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPo
 from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 
 from rfm_core.config import MatcherNodeConfig
-from rfm_core.io.messages import edge_msg, frame_detections_from_msg, frame_detections_to_msg, tracked_frame_to_msg
+from rfm_core.io.messages import (edge_msg, frame_detections_from_msg, frame_detections_to_msg, stamp_to_ns,
+                                  tracked_frame_to_msg)
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.topics import GRAPH_HISTORY
 from rfm_core.matching.factory import make_matcher
+from rfm_core.matching.load import FrameShedder
 from rfm_core.matching.view_graph import ViewGraphBuilder
 
 
@@ -51,12 +54,32 @@ class MatcherNode(Node):
         # every published keyframe, edge and tracked frame is numbered (the mapper counts gaps)
         self.session_id = random.SystemRandom().randint(1, 2 ** 63 - 1)
         self.sequence = {Keyframe: 0, ViewGraphEdge: 0, TrackedFrame: 0}
+        # a deep queue: under load the matcher thins the stream itself (FrameShedder), evenly
+        self.shedder = FrameShedder(cfg.shed_after_s, cfg.shed_max_gap_s)
         self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
-                                 QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
+                                 QoSProfile(depth=cfg.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
         self.get_logger().info(f'matcher ready ({cfg.matcher} object matcher): rfm/detections -> rfm/keyframes, '
                                'rfm/view_graph/edges, rfm/tracked_frames')
 
-    def _on_detections(self, msg: FrameDetections) -> None:
+    def _on_detections(self, msg: FrameDetections, info: dict) -> None:
+        """A frame's detections with rclpy's message info (when it was received, the
+        publisher's sequence number): skipped under load (FrameShedder), else matched."""
+        received = info.get('received_timestamp', 0)
+        waited = (time.time_ns() - received) * 1e-9 if received else 0.0
+        shedder = self.shedder
+        lost, shed = shedder.counts['lost'], shedder.counts['shed']
+        admitted = shedder.admit(stamp_to_ns(msg.header.stamp), waited, len(msg.detections),
+                                 info.get('publication_sequence_number'))
+        if shedder.counts['lost'] > lost:
+            self.get_logger().warning(f'{shedder.counts["lost"]} rfm/detections messages lost before the matcher '
+                                      f'(its queue of {self.config.queue_depth} overflowed, or the transport dropped '
+                                      'them)', throttle_duration_sec=5.0)
+        if shedder.counts['shed'] > shed:
+            self.get_logger().warning(f'the matcher is {waited:.2f} s behind: skipping frames with depth points only '
+                                      f'({shedder.counts["shed"]} of {shedder.counts["received"]} so far; '
+                                      'shed_after_s, shed_max_gap_s)', throttle_duration_sec=5.0)
+        if not admitted:
+            return
         try:
             obs = frame_detections_from_msg(msg)
             keyframe, edges, track = self.graph.add(obs)

@@ -226,6 +226,9 @@ def write_report(path, summary: dict) -> Path:
              + (f'; colour images received: {s["received"]}' if s.get('received') is not None else '')
              + (f'; keyframes, edges and tracked frames lost between matcher and mapper: {s["lost_between_nodes"]}'
                 if s.get('lost_between_nodes') else ''),
+             *([f'- frames the matcher skipped to keep up (depth points only; matcher.shed_after_s): {m["shed"]} of '
+                f'{m["received"]}' + (f'; lost before it: {m["lost"]}' if m.get('lost') else '')]
+               if (m := s.get('matcher_frames') or {}).get('shed') or m.get('lost') else []),
              f'- frames localized: {s.get("localized", 0)} (written to `trajectory.tum`)',
              f'- keyframes: {s.get("keyframes", 0)}, registered: {s.get("registered", 0)}, '
              f'edges kept / rejected: {s.get("edges", 0)} / {s.get("edges_rejected", 0)}',
