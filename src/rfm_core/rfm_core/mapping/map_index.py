@@ -8,7 +8,10 @@ building holds thousands of objects; a query must cost what its own neighbourhoo
   reach only;
 - each keyframe detection's track, and each track's centre (the median of its views);
 - per query detection, the tracks most like it (embedding and size), for matching a view
-  against the map's objects without trying every object of the map.
+  against the map's objects without trying every object of the map;
+- the map's depth points: the registered keyframes' clouds lifted into the map and merged on
+  a voxel grid (:class:`MapCloud`), what a view is aligned to when its detections alone do not
+  place it (a view sees surfaces several keyframes saw, rarely all of them one keyframe's).
 
 The tracks are built only when first needed (keyframe retrieval does not need them). No ROS
 here.
@@ -22,7 +25,37 @@ from rfm_core.geometry import iou_3d_paired, wrap_angle
 from rfm_core.matching.classical import size_similarity
 from rfm_core.matching.view_graph import bag_of_objects
 
-__all__ = ['MapIndex', 'track_boxes']
+__all__ = ['MapIndex', 'MapCloud', 'track_boxes']
+
+CLOUD_VOXEL_M = 0.05            #: the map's depth points: one per cell of this grid
+CLOUD_MAX_POINTS = 300_000      #: a map with more is cut to the keyframes within CLOUD_REACH_M of a view
+CLOUD_REACH_M = 8.0
+CLOUD_CACHE = 4                 #: such cut clouds kept (the latest)
+
+
+class MapCloud:
+    """Depth points in the map frame, ready to be aligned to (the ``source`` of
+    :func:`rfm_core.matching.relative_pose.track_on_points`): ``cloud`` and its
+    :meth:`point_index`."""
+
+    def __init__(self, clouds: list, voxel_m: float = CLOUD_VOXEL_M):
+        p = np.concatenate(clouds).astype(np.float64) if clouds else np.zeros((0, 3))
+        if len(p):
+            cells = np.floor(p / voxel_m).astype(np.int64)
+            cells -= cells.min(0)
+            span = cells.max(0) + 1
+            _, inv, count = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2],
+                                      return_inverse=True, return_counts=True)
+            inv = inv.ravel()
+            p = np.stack([np.bincount(inv, weights=p[:, k]) for k in range(3)], 1) / count[:, None]
+        self.cloud = p.astype(np.float32)
+        self._index = None
+
+    def point_index(self):
+        if self._index is None:
+            from rfm_core.matching.points import PointIndex  # noqa: PLC0415
+            self._index = PointIndex(self.cloud)
+        return self._index
 
 
 def track_boxes(tracks: list) -> np.ndarray:
@@ -51,6 +84,8 @@ class MapIndex:
         self._centres: dict = {}
         self._observers = None
         self._embeddings = None
+        self._clouds: dict = {}                 # keyframe ids -> MapCloud (the latest CLOUD_CACHE)
+        self._lifted = None
 
     # ------------------------------------------------------------------ keyframes
 
@@ -81,6 +116,34 @@ class MapIndex:
         far = np.array([np.linalg.norm(t.t - centre) + abs(wrap_angle(t.yaw - yaw)) for t in inv])
         order = np.argsort(far, kind='stable')[:count]
         return [ids[i] for i in order if far[i] <= reach_m + np.pi / 2]
+
+    def cloud_near(self, centre) -> MapCloud:
+        """The map's depth points around a camera at ``centre`` (all of them, for a map of at
+        most :data:`CLOUD_MAX_POINTS` points: built once per map revision; else those of the
+        keyframes within :data:`CLOUD_REACH_M`)."""
+        if self._lifted is None:
+            ids = [k for k in self.poses if len(self.keyframes[k].cloud)]
+            self._lifted = (ids, [self.poses[k].inverse().transform_points(np.asarray(self.keyframes[k].cloud, float))
+                                  for k in ids],
+                            np.array([self.poses[k].inverse().t for k in ids]).reshape(-1, 3))
+        ids, clouds, centres = self._lifted
+        if sum(len(c) for c in clouds) <= CLOUD_MAX_POINTS:
+            chosen = tuple(range(len(ids)))
+        else:
+            chosen = tuple(np.flatnonzero(np.linalg.norm(centres - np.asarray(centre, float), axis=1)
+                                          <= CLOUD_REACH_M))
+        if chosen not in self._clouds:
+            if len(self._clouds) >= CLOUD_CACHE:
+                self._clouds.pop(next(iter(self._clouds)))
+            self._clouds[chosen] = MapCloud([clouds[i] for i in chosen])
+        return self._clouds[chosen]
+
+    def nearest_keyframe(self, centre) -> int | None:
+        """The registered keyframe whose camera is nearest ``centre``."""
+        if not self.poses:
+            return None
+        ids = list(self.poses)
+        return ids[int(np.argmin([np.linalg.norm(self.poses[k].inverse().t - centre) for k in ids]))]
 
     # ------------------------------------------------------------------ objects
 
