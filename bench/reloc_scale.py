@@ -8,10 +8,14 @@ mapped in-process from a 30 s handheld walk at 2 Hz; the rooms' maps are placed 
 (15 m apart) into one map (posed: each room's solved keyframe poses, shifted) of several
 thousand objects, which is frozen (localization mode). A second walk through each of the
 first ``--queried`` rooms (another path, 20 frames at 2 Hz, as ``rfm eval-reloc``) is
-relocalized against the room's own map and against the building's. Reported: relocalized and
-wrong (> 5 deg or > 25 cm, in the room's frame) per map, and the wall time of one query
-on one core (median and 95th percentile, each the median over ``--repeats`` passes; the
-tracks are built once, before the first), and its ratio between the two maps per pass.
+relocalized against the room's own map and against the building's: frame by frame (the
+``rfm/relocalize`` service's way), and as a stream (localization mode's way,
+:class:`rfm_core.mapping.localization.StreamLocalizer`, a fresh one per walk: the map's depth
+points are merged when a walk first needs them, per map tile in the building). Reported:
+relocalized and wrong (> 5 deg or > 25 cm, in the room's frame) per map, and the wall time
+of one query on one core (median and 95th percentile, each the median over ``--repeats``
+passes; the tracks are built once, before the first), and its ratio between the two maps per
+pass.
 """
 from __future__ import annotations
 
@@ -57,6 +61,7 @@ def main() -> int:
     from rfm_core.evaluation.suite import query_capture  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.geometry import Pose4  # noqa: PLC0415
+    from rfm_core.mapping.localization import StreamLocalizer  # noqa: PLC0415
     from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
@@ -110,18 +115,44 @@ def main() -> int:
                 times[-1].append(time.perf_counter() - t)
                 if reloc is not None:
                     found[(r, index)] = world @ to_room @ reloc.camera_to_map(obs)
+    # localization mode: each room's query walk as a stream (rfm_core.mapping.localization)
+    by_stamp = {(r, obs.stamp_ns): index for r, index, _, obs in queries}
+    for name in ('room', 'building'):
+        results[f'{name} (stream)'] = ([], {}, {})
+    for _ in range(args.repeats):
+        for name in ('room', 'building'):
+            results[f'{name} (stream)'][0].append([])
+        for r in range(len(rooms)):
+            world = rooms[r][2].matrix()
+            back = Pose4(0.0, offset(r)).matrix()
+            for name, mapper, to_room in (('room', rooms[r][1], np.eye(4)), ('building', building, np.linalg.inv(back))):
+                times, found, truth = results[f'{name} (stream)']
+                stream = StreamLocalizer(mapper)
+                for rr, index, pose, obs in queries:
+                    if rr != r:
+                        continue
+                    truth[(r, index)] = pose
+                    t = time.perf_counter()
+                    placed = stream.step(obs)
+                    times[-1].append(time.perf_counter() - t)
+                    for o, reloc in placed:
+                        found[(r, by_stamp[(r, o.stamp_ns)])] = world @ to_room @ reloc.camera_to_map(o)
     print(f'| map | objects | query frames | relocalized | wrong | ARE median | ATE median | ms per query, '
           f'median | p95 |')
     print('|---|---|---|---|---|---|---|---|---|')
     for name, (times, found, truth) in results.items():
         err = trajectory_errors(found, truth, align=False, gross=(5.0, 0.25))
-        count = objects if name == 'building' else statistics.median(len(m.tracks()) for _, m, _ in rooms)
+        count = objects if name.startswith('building') else statistics.median(len(m.tracks()) for _, m, _ in rooms)
         median = statistics.median(statistics.median(t) for t in times)
         p95 = statistics.median(sorted(t)[int(0.95 * (len(t) - 1))] for t in times)
         print(f'| {name} | {count:.0f} | {len(truth)} | {100 * err["registered"]:.1f}% | '
               f'{100 * err["wrong"]:.1f}% | {err["ARE_median"]:.2f} deg | {100 * err["ATE_median"]:.1f} cm | '
               f'{1e3 * median:.0f} | {1e3 * p95:.0f} |')
     ratios = [statistics.median(b) / statistics.median(a) for a, b in zip(results['room'][0], results['building'][0])]
+    stream = [statistics.median(b) / statistics.median(a)
+              for a, b in zip(results['room (stream)'][0], results['building (stream)'][0])]
+    print(f'building / room, localization mode: {statistics.median(stream):.2f} (passes: '
+          f'{", ".join(f"{x:.2f}" for x in stream)})')
     print(f'\nbuilding / room, median query time: {statistics.median(ratios):.2f} (passes: '
           f'{", ".join(f"{x:.2f}" for x in ratios)})')
     return 0

@@ -257,3 +257,68 @@ def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
             continue
         assert len(placed) == 1 and placed[0][1].num_inliers == 0 and stream.counts['points'] == 1
         assert _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2)
+
+
+def test_a_frame_no_keyframe_saw_all_of_is_placed_on_the_maps_merged_points(saved):
+    """Each keyframe saw one slice of the room (by bearing from its centre); the query sees
+    all of it. No single keyframe's points place it (too little of the view lies on them),
+    the map's points, every keyframe's merged, do: within a centimetre of where it is."""
+    from rfm_core.matching.relative_pose import track_on_points  # noqa: PLC0415
+    mapper = Mapper()
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    centres = np.array([p.inverse().t for p in mapper.poses.values()])
+    room = _room_points(centres)
+    middle = room[:, :2].mean(0)
+    bearing = np.arctan2(room[:, 1] - middle[1], room[:, 0] - middle[0])
+    ids = sorted(mapper.poses)
+    slices = np.floor((bearing + np.pi) / (2 * np.pi) * len(ids)).astype(int) % len(ids)
+    for i, k in enumerate(ids):
+        part = room[slices == i]
+        mapper.keyframes[k] = replace(mapper.keyframes[k],
+                                      cloud=mapper.poses[k].transform_points(part).astype(np.float32))
+    views = _views(mapper)
+    rng = np.random.default_rng(1)
+    last, last_pose = views[1]
+    seen = last_pose.inverse()
+    truth = Pose4(seen.yaw - np.radians(2.0), seen.t + np.array([-0.1, 0.1, 0.0])).inverse()
+    cloud = truth.transform_points(room) + rng.normal(0, 0.005, room.shape)
+    query = FrameObservations(last.stamp_ns + STEP_NS, last.frame_id, last.intrinsics, last.gravity_cam,
+                              cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
+    predicted = seen                                                   # T_map_view where the track left it
+    for k in ids:                                                      # no keyframe alone places it
+        found = track_on_points(mapper.poses[k] @ predicted, mapper.keyframes[k], query, mapper.config.matching)
+        assert found is None or found.free or not _close(found.pose.inverse() @ mapper.poses[k], truth, 0.01, 0.2)
+    stream = StreamLocalizer(mapper)
+    for view, _ in views[:2]:
+        stream.step(view)
+    assert len(stream.track) == 2
+    placed = stream.step(query)
+    assert len(placed) == 1 and stream.counts['points'] == 1
+    assert _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2)
+
+
+def test_a_new_track_walks_back_over_the_frames_nothing_placed_before_it(saved):
+    """A frame before the first pose of a track (depth points only: nothing places it on
+    its own) is placed once the track is confirmed, walking back from its first frame: late,
+    before the track's frames, within a centimetre of where it is."""
+    mapper = Mapper()
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
+    for k, pose in mapper.poses.items():
+        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
+    views = _views(mapper)
+    first, first_pose = views[0]
+    seen = first_pose.inverse()
+    truth = Pose4(seen.yaw + np.radians(1.5), seen.t + np.array([0.1, 0.05, 0.0])).inverse()
+    rng = np.random.default_rng(2)
+    cloud = truth.transform_points(room) + rng.normal(0, 0.005, room.shape)
+    early = FrameObservations(first.stamp_ns - STEP_NS // 2, first.frame_id, first.intrinsics, first.gravity_cam,
+                              cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
+    stream = StreamLocalizer(mapper)
+    assert stream.step(early) == [] and stream.step(first) == []          # no track yet: waits
+    placed = stream.step(views[1][0])                                      # confirms the first view
+    assert [o.stamp_ns for o, _ in placed] == [early.stamp_ns, first.stamp_ns, views[1][0].stamp_ns]
+    assert stream.counts['walked_back'] == 1 and stream.unplaced == []
+    assert _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2)

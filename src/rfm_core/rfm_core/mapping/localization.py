@@ -17,6 +17,10 @@ robot's localization does with its odometry:
   a pose), a pose found against the whole map is held until a later frame's pose, found
   the same way, agrees with it under the same motion bounds; then both are accepted (the
   held one late). A look-alike that one frame happens to see rarely survives the next.
+- **Walking back.** The newest frames nothing placed are kept; when a track goes on after
+  them (a new track's first frames, once confirmed), they are placed walking back from its
+  first frame, each as the track places a frame (its objects where the pose after it
+  predicts it, else its depth points), their poses late, as a confirmed frame's.
 - **Kidnapping.** A track that nothing confirms for ``stream_max_gap_s`` is dropped; poses
   against the whole map that contradict a live track are held and confirmed the same way,
   and two that agree replace the track.
@@ -52,6 +56,7 @@ from rfm_core.observations import FrameObservations, imu_relative_yaw
 __all__ = ['StreamLocalizer', 'motion_prior']
 
 HELD = 8                        #: unconfirmed poses held at most (the newest)
+UNPLACED = 8                    #: frames nothing placed kept for the next track to walk back over (the newest)
 TRACK = 10                      #: accepted frames the track predicts yaw from (the newest)
 POINT_KEYFRAMES = 2             #: map keyframes (the nearest the prediction) a frame is aligned to on its points
 
@@ -102,7 +107,9 @@ class StreamLocalizer:
     def reset(self) -> None:
         self.track: list = []                     # the newest accepted frames: (observations, T_view_map)
         self.held: list[_Held] = []               # poses waiting for a frame that agrees
-        self.counts = dict(tracked=0, points=0, confirmed=0, held=0)      # frames, by what became of them
+        self.unplaced: list = []                  # the newest frames nothing placed (observations)
+        # frames, by what became of them
+        self.counts = dict(tracked=0, points=0, confirmed=0, held=0, walked_back=0)
         self._centres = (None, None, None)        # (map revision, keyframe ids, camera centres) of those with points
 
     def _live(self, obs: FrameObservations) -> bool:
@@ -110,9 +117,38 @@ class StreamLocalizer:
                 and abs(obs.stamp_ns - self.track[-1][0].stamp_ns) * 1e-9 <= self.config.stream_max_gap_s)
 
     def _accept(self, *frames) -> list:
+        """The track goes on with ``frames`` ((observations, Relocalization), oldest first),
+        after the unplaced frames between its last one and them, walked back over
+        (:meth:`_walk_back`); all of those, oldest first."""
+        after = self.track[-1][0].stamp_ns if self.track else None
+        frames = self._walk_back(*frames[0], after) + list(frames)
         self.track = (self.track + [(o, r.pose) for o, r in frames])[-TRACK:]
         self.held = []
-        return list(frames)
+        placed = {id(o) for o, _ in frames}
+        self.unplaced = [o for o in self.unplaced if id(o) not in placed]
+        return frames
+
+    def _walk_back(self, first: FrameObservations, reloc: Relocalization, after: int | None) -> list:
+        """The frames nothing placed before ``first`` (and after the stamp ``after``, the
+        track's last frame), placed walking back from ``first``'s pose: each as a track places
+        a frame (its objects where the pose after it predicts it, else its depth points),
+        while they are within ``stream_max_gap_s`` of each other; oldest first. A new track
+        (or one that went on after frames it could not place) gets the frames before it that
+        only it can place; their poses come late, as a confirmed frame's do."""
+        cfg, out = self.config, []
+        anchor = (first, reloc.pose)
+        for obs in sorted((o for o in self.unplaced if o.stamp_ns < first.stamp_ns
+                           and (after is None or o.stamp_ns > after)), key=lambda o: -o.stamp_ns):
+            if abs(anchor[0].stamp_ns - obs.stamp_ns) * 1e-9 > cfg.stream_max_gap_s:
+                break
+            prior = motion_prior([anchor], obs, cfg)
+            placed = (self.mapper.relocalize(obs, [], prior) if len(obs) >= 2 else None) or self._on_points(obs, prior)
+            if placed is None:
+                break
+            out.append((obs, placed))
+            anchor = (obs, placed.pose)
+        self.counts['walked_back'] += len(out)
+        return out[::-1]
 
     def _keyframes_near(self, centre: np.ndarray) -> list:
         """Ids of the registered keyframes with depth points, nearest ``centre`` first (at most
@@ -169,6 +205,7 @@ class StreamLocalizer:
             if reloc is not None:
                 self.counts['points'] += 1
                 return self._accept((obs, reloc))
+        self.unplaced = (self.unplaced + [obs])[-UNPLACED:]        # until something places it
         reloc = relocalize(obs, why)
         if reloc is None:
             return []

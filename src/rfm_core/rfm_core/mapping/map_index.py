@@ -28,9 +28,10 @@ from rfm_core.matching.view_graph import bag_of_objects
 __all__ = ['MapIndex', 'MapCloud', 'track_boxes']
 
 CLOUD_VOXEL_M = 0.05            #: the map's depth points: one per cell of this grid
-CLOUD_MAX_POINTS = 300_000      #: a map with more is cut to the keyframes within CLOUD_REACH_M of a view
-CLOUD_REACH_M = 8.0
-CLOUD_CACHE = 4                 #: such cut clouds kept (the latest)
+CLOUD_MAX_POINTS = 300_000      #: a map with more is cut into tiles: ...
+CLOUD_TILE_M = 4.0              #: ... squares this wide, each the points of the keyframes whose camera is
+CLOUD_REACH_M = 8.0             #: ... within this of the square (what a camera in it sees)
+CLOUD_CACHE = 4                 #: tiles kept (the latest used)
 
 
 class MapCloud:
@@ -84,7 +85,7 @@ class MapIndex:
         self._centres: dict = {}
         self._observers = None
         self._embeddings = None
-        self._clouds: dict = {}                 # keyframe ids -> MapCloud (the latest CLOUD_CACHE)
+        self._clouds: dict = {}                 # tile (None: the whole map) -> MapCloud
         self._lifted = None
 
     # ------------------------------------------------------------------ keyframes
@@ -118,25 +119,28 @@ class MapIndex:
         return [ids[i] for i in order if far[i] <= reach_m + np.pi / 2]
 
     def cloud_near(self, centre) -> MapCloud:
-        """The map's depth points around a camera at ``centre`` (all of them, for a map of at
-        most :data:`CLOUD_MAX_POINTS` points: built once per map revision; else those of the
-        keyframes within :data:`CLOUD_REACH_M`)."""
+        """The map's depth points around a camera at ``centre``: all of them, for a map of at
+        most :data:`CLOUD_MAX_POINTS` points (built once per map revision); else those of the
+        :data:`CLOUD_TILE_M` square holding ``centre`` (the keyframes whose camera is within
+        :data:`CLOUD_REACH_M` of it; built when first needed, the latest :data:`CLOUD_CACHE` kept)."""
         if self._lifted is None:
             ids = [k for k in self.poses if len(self.keyframes[k].cloud)]
-            self._lifted = (ids, [self.poses[k].inverse().transform_points(np.asarray(self.keyframes[k].cloud, float))
-                                  for k in ids],
+            self._lifted = ([self.poses[k].inverse().transform_points(np.asarray(self.keyframes[k].cloud, float))
+                             .astype(np.float32) for k in ids],
                             np.array([self.poses[k].inverse().t for k in ids]).reshape(-1, 3))
-        ids, clouds, centres = self._lifted
+        clouds, centres = self._lifted
         if sum(len(c) for c in clouds) <= CLOUD_MAX_POINTS:
-            chosen = tuple(range(len(ids)))
+            key, chosen = None, range(len(clouds))
         else:
-            chosen = tuple(np.flatnonzero(np.linalg.norm(centres - np.asarray(centre, float), axis=1)
-                                          <= CLOUD_REACH_M))
-        if chosen not in self._clouds:
+            key = tuple(np.floor(np.asarray(centre, float)[:2] / CLOUD_TILE_M).astype(int))
+            middle = (np.array(key) + 0.5) * CLOUD_TILE_M
+            reach = CLOUD_REACH_M + CLOUD_TILE_M / np.sqrt(2)
+            chosen = np.flatnonzero(np.linalg.norm(centres[:, :2] - middle, axis=1) <= reach)
+        if key not in self._clouds:
             if len(self._clouds) >= CLOUD_CACHE:
                 self._clouds.pop(next(iter(self._clouds)))
-            self._clouds[chosen] = MapCloud([clouds[i] for i in chosen])
-        return self._clouds[chosen]
+            self._clouds[key] = MapCloud([clouds[i] for i in chosen])
+        return self._clouds[key]
 
     def nearest_keyframe(self, centre) -> int | None:
         """The registered keyframe whose camera is nearest ``centre``."""
