@@ -3,6 +3,7 @@ score the frames it localizes (an ablation tool: the same detections for every v
 
     ros_ws/env.sh python bench/replay_runs.py WORK [--scenes 40_plain_handheld ...] [--json OUT]
     ros_ws/env.sh python bench/replay_runs.py WORK --setting map_run --bag map_bag   (rfm eval-reloc's mapping walks)
+    ros_ws/env.sh python bench/replay_runs.py WORK --reloc [--verbose]   (rfm eval-reloc's query walks)
 
 WORK is an `rfm eval --work WORK` directory (each scene's `bag` and the run's
 `rgb_d__depth_clusters/outputs.mcap`, which holds every `rfm/detections` message the detector
@@ -13,6 +14,14 @@ matcher's and mapper's code, default parameters, no timing) is: two versions of 
 compared on the same detections differ only by the code. Per scene: frames localized (of
 the bag's frames), ARE / ATE medians and the share off by > 5 deg or > 25 cm (4-DoF aligned),
 frames placed on their depth points alone, keyframes; then means / medians per capture.
+
+``--reloc``: WORK is an ``rfm eval-reloc --work WORK`` directory. Each room's saved map
+(``map_run/map.rfm``, the graph's) is loaded in localization mode and the query walk's
+recorded detections (``query_run``) are localized as a stream, scored as ``rfm eval-reloc``
+scores the graph (the map aligned to the world by its keyframes; #20's denominator: the query
+frames that see two mapped objects; wrong: > 5 deg or > 25 cm). Localization against a
+frozen map is deterministic: the same detections give the graph's result.
+``--verbose`` lists each missed frame of the denominator with the reason, and each wrong pose.
 """
 import argparse
 import json
@@ -50,6 +59,64 @@ def replay(scene: Path, setting: str = 'rgb_d__depth_clusters', bag: str = 'bag'
             'point_tracked': session.graph.stats.point_tracked, 'keyframes': len(session.mapper.keyframes)}
 
 
+def replay_reloc(scene: Path, verbose: bool = False) -> dict:
+    """One room of an ``rfm eval-reloc`` run: its query walk's detections localized against
+    its saved map (see the module)."""
+    from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import map_to_truth  # noqa: PLC0415
+    from rfm_core.session import MapSession  # noqa: PLC0415
+
+    session = MapSession(MapperConfig(), matcher=make_matcher('learned'))
+    session.load(scene / 'map_run' / 'map.rfm')
+    session.mode = 'localization'
+    mapper = session.mapper
+    keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
+    alignment = map_to_truth(keyframes, read_ground_truth(scene / 'map_bag').camera_poses)
+    world = alignment.matrix()
+    query = read_ground_truth(scene / 'query_bag')
+    truth = query.camera_poses
+    seeing = frames_seeing_mapped(query, map_boxes(mapper.tracks(), alignment)) & set(truth)
+    estimated, why = {}, {}
+    for obs in recorded_detections(scene / 'query_run'):
+        for camera in session.localize(obs):
+            estimated[camera.stamp_ns] = world @ camera.matrix
+        why[obs.stamp_ns] = f'{len(obs)} detections: {session.message}'
+    estimated = {k: v for k, v in estimated.items() if k in truth}
+    errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
+    if verbose:
+        start = min(truth)
+        for stamp in sorted(seeing - set(estimated)):
+            print(f'    missed {(stamp - start) * 1e-9:5.1f} s: {why.get(stamp, "no detections recorded")}')
+        for stamp, m in sorted(estimated.items()):
+            d = np.linalg.inv(truth[stamp]) @ m
+            deg = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
+            if deg > 5 or np.linalg.norm(d[:3, 3]) > 0.25:
+                print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {np.linalg.norm(d[:3, 3]):.2f} m')
+    return {'scene': scene.name, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
+            'relocalized': len(estimated), 'wrong': int(round(errors['wrong'] * len(estimated))) if estimated else 0,
+            'ARE_median': errors['ARE_median'], 'ATE_median': errors['ATE_median'],
+            'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1)}
+
+
+def main_reloc(work: Path, scenes, verbose: bool, json_path) -> int:
+    rows = []
+    for scene in [work / s for s in scenes] if scenes else sorted(p for p in work.iterdir() if (p / 'query_run').exists()):
+        r = replay_reloc(scene, verbose)
+        rows.append(r)
+        print(f"{r['scene']:26s} map {100 * r['map_registered']:3.0f}% registered  {r['found']:2d} of the "
+              f"{r['seeing']:2d} frames that see two mapped objects  relocalized {r['relocalized']:2d}  wrong "
+              f"{r['wrong']}  ARE {r['ARE_median']:5.2f} deg  ATE {100 * r['ATE_median']:5.1f} cm", flush=True)
+    seeing, found = sum(r['seeing'] for r in rows), sum(r['found'] for r in rows)
+    relocalized, wrong = sum(r['relocalized'] for r in rows), sum(r['wrong'] for r in rows)
+    print(f'{len(rows)} rooms: {100 * found / max(seeing, 1):.1f}% of the {seeing} frames that see two mapped objects; '
+          f'wrong {wrong} of {relocalized} ({100 * wrong / max(relocalized, 1):.1f}%); ARE '
+          f'{np.nanmedian([r["ARE_median"] for r in rows]):.2f} deg, ATE '
+          f'{100 * np.nanmedian([r["ATE_median"] for r in rows]):.1f} cm (medians of rooms)')
+    if json_path:
+        json_path.write_text(json.dumps(rows, indent=1, default=float))
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument('work', type=Path)
@@ -57,7 +124,11 @@ def main() -> int:
     parser.add_argument('--setting', default='rgb_d__depth_clusters', help="the run's folder in each scene")
     parser.add_argument('--bag', default='bag', help="the scene's bag folder (its ground truth scores the replay)")
     parser.add_argument('--json', type=Path, help='write the per-scene results here')
+    parser.add_argument('--reloc', action='store_true', help="WORK is rfm eval-reloc's: replay its query walks")
+    parser.add_argument('--verbose', action='store_true', help='--reloc: each missed and wrong frame')
     args = parser.parse_args()
+    if args.reloc:
+        return main_reloc(args.work, args.scenes, args.verbose, args.json)
     scenes = [args.work / s for s in args.scenes] if args.scenes else sorted(
         p for p in args.work.iterdir() if (p / args.setting / 'outputs.mcap').exists() and (p / args.bag).exists())
     rows = []

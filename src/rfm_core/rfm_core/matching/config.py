@@ -88,11 +88,11 @@ class MatchingConfig:
     point_tracking: bool = setting(True, 'Within a stream, a frame that objects do not localize (too few '
                                    'detections, tracking failed, or a frame the detector sent with its depth points '
                                    'only) is tracked on its depth points: aligned from the pose the gyroscope and the '
-                                   "recent motion predict to the reference keyframe's (matcher) or the nearest map "
-                                   "keyframe's (localization mode), in 4-DoF and in 6-DoF (the two frames' gravity "
-                                   'may differ by a degree or two), the alignment with more points on surfaces kept '
-                                   '(of those that fix every direction, if one does); it becomes no keyframe (not in '
-                                   'the paper)')
+                                   "recent motion predict to the reference keyframe's (matcher) or the map's, then "
+                                   "the nearest map keyframes' (localization mode), in 4-DoF and in 6-DoF (the two "
+                                   "frames' gravity may differ by a degree or two), the alignment with more points on "
+                                   'surfaces kept (of those that fix every direction, if one does); it becomes no '
+                                   'keyframe (not in the paper)')
     point_track_min_overlap: float = setting(0.25, '... kept when at least this share of its points lie on the '
                                              "keyframe's surfaces (within point_match_m; a share of what those "
                                              "surfaces can hold: divided by the share of the keyframe's own points "
