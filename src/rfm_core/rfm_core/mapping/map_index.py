@@ -85,6 +85,8 @@ class MapIndex:
         self._centres: dict = {}
         self._observers = None
         self._embeddings = None
+        self._cameras = None                    # (ids, camera centres, yaws) of keyframe retrieval's keyframes
+        self._registered = None                 # (ids, camera centres) of every registered keyframe
         self._clouds: dict = {}                 # tile (None: the whole map) -> MapCloud
         self._lifted = None
 
@@ -110,11 +112,14 @@ class MapIndex:
         """Registered keyframes with two or more detections near a camera at ``centre``
         looking along ``yaw``: nearest first by centre distance plus yaw difference (a metre
         per radian), those within ``reach_m`` plus a quarter turn, at most ``count``."""
-        ids = [k for k in self.poses if len(self.keyframes[k]) >= 2]
+        if self._cameras is None:                   # once per map revision
+            ids = [k for k in self.poses if len(self.keyframes[k]) >= 2]
+            inv = [self.poses[k].inverse() for k in ids]
+            self._cameras = (ids, np.array([t.t for t in inv]).reshape(-1, 3), np.array([t.yaw for t in inv]))
+        ids, centres, yaws = self._cameras
         if not ids:
             return []
-        inv = [self.poses[k].inverse() for k in ids]
-        far = np.array([np.linalg.norm(t.t - centre) + abs(wrap_angle(t.yaw - yaw)) for t in inv])
+        far = np.linalg.norm(centres - np.asarray(centre, float), axis=1) + np.abs(wrap_angle(yaws - yaw))
         order = np.argsort(far, kind='stable')[:count]
         return [ids[i] for i in order if far[i] <= reach_m + np.pi / 2]
 
@@ -125,11 +130,12 @@ class MapIndex:
         :data:`CLOUD_REACH_M` of it; built when first needed, the latest :data:`CLOUD_CACHE` kept)."""
         if self._lifted is None:
             ids = [k for k in self.poses if len(self.keyframes[k].cloud)]
-            self._lifted = ([self.poses[k].inverse().transform_points(np.asarray(self.keyframes[k].cloud, float))
-                             .astype(np.float32) for k in ids],
-                            np.array([self.poses[k].inverse().t for k in ids]).reshape(-1, 3))
-        clouds, centres = self._lifted
-        if sum(len(c) for c in clouds) <= CLOUD_MAX_POINTS:
+            lifted = [self.poses[k].inverse().transform_points(np.asarray(self.keyframes[k].cloud, float))
+                      .astype(np.float32) for k in ids]
+            self._lifted = (lifted, np.array([self.poses[k].inverse().t for k in ids]).reshape(-1, 3),
+                            sum(len(c) for c in lifted))
+        clouds, centres, points = self._lifted
+        if points <= CLOUD_MAX_POINTS:
             key, chosen = None, range(len(clouds))
         else:
             key = tuple(np.floor(np.asarray(centre, float)[:2] / CLOUD_TILE_M).astype(int))
@@ -146,8 +152,10 @@ class MapIndex:
         """The registered keyframe whose camera is nearest ``centre``."""
         if not self.poses:
             return None
-        ids = list(self.poses)
-        return ids[int(np.argmin([np.linalg.norm(self.poses[k].inverse().t - centre) for k in ids]))]
+        if self._registered is None:                # once per map revision
+            self._registered = (list(self.poses), np.array([p.inverse().t for p in self.poses.values()]))
+        ids, centres = self._registered
+        return ids[int(np.argmin(np.linalg.norm(centres - np.asarray(centre, float), axis=1)))]
 
     # ------------------------------------------------------------------ objects
 

@@ -40,6 +40,10 @@ __all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 
            'match_to_map', 'refine_on_tracks', 'explained', 'track_boxes']
 
 
+#: two cameras further apart than this see nothing in common (twice a depth camera's reach)
+SHARED_VIEW_M = 10.0
+
+
 @dataclass(frozen=True)
 class RelocalizationConfig:
     candidates: int = setting(10, 'Keyframes tried per relocalization query (most similar by bag of objects)',
@@ -181,9 +185,12 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
     """:func:`relocalize` against the most similar keyframes."""
     keyframes, poses = index.keyframes, index.poses
     candidates = index.candidates(query, config.candidates)
-    if prior is not None:                       # and the keyframes where the track predicts the camera
-        candidates += [k for k in index.keyframes_near(prior.centre, prior.yaw, prior.reach_m, config.candidates)
-                       if k not in candidates]
+    if prior is not None:                       # the keyframes where the track predicts the camera, and those
+        # retrieved that can see what it sees (a building's other rooms cannot: only cost)
+        near = index.keyframes_near(prior.centre, prior.yaw, prior.reach_m, config.candidates)
+        candidates = [k for k in candidates if np.linalg.norm(poses[k].inverse().t - prior.centre)
+                      <= prior.reach_m + SHARED_VIEW_M] + near
+        candidates = list(dict.fromkeys(candidates))
     found = []
     fallback = (ClassicalMatcher(matching) if config.classical_fallback and not isinstance(matcher, ClassicalMatcher)
                 else None)
