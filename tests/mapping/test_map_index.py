@@ -71,3 +71,34 @@ def test_a_map_of_several_rooms_relocalizes_a_room_as_its_own_map_does(room):
     assert alone['registered'] >= 0.85, alone
     assert together['registered'] >= alone['registered'] - 0.05 and together['wrong'] == 0.0, together
     assert together['ATE_median'] < 0.05 and together['ARE_median'] < 2.0, together
+
+
+def test_the_maps_depth_points_whole_or_in_tiles(room, monkeypatch):
+    """The registered keyframes' clouds lifted into the map and merged: a point a keyframe
+    measured lies in the map's cloud where its pose puts it; a map too large for one cloud is
+    merged per tile from the keyframes near it, and a camera elsewhere gets another tile."""
+    from rfm_core.mapping import map_index  # noqa: PLC0415
+    mapper = room.mapper
+    rng = np.random.default_rng(3)
+    keyframes = {}
+    for k, obs in mapper.keyframes.items():          # each keyframe measured a patch of floor near its camera
+        if k in mapper.poses:
+            centre = mapper.poses[k].inverse().t
+            patch = np.c_[centre[:2] + rng.uniform(-1.5, 1.5, (400, 2)), np.full(400, centre[2] - 1.3)]
+            obs = replace(obs, cloud=mapper.poses[k].transform_points(patch).astype(np.float32))
+        keyframes[k] = obs
+    index = type(mapper.map_index())(keyframes, dict(mapper.poses), {}, [])
+    whole = index.cloud_near(np.zeros(3))
+    assert index.cloud_near(np.array([50.0, 0.0, 0.0])) is whole          # one cloud, wherever the camera
+    k = next(iter(mapper.poses))
+    lifted = mapper.poses[k].inverse().transform_points(np.asarray(keyframes[k].cloud, float))
+    d, _ = whole.point_index().tree.query(lifted)
+    assert np.median(d) < map_index.CLOUD_VOXEL_M
+    assert len(whole.cloud) < sum(len(keyframes[i].cloud) for i in mapper.poses)    # merged
+    monkeypatch.setattr(map_index, 'CLOUD_MAX_POINTS', 10)
+    tiled = type(index)(keyframes, dict(mapper.poses), {}, [])
+    at = np.r_[(np.floor(lifted.mean(0)[:2] / map_index.CLOUD_TILE_M) + 0.5) * map_index.CLOUD_TILE_M, 0.0]
+    here = tiled.cloud_near(at)                                            # the middle of the tile
+    assert 0 < len(here.cloud) <= len(whole.cloud)
+    assert tiled.cloud_near(at + 1.0) is here                              # the same tile
+    assert len(tiled.cloud_near(np.array([100.0, 100.0, 0.0])).cloud) == 0  # no keyframe near

@@ -31,7 +31,7 @@ CLOUD_VOXEL_M = 0.05            #: the map's depth points: one per cell of this 
 CLOUD_MAX_POINTS = 300_000      #: a map with more is cut into tiles: ...
 CLOUD_TILE_M = 4.0              #: ... squares this wide, each the points of the keyframes whose camera is
 CLOUD_REACH_M = 8.0             #: ... within this of the square (what a camera in it sees)
-CLOUD_CACHE = 4                 #: tiles kept (the latest used)
+CLOUD_CACHE = 4                 #: tiles kept (the latest built)
 
 
 class MapCloud:
