@@ -125,7 +125,8 @@ def main() -> int:
         for r in range(len(rooms)):
             world = rooms[r][2].matrix()
             back = Pose4(0.0, offset(r)).matrix()
-            for name, mapper, to_room in (('room', rooms[r][1], np.eye(4)), ('building', building, np.linalg.inv(back))):
+            maps = (('room', rooms[r][1], np.eye(4)), ('building', building, np.linalg.inv(back)))
+            for name, mapper, to_room in maps:
                 times, found, truth = results[f'{name} (stream)']
                 stream = StreamLocalizer(mapper)
                 for rr, index, pose, obs in queries:

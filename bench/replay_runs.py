@@ -100,7 +100,8 @@ def replay_reloc(scene: Path, verbose: bool = False) -> dict:
 
 def main_reloc(work: Path, scenes, verbose: bool, json_path) -> int:
     rows = []
-    for scene in [work / s for s in scenes] if scenes else sorted(p for p in work.iterdir() if (p / 'query_run').exists()):
+    chosen = [work / s for s in scenes] if scenes else sorted(p for p in work.iterdir() if (p / 'query_run').exists())
+    for scene in chosen:
         r = replay_reloc(scene, verbose)
         rows.append(r)
         print(f"{r['scene']:26s} map {100 * r['map_registered']:3.0f}% registered  {r['found']:2d} of the "
