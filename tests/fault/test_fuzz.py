@@ -7,10 +7,12 @@ mutated: floats to NaN / inf / huge, sequences emptied or grown to hundreds of e
 stamps repeated or sent backwards, strings long and odd. The callbacks are called as the
 executor would call them (an exception there kills a node's spin). ``RFM_FUZZ_N`` sets the
 number of hostile inputs (``make fuzz``: 10,000; the test suite: a seeded few hundred)."""
+import inspect
 import math
 import os
 import random
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -79,6 +81,20 @@ def good_frames():
     return [frame_detections_to_msg(obs) for obs in detected_frames(frames=30)]
 
 
+def _deliver(callback, msg, rng=None):
+    """A subscription's callback as rclpy calls it: with the message info where it takes
+    one (hostile too, with ``rng``: any stamp, any sequence number)."""
+    try:
+        inspect.signature(callback).bind(object())
+    except TypeError:
+        info = {'received_timestamp': time.time_ns(), 'publication_sequence_number': 1}
+        if rng is not None:
+            info = {'received_timestamp': rng.choice([0, 1, time.time_ns(), 2 ** 63 - 1]),
+                    'publication_sequence_number': rng.choice([0, 1, 2 ** 40, 2 ** 64 - 1])}
+        return callback(msg, info)
+    return callback(msg)
+
+
 def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
     from rfm_detector_node.detector_node import DetectorNode
     from rfm_mapper_node.mapper_node import MapperNode
@@ -86,6 +102,7 @@ def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
 
     rng = random.Random(SEED)
     rclpy.init()
+    nodes = []
     try:
         nodes = [DetectorNode(parameter_overrides=[Parameter('backend', value='depth_clusters')]),
                  MatcherNode(),
@@ -107,7 +124,7 @@ def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
             hits[topic] = (hits[topic] or 0) + 1
             try:
                 if kind == 'topic':
-                    callback(_hostile(typ, rng, good.get(topic)))
+                    _deliver(callback, _hostile(typ, rng, good.get(topic)), rng)
                 else:
                     request = _hostile(typ.Request, rng)
                     response = callback(request, typ.Response())
@@ -128,12 +145,14 @@ def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
         published = []
         matcher.keyframe_pub.publish = published.append
         for msg in good_frames:
-            next(s for s in matcher.subscriptions if s.topic_name == '/rfm/detections').callback(msg)
+            _deliver(next(s for s in matcher.subscriptions if s.topic_name == '/rfm/detections').callback, msg)
         assert matcher.graph.stats.keyframes > before
         for msg in published:
             kf_sub.callback(msg)
         assert len(mapper.mapper.keyframes) == len(published) >= 2
-        for node in nodes:
-            node.destroy_node()
     finally:
+        for node in nodes:
+            if isinstance(node, DetectorNode):
+                node.worker.stop()
+            node.destroy_node()
         rclpy.try_shutdown()
