@@ -110,7 +110,6 @@ class StreamLocalizer:
         self.unplaced: list = []                  # the newest frames nothing placed (observations)
         # frames, by what became of them
         self.counts = dict(tracked=0, points=0, confirmed=0, held=0, walked_back=0)
-        self._centres = (None, None, None)        # (map revision, keyframe ids, camera centres) of those with points
 
     def _live(self, obs: FrameObservations) -> bool:
         return (bool(self.track)
@@ -150,18 +149,6 @@ class StreamLocalizer:
         self.counts['walked_back'] += len(out)
         return out[::-1]
 
-    def _keyframes_near(self, centre: np.ndarray) -> list:
-        """Ids of the registered keyframes with depth points, nearest ``centre`` first (at most
-        :data:`POINT_KEYFRAMES`)."""
-        mapper = self.mapper
-        if self._centres[0] != mapper.revision:
-            ids = [k for k in mapper.poses if len(mapper.keyframes[k].cloud)]
-            self._centres = (mapper.revision, ids,
-                             np.array([mapper.poses[k].inverse().t for k in ids]).reshape(-1, 3))
-        _, ids, centres = self._centres
-        order = np.argsort(np.linalg.norm(centres - centre, axis=1))[:POINT_KEYFRAMES]
-        return [ids[i] for i in order]
-
     def _on_points(self, obs: FrameObservations, prior: MotionPrior) -> Relocalization | None:
         """A frame of the live track placed on its depth points (see the module), or None."""
         matching = self.mapper.config.matching
@@ -173,7 +160,7 @@ class StreamLocalizer:
         if found is not None and not found.free and prior.admits(found.pose.inverse()):
             return Relocalization(found.pose.inverse(), index.nearest_keyframe(found.pose.t), 0,
                                   np.zeros((0, 2), int), candidates=1)
-        near = self._keyframes_near(prior.centre)
+        near = index.keyframes_with_points_near(prior.centre, POINT_KEYFRAMES)
         for k in near:
             t_k_map = self.mapper.poses[k]
             found = track_on_points(t_k_map @ t_map_view, self.mapper.keyframes[k], obs, matching)

@@ -85,8 +85,7 @@ class MapIndex:
         self._centres: dict = {}
         self._observers = None
         self._embeddings = None
-        self._cameras = None                    # (ids, camera centres, yaws) of keyframe retrieval's keyframes
-        self._registered = None                 # (ids, camera centres) of every registered keyframe
+        self._cameras = None                    # every registered keyframe's camera (_camera_table)
         self._clouds: dict = {}                 # tile (None: the whole map) -> MapCloud
         self._lifted = None
 
@@ -112,16 +111,30 @@ class MapIndex:
         """Registered keyframes with two or more detections near a camera at ``centre``
         looking along ``yaw``: nearest first by centre distance plus yaw difference (a metre
         per radian), those within ``reach_m`` plus a quarter turn, at most ``count``."""
-        if self._cameras is None:                   # once per map revision
-            ids = [k for k in self.poses if len(self.keyframes[k]) >= 2]
-            inv = [self.poses[k].inverse() for k in ids]
-            self._cameras = (ids, np.array([t.t for t in inv]).reshape(-1, 3), np.array([t.yaw for t in inv]))
-        ids, centres, yaws = self._cameras
-        if not ids:
-            return []
-        far = np.linalg.norm(centres - np.asarray(centre, float), axis=1) + np.abs(wrap_angle(yaws - yaw))
+        ids, centres, yaws, detected, _ = self._camera_table()
+        sel = np.flatnonzero(detected)
+        far = np.linalg.norm(centres[sel] - np.asarray(centre, float), axis=1) + np.abs(wrap_angle(yaws[sel] - yaw))
         order = np.argsort(far, kind='stable')[:count]
-        return [ids[i] for i in order if far[i] <= reach_m + np.pi / 2]
+        return [ids[sel[i]] for i in order if far[i] <= reach_m + np.pi / 2]
+
+    def _camera_table(self):
+        """(ids, camera centres, yaws, has two or more detections, has depth points) of every
+        registered keyframe, in the map's order; built once per map revision."""
+        if self._cameras is None:
+            ids = list(self.poses)
+            inv = [self.poses[k].inverse() for k in ids]
+            self._cameras = (ids, np.array([t.t for t in inv]).reshape(-1, 3), np.array([t.yaw for t in inv]),
+                             np.array([len(self.keyframes[k]) >= 2 for k in ids], bool),
+                             np.array([len(self.keyframes[k].cloud) > 0 for k in ids], bool))
+        return self._cameras
+
+    def keyframes_with_points_near(self, centre, count: int) -> list:
+        """Ids of the registered keyframes with depth points, nearest ``centre`` first (at most
+        ``count``)."""
+        ids, centres, _, _, points = self._camera_table()
+        with_points = np.flatnonzero(points)
+        order = np.argsort(np.linalg.norm(centres[with_points] - centre, axis=1))[:count]
+        return [ids[with_points[i]] for i in order]
 
     def cloud_near(self, centre) -> MapCloud:
         """The map's depth points around a camera at ``centre``: all of them, for a map of at
@@ -129,11 +142,10 @@ class MapIndex:
         :data:`CLOUD_TILE_M` square holding ``centre`` (the keyframes whose camera is within
         :data:`CLOUD_REACH_M` of it; built when first needed, the latest :data:`CLOUD_CACHE` kept)."""
         if self._lifted is None:
-            ids = [k for k in self.poses if len(self.keyframes[k].cloud)]
-            lifted = [self.poses[k].inverse().transform_points(np.asarray(self.keyframes[k].cloud, float))
-                      .astype(np.float32) for k in ids]
-            self._lifted = (lifted, np.array([self.poses[k].inverse().t for k in ids]).reshape(-1, 3),
-                            sum(len(c) for c in lifted))
+            ids, centres, _, _, points = self._camera_table()
+            lifted = [self.poses[ids[i]].inverse().transform_points(np.asarray(self.keyframes[ids[i]].cloud, float))
+                      .astype(np.float32) for i in np.flatnonzero(points)]
+            self._lifted = (lifted, centres[points], sum(len(c) for c in lifted))
         clouds, centres, points = self._lifted
         if points <= CLOUD_MAX_POINTS:
             key, chosen = None, range(len(clouds))
@@ -152,9 +164,7 @@ class MapIndex:
         """The registered keyframe whose camera is nearest ``centre``."""
         if not self.poses:
             return None
-        if self._registered is None:                # once per map revision
-            self._registered = (list(self.poses), np.array([p.inverse().t for p in self.poses.values()]))
-        ids, centres = self._registered
+        ids, centres = self._camera_table()[:2]
         return ids[int(np.argmin(np.linalg.norm(centres - np.asarray(centre, float), axis=1)))]
 
     # ------------------------------------------------------------------ objects
