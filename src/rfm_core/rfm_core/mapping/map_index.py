@@ -23,6 +23,7 @@ from scipy.spatial import cKDTree
 
 from rfm_core.geometry import iou_3d_paired, wrap_angle
 from rfm_core.matching.classical import size_similarity
+from rfm_core.matching.points import PointIndex, voxel_means
 from rfm_core.matching.view_graph import bag_of_objects
 
 __all__ = ['MapIndex', 'MapCloud', 'track_boxes']
@@ -40,21 +41,11 @@ class MapCloud:
     :meth:`point_index`."""
 
     def __init__(self, clouds: list, voxel_m: float = CLOUD_VOXEL_M):
-        p = np.concatenate(clouds).astype(np.float64) if clouds else np.zeros((0, 3))
-        if len(p):
-            cells = np.floor(p / voxel_m).astype(np.int64)
-            cells -= cells.min(0)
-            span = cells.max(0) + 1
-            _, inv, count = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2],
-                                      return_inverse=True, return_counts=True)
-            inv = inv.ravel()
-            p = np.stack([np.bincount(inv, weights=p[:, k]) for k in range(3)], 1) / count[:, None]
-        self.cloud = p.astype(np.float32)
+        self.cloud = voxel_means(np.concatenate(clouds) if clouds else np.zeros((0, 3)), voxel_m).astype(np.float32)
         self._index = None
 
     def point_index(self):
         if self._index is None:
-            from rfm_core.matching.points import PointIndex  # noqa: PLC0415
             self._index = PointIndex(self.cloud)
         return self._index
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from rfm_core.geometry import Pose4, gravity_aligned_rotation
 
-__all__ = ['depth_cloud', 'PointIndex', 'PointAlignment', 'align_points', 'MAX_CLOUD_POINTS']
+__all__ = ['depth_cloud', 'voxel_means', 'PointIndex', 'PointAlignment', 'align_points', 'MAX_CLOUD_POINTS']
 
 #: at most this many points per frame (a message bound; a 12 cm voxel grid of a room holds ~1,500)
 MAX_CLOUD_POINTS = 20_000
@@ -52,17 +52,24 @@ def depth_cloud(depth: np.ndarray, intrinsics, gravity_cam, voxel_m: float, max_
     p = np.stack([(u[ok] - intrinsics.cx) / intrinsics.fx * z, (v[ok] - intrinsics.cy) / intrinsics.fy * z, z], 1)
     p = p @ gravity_aligned_rotation(gravity_cam).T
     while True:
-        cells = np.floor(p / voxel_m).astype(np.int64)
-        cells -= cells.min(0) if len(cells) else 0
-        span = cells.max(0) + 1 if len(cells) else np.ones(3, np.int64)
-        key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
-        uniq, inv, count = np.unique(key, return_inverse=True, return_counts=True)
-        if len(uniq) <= MAX_CLOUD_POINTS:
-            break
+        out = voxel_means(p, voxel_m)
+        if len(out) <= MAX_CLOUD_POINTS:
+            return out.astype(np.float32)
         voxel_m *= 1.5
+
+
+def voxel_means(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(C, 3) float64: the mean of the ``points`` in each occupied cell of a ``voxel_m`` grid."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if not len(p):
+        return p
+    cells = np.floor(p / voxel_m).astype(np.int64)
+    cells -= cells.min(0)
+    span = cells.max(0) + 1
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
     inv = inv.ravel()
-    out = np.stack([np.bincount(inv, weights=p[:, k], minlength=len(uniq)) for k in range(3)], 1)
-    return (out / np.maximum(count, 1)[:, None]).astype(np.float32)
+    return np.stack([np.bincount(inv, weights=p[:, k]) for k in range(3)], 1) / count[:, None]
 
 
 class PointIndex:
