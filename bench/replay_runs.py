@@ -62,27 +62,19 @@ def replay(scene: Path, setting: str = 'rgb_d__depth_clusters', bag: str = 'bag'
 def replay_reloc(scene: Path, verbose: bool = False) -> dict:
     """One room of an ``rfm eval-reloc`` run: its query walk's detections localized against
     its saved map (see the module)."""
-    from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import map_to_truth  # noqa: PLC0415
+    from rfm_core.evaluation.suite import relocalization_scores  # noqa: PLC0415
     from rfm_core.session import MapSession  # noqa: PLC0415
 
     session = MapSession(MapperConfig(), matcher=make_matcher('learned'))
     session.load(scene / 'map_run' / 'map.rfm')
     session.mode = 'localization'
-    mapper = session.mapper
-    keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
-    alignment = map_to_truth(keyframes, read_ground_truth(scene / 'map_bag').camera_poses)
-    world = alignment.matrix()
-    query = read_ground_truth(scene / 'query_bag')
-    truth = query.camera_poses
-    seeing = frames_seeing_mapped(query, map_boxes(mapper.tracks(), alignment)) & set(truth)
-    estimated, why = {}, {}
+    poses, why = {}, {}
     for obs in recorded_detections(scene / 'query_run'):
         for camera in session.localize(obs):
-            estimated[camera.stamp_ns] = world @ camera.matrix
+            poses[camera.stamp_ns] = camera.matrix
         why[obs.stamp_ns] = f'{len(obs)} detections: {session.message}'
-    estimated = {k: v for k, v in estimated.items() if k in truth}
-    errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
+    scores = relocalization_scores(session.mapper, scene / 'map_bag', scene / 'query_bag', poses)
+    estimated, truth, seeing, row = scores.estimated, scores.truth, scores.seeing, scores.row
     if verbose:
         start = min(truth)
         for stamp in sorted(seeing - set(estimated)):
@@ -93,9 +85,8 @@ def replay_reloc(scene: Path, verbose: bool = False) -> dict:
             if deg > 5 or np.linalg.norm(d[:3, 3]) > 0.25:
                 print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {np.linalg.norm(d[:3, 3]):.2f} m')
     return {'scene': scene.name, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
-            'relocalized': len(estimated), 'wrong': int(round(errors['wrong'] * len(estimated))) if estimated else 0,
-            'ARE_median': errors['ARE_median'], 'ATE_median': errors['ATE_median'],
-            'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1)}
+            'relocalized': len(estimated), 'wrong': int(round(row['wrong'] * len(estimated))) if estimated else 0,
+            'ARE_median': row['ARE_median'], 'ATE_median': row['ATE_median'], 'map_registered': row['map_registered']}
 
 
 def main_reloc(work: Path, scenes, verbose: bool, json_path) -> int:

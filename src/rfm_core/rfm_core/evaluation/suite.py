@@ -416,8 +416,6 @@ def relocalization_scene_graph(args) -> dict:
     run's keyframes: the query frames are not re-aligned). ``wrong``: > 5 deg or > 25 cm.
     ``params``: extra ``--param`` values for both runs."""
     config, detector, query_frames, work, domain, params = args
-    from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes, read_ground_truth  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
 
@@ -445,21 +443,42 @@ def relocalization_scene_graph(args) -> dict:
             return {**failed, 'error': f'rfm run ({name}) exited {proc.returncode}: {" / ".join(tail)}'}
     mapper = Mapper()
     load_map(mapper, mapped / 'map.rfm')
-    map_truth = read_ground_truth(bags['map']).camera_poses
-    keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
-    alignment = map_to_truth(keyframes, map_truth)
-    world = alignment.matrix()
-    query = read_ground_truth(bags['query'])
-    truth = query.camera_poses
-    estimated = {stamp: world @ pose for stamp, pose in camera_poses_of_run(queried).items() if stamp in truth}
-    errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
-    # #20's denominator: the query frames that see two objects the map holds
-    seeing = frames_seeing_mapped(query, map_boxes(mapper.tracks(), alignment)) & set(truth)
+    scores = relocalization_scores(mapper, bags['map'], bags['query'], camera_poses_of_run(queried))
     latency = json.loads((queried / 'summary.json').read_text()).get('relocalization') or {}
-    return {'scene': scene_name(config), **errors, 'frames': len(truth), 'seeing_mapped': len(seeing),
-            'registered_seeing': len(seeing & set(estimated)) / len(seeing) if seeing else nan,
-            'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1),
+    return {'scene': scene_name(config), **scores.row,
             'latency_ms': latency.get('median_ms', nan) if latency.get('queries') else nan}
+
+
+@dataclass
+class RelocalizationScores:
+    """A query walk's camera poses scored against a map (:func:`relocalization_scores`)."""
+
+    row: dict                #: trajectory errors, frames, seeing_mapped, registered_seeing, map_registered
+    estimated: dict          #: {stamp: 4x4 camera-to-world} of the query's frames with a pose
+    truth: dict              #: {stamp: 4x4 camera-to-world} of every query frame
+    seeing: set              #: #20's denominator: stamps of the query frames that see two mapped objects
+
+
+def relocalization_scores(mapper, map_bag, query_bag, camera_poses: dict) -> RelocalizationScores:
+    """#20's scoring of a query walk's camera poses ({stamp: 4x4 camera-to-map}) against
+    ``mapper``'s map: the map aligned to the world by its keyframes (the mapping walk's
+    truth), the poses not re-aligned; wrong: > 5 deg or > 25 cm; the denominator: the query
+    frames that see two objects the map holds."""
+    from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes, read_ground_truth  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
+
+    keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
+    alignment = map_to_truth(keyframes, read_ground_truth(map_bag).camera_poses)
+    world = alignment.matrix()
+    query = read_ground_truth(query_bag)
+    truth = query.camera_poses
+    estimated = {stamp: world @ pose for stamp, pose in camera_poses.items() if stamp in truth}
+    errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
+    seeing = frames_seeing_mapped(query, map_boxes(mapper.tracks(), alignment)) & set(truth)
+    row = {**errors, 'frames': len(truth), 'seeing_mapped': len(seeing),
+           'registered_seeing': len(seeing & set(estimated)) / len(seeing) if seeing else float('nan'),
+           'map_registered': len(mapper.poses) / max(len(mapper.keyframes), 1)}
+    return RelocalizationScores(row, estimated, truth, seeing)
 
 
 def relocalization_scene(args) -> dict:
