@@ -322,3 +322,38 @@ def test_a_new_track_walks_back_over_the_frames_nothing_placed_before_it(saved):
     assert [o.stamp_ns for o, _ in placed] == [early.stamp_ns, first.stamp_ns, views[1][0].stamp_ns]
     assert stream.counts['walked_back'] == 1 and stream.unplaced == []
     assert _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2)
+
+
+def test_a_view_no_keyframe_places_is_placed_by_the_maps_objects_and_depth_points(saved):
+    """A view a little away from a keyframe's, whose detections no keyframe verifies (no
+    matcher proposes a match): a box correspondence with the map's objects brings it near,
+    the map's depth points place it, within a centimetre of where it is (no object inliers).
+    Without depth points, or with the fallback off, it is refused: no keyframe verified it."""
+    mapper = Mapper(matcher=_MatchesNothing())
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
+    for k, pose in mapper.poses.items():
+        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
+    reloc = mapper.config.relocalization
+    mapper.config = replace(mapper.config, relocalization=replace(reloc, classical_fallback=False))
+    k = max(mapper.poses, key=lambda i: len(mapper.keyframes[i]))
+    kf = mapper.keyframes[k]
+    step = Pose4(np.radians(3.0), (0.15, -0.1, 0.0))                     # T_view_k
+    truth = step @ mapper.poses[k]                                       # T_view_map
+    rng = np.random.default_rng(3)
+    cloud = truth.transform_points(room) + rng.normal(0, 0.005, room.shape)
+    view = replace(kf, stamp_ns=kf.stamp_ns + STEP_NS, boxes=step.transform_boxes(kf.boxes),
+                   full_boxes=None if kf.full_boxes is None else step.transform_boxes(kf.full_boxes),
+                   walls=np.zeros((0, 3)), camera_height=float('nan'),
+                   cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
+    found = mapper.relocalize(view)
+    assert found is not None and found.num_inliers == 0 and found.explained >= min(4, len(view))
+    assert _close(found.pose, truth, metres=0.01, degrees=0.2)
+    why = []
+    assert mapper.relocalize(replace(view, cloud=np.zeros((0, 3), np.float32)), why) is None
+    assert 'no candidate keyframe' in why[-1]
+    mapper.config = replace(mapper.config, relocalization=replace(reloc, classical_fallback=False,
+                                                                  points_fallback=False))
+    why = []
+    assert mapper.relocalize(view, why) is None and 'no candidate keyframe' in why[-1]

@@ -32,7 +32,8 @@ from rfm_core.mapping.frame_log import camera_to_map
 from rfm_core.mapping.map_index import MapIndex, track_boxes
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_surfaces
+from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_relative_pose, track_on_points,
+                                             with_surfaces)
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
@@ -94,6 +95,12 @@ class RelocalizationConfig:
     map_fallback: bool = setting(False, 'A query no keyframe places is matched against the map\'s objects '
                                  '(as tracking recovery without the gyroscope: recovery_min_inliers, '
                                  'unaided_explained_share)')
+    points_fallback: bool = setting(True, 'A query no keyframe places is placed by the map\'s objects and its depth '
+                                    'points: the map matching\'s pose hypotheses (map_hypotheses) aligned on '
+                                    'the query\'s points to the map\'s, the one explaining the most detections '
+                                    '(min_explained, more than any other pose) wins')
+    point_hypotheses: int = setting(2, '... of those hypotheses (most supported first), this many are aligned',
+                                    lo=1, hi=50)
     distinct_m: float = setting(0.25, 'Two poses for one view are alternatives (look-alike furniture, a shift '
                                 'by one chair) when their camera centres are this far apart ...', lo=0.01, hi=10.0)
     distinct_deg: float = setting(5.0, '... or their yaws this far: a match to the map must explain more of '
@@ -169,8 +176,14 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
                    'registered keyframes')
         return None
     found = _on_keyframes(query, index, matcher, config, matching, averaging, why, prior)
-    if found is not None or not config.map_fallback or prior is not None:
+    if found is not None or prior is not None:
         return found
+    if config.points_fallback:
+        found = match_on_points(query, index, matching, config, why)
+        if found is not None or not config.map_fallback:
+            return found
+    if not config.map_fallback:
+        return None
     match = match_to_map(query, index, matching, config)
     if match is None or not match.accepted(config, len(query), gyroscope=False):
         why.append('matching the map\'s objects found no unique verified pose' if match is None or match.explained
@@ -365,10 +378,35 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
         why.append('fewer than two detections, or no map to match')
         return None
     qb = np.asarray(query.map_boxes, float)
+    hypotheses = _map_hypotheses(query, index, matching, config, yaw_prior)
+    if hypotheses is None:
+        why.append('no detection the size of a mapped object')
+        return None
+    compatible = size_similarity(qb, index.boxes) >= matching.size_ratio_gate
+    found = []                                  # (explained, inliers, T_view_map, keyframe, relative)
+    for t_map_view in hypotheses:
+        result = _verify(query, t_map_view, qb, compatible, index, matching, config)
+        if result is not None:
+            rel, k = result
+            pose = rel.pose.inverse() @ index.poses[k]                       # T_view_k T_k_map
+            found.append((explained(query, pose, index, matching), len(rel.inliers), pose, k, rel))
+    if not found:
+        why.append(f'no pose from the map\'s objects verified against a keyframe ({len(hypotheses)} tried)')
+        return None
+    found.sort(key=lambda f: (-f[0], -f[1]))
+    best = found[0]
+    runner_up = max((f[0] for f in found[1:] if not _same(f[2].inverse(), best[2].inverse(), config)), default=0)
+    return MapMatch(best[3], best[4], best[2], best[0], runner_up)
+
+
+def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: MatchingConfig,
+                    config: RelocalizationConfig, yaw_prior: float | None = None) -> list | None:
+    """:func:`match_to_map`'s pose hypotheses (T_map_view), most supported first, at most
+    ``config.map_hypotheses`` distinct ones (None: no detection the size of a mapped object)."""
+    qb = np.asarray(query.map_boxes, float)
     tb = index.boxes
     ii, jj = index.similar(qb, query.embeddings, matching.size_ratio_gate, config.map_correspondences)
     if not len(ii):
-        why.append('no detection the size of a mapped object')
         return None
     if yaw_prior is not None:
         yaws = np.full((len(ii), 1), float(yaw_prior))
@@ -381,27 +419,53 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
     compatible = size_similarity(qb, tb) >= matching.size_ratio_gate
     count = np.concatenate([_hits(qb, tb[play], compatible[:, play], hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
                             for c in range(0, len(hy), 256)])
-    found = []                                  # (explained, inliers, T_view_map, keyframe, relative)
     tried = []
     for h in np.argsort(-count, kind='stable'):
         if count[h] < 2 or len(tried) >= config.map_hypotheses:
             break
         t_map_view = Pose4(float(hy[h]), trans[h])
-        if any(_same(t_map_view, other, config) for other in tried):
+        if not any(_same(t_map_view, other, config) for other in tried):
+            tried.append(t_map_view)
+    return tried
+
+
+def match_on_points(query: FrameObservations, index: MapIndex, matching: MatchingConfig,
+                    config: RelocalizationConfig, why: list | None = None) -> Relocalization | None:
+    """A query no keyframe places, placed by the map's objects and its depth points: each of
+    :func:`match_to_map`'s pose hypotheses (single box correspondences, most supported first)
+    is aligned on the query's depth points to the map's (:meth:`MapIndex.cloud_near`,
+    :func:`~rfm_core.matching.relative_pose.track_on_points`); an alignment the points fix in
+    every direction is a candidate, scored by the detections it explains (:func:`explained`).
+    The best must explain as many as a keyframe's pose must, and more than any distinct
+    alternative (None otherwise, and the reason appended to ``why``, except for a query
+    without depth points or a map without objects: nothing was tried). Partial boxes of plain furniture seen from another walk rarely verify
+    against one keyframe with the relative-pose test; the map's surfaces place the view
+    wherever a box correspondence brings it near."""
+    why = why if why is not None else []
+    if not matching.point_tracking or not len(query.cloud) or len(query) < 2 or not index.tracks:
+        return None                             # nothing to try: the reason stays the keyframes'
+    hypotheses = _map_hypotheses(query, index, matching, config) or []
+    found = []                                  # (explained, overlap, T_view_map)
+    for t_map_view in hypotheses[:config.point_hypotheses]:
+        a = track_on_points(t_map_view, index.cloud_near(t_map_view.t), query, matching)
+        if a is None or a.free:
             continue
-        tried.append(t_map_view)
-        result = _verify(query, t_map_view, qb, compatible, index, matching, config)
-        if result is not None:
-            rel, k = result
-            pose = rel.pose.inverse() @ index.poses[k]                       # T_view_k T_k_map
-            found.append((explained(query, pose, index, matching), len(rel.inliers), pose, k, rel))
+        pose = a.pose.inverse()                                                  # T_view_map
+        found.append((explained(query, pose, index, matching), a.overlap, pose))
     if not found:
-        why.append(f'no pose from the map\'s objects verified against a keyframe ({len(tried)} tried)')
+        why.append(f'no pose from the map\'s objects aligned on the map\'s depth points '
+                   f'({min(len(hypotheses), config.point_hypotheses)} tried)')
         return None
     found.sort(key=lambda f: (-f[0], -f[1]))
-    best = found[0]
-    runner_up = max((f[0] for f in found[1:] if not _same(f[2].inverse(), best[2].inverse(), config)), default=0)
-    return MapMatch(best[3], best[4], best[2], best[0], runner_up)
+    count, _, pose = found[0]
+    runner_up = max((f[0] for f in found[1:] if not _same(f[2].inverse(), pose.inverse(), config)), default=0)
+    need = max(min(config.min_explained, len(query)), min(config.min_explained, 3))
+    if count < need or count <= runner_up:
+        why.append(f'the map\'s depth points place the query where it explains {count} of its {len(query)} '
+                   f'detections (need {need}, and more than the {runner_up} of another pose)')
+        return None
+    return Relocalization(pose, index.nearest_keyframe(pose.inverse().t), 0, np.zeros((0, 2), int), 0, 0, 0,
+                          count, runner_up)
 
 
 def _same(a: Pose4, b: Pose4, config: RelocalizationConfig) -> bool:
