@@ -438,9 +438,10 @@ def match_on_points(query: FrameObservations, index: MapIndex, matching: Matchin
     every direction is a candidate, scored by the detections it explains (:func:`explained`).
     The best must explain as many as a keyframe's pose must, and more than any distinct
     alternative (None otherwise, and the reason appended to ``why``, except for a query
-    without depth points or a map without objects: nothing was tried). Partial boxes of plain furniture seen from another walk rarely verify
-    against one keyframe with the relative-pose test; the map's surfaces place the view
-    wherever a box correspondence brings it near."""
+    without depth points or a map without objects: nothing was tried). Partial boxes of
+    plain furniture seen from another walk rarely verify against one keyframe with the
+    relative-pose test; the map's surfaces place the view wherever a box correspondence
+    brings it near."""
     why = why if why is not None else []
     if not matching.point_tracking or not len(query.cloud) or len(query) < 2 or not index.tracks:
         return None                             # nothing to try: the reason stays the keyframes'
