@@ -19,6 +19,8 @@ mapper (and its node's ``rfm/relocalize`` service, and localization mode) call
 :func:`match_to_map` matches a view against the map's objects instead of its keyframes (a
 view may share objects with the map but with no single keyframe): the mapper's tracking
 recovery joins a keyframe that nothing else links to the map with it.
+:func:`match_on_points` places a query no keyframe places from the same pose hypotheses,
+aligned on its depth points to the map's (``points_fallback``).
 """
 from __future__ import annotations
 
@@ -38,7 +40,7 @@ from rfm_core.observations import FrameObservations
 from rfm_core.settings import setting
 
 __all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize',
-           'match_to_map', 'refine_on_tracks', 'explained', 'track_boxes']
+           'match_to_map', 'match_on_points', 'refine_on_tracks', 'explained', 'track_boxes']
 
 
 #: two cameras further apart than this see nothing in common (twice a depth camera's reach)
@@ -166,8 +168,9 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
                prior: MotionPrior | None = None) -> Relocalization | None:
     """The query's pose in the map (``index``: :class:`MapIndex`, its tracks built only once a
     keyframe verified a pose), or None (and the reason appended to ``why``). Against
-    keyframes first; with ``map_fallback``, a query no keyframe places is matched against the
-    map's objects (:func:`match_to_map`, no gyroscope: another session). ``prior`` (a
+    keyframes first; a query no keyframe places is then placed by the map's objects and its
+    depth points (``points_fallback``: :func:`match_on_points`) and, with ``map_fallback``,
+    matched against the map's objects (:func:`match_to_map`, no gyroscope: another session). ``prior`` (a
     localization track's prediction): only poses it admits, and ``stream_min_explained``
     detections explained suffice."""
     why = why if why is not None else []
@@ -176,14 +179,10 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
                    'registered keyframes')
         return None
     found = _on_keyframes(query, index, matcher, config, matching, averaging, why, prior)
-    if found is not None or prior is not None:
-        return found
-    if config.points_fallback:
+    if found is None and prior is None and config.points_fallback:
         found = match_on_points(query, index, matching, config, why)
-        if found is not None or not config.map_fallback:
-            return found
-    if not config.map_fallback:
-        return None
+    if found is not None or not config.map_fallback or prior is not None:
+        return found
     match = match_to_map(query, index, matching, config)
     if match is None or not match.accepted(config, len(query), gyroscope=False):
         why.append('matching the map\'s objects found no unique verified pose' if match is None or match.explained
@@ -246,9 +245,7 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         why.append(f'the verified keyframes agree on no pose with {config.min_inliers} query objects')
         return None
     count, support_, pose, best, members = max(hypotheses, key=lambda h: h[:2])
-    # all of a small query's detections, but never only the two a pose can be built from: they verify nothing
-    need = (max(min(config.min_explained, len(query)), min(config.min_explained, 3)) if prior is None
-            else min(config.stream_min_explained, len(query)))
+    need = _needed(config, len(query)) if prior is None else min(config.stream_min_explained, len(query))
     if count < need:
         why.append(f'verification against the map failed: the best pose explains {count} of the query\'s '
                    f'{len(query)} detections; need {need}')
@@ -260,6 +257,13 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         pose = _with_surfaces(final, keyframes[k], query, matching).pose.inverse() @ poses[k]
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count,
                           runner_up)
+
+
+def _needed(config: RelocalizationConfig, detections: int) -> int:
+    """Detections a pose found without a track's prior must explain in the whole map
+    (``min_explained``): all of a small query's, but never only the two a pose can be built
+    from: they verify nothing."""
+    return max(min(config.min_explained, detections), min(config.min_explained, 3))
 
 
 def _with_surfaces(rel: RelativePose, keyframe, query, matching: MatchingConfig, points: bool = True) -> RelativePose:
@@ -460,7 +464,7 @@ def match_on_points(query: FrameObservations, index: MapIndex, matching: Matchin
     found.sort(key=lambda f: (-f[0], -f[1]))
     count, _, pose = found[0]
     runner_up = max((f[0] for f in found[1:] if not _same(f[2].inverse(), pose.inverse(), config)), default=0)
-    need = max(min(config.min_explained, len(query)), min(config.min_explained, 3))
+    need = _needed(config, len(query))
     if count < need or count <= runner_up:
         why.append(f'the map\'s depth points place the query where it explains {count} of its {len(query)} '
                    f'detections (need {need}, and more than the {runner_up} of another pose)')
