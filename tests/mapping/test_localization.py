@@ -1,6 +1,8 @@
 """Localization mode as a stream (rfm_core.mapping.localization): a track, confirmation by a
 later frame, kidnapping; the whole-map check's floor of three explained detections; the floor
-and walls in relocalized poses; the classical matcher where the learned one places nothing."""
+and walls in relocalized poses; the classical matcher where the learned one places nothing;
+depth points: a frame of a track, a frame no keyframe saw all of, the frames before a new
+track, a view no keyframe places (from the map's objects)."""
 import copy
 from dataclasses import replace
 
@@ -11,10 +13,11 @@ from rfm_core.evaluation.pipeline import run_capture
 from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
 from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.map_io import load_map, save_map
-from rfm_core.mapping.mapper import Mapper
+from rfm_core.mapping.mapper import Mapper, MapperConfig
 from rfm_core.mapping.relocalization import MotionPrior
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.observations import FrameObservations
+from rfm_core.session import MapSession
 from rfm_core.sim.capture import CaptureConfig
 
 SCENE = CaptureConfig(seed=40, frames=50, fps=5)
@@ -329,9 +332,9 @@ def test_a_view_no_keyframe_places_is_placed_by_the_maps_objects_and_depth_point
     matcher proposes a match): a box correspondence with the map's objects brings it near,
     the map's depth points place it, within a centimetre of where it is (no object inliers).
     Without depth points, or with the fallback off, it is refused: no keyframe verified it."""
-    mapper = Mapper(matcher=_MatchesNothing())
-    load_map(mapper, saved)
-    mapper.mode = 'localization'
+    session = MapSession(MapperConfig(), matcher=_MatchesNothing())      # as the mapper node's rfm/relocalize
+    session.load(saved)
+    mapper = session.mapper
     room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
     for k, pose in mapper.poses.items():
         mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
@@ -347,13 +350,14 @@ def test_a_view_no_keyframe_places_is_placed_by_the_maps_objects_and_depth_point
                    full_boxes=None if kf.full_boxes is None else step.transform_boxes(kf.full_boxes),
                    walls=np.zeros((0, 3)), camera_height=float('nan'),
                    cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
-    found = mapper.relocalize(view)
-    assert found is not None and found.num_inliers == 0 and found.explained >= min(4, len(view))
+    found, message = session.relocalize(view)
+    assert found is not None and found.num_inliers == 0 and found.explained >= min(4, len(view)), message
     assert _close(found.pose, truth, metres=0.01, degrees=0.2)
+    assert "on the map's depth points" in message
     why = []
     assert mapper.relocalize(replace(view, cloud=np.zeros((0, 3), np.float32)), why) is None
     assert 'no candidate keyframe' in why[-1]
     mapper.config = replace(mapper.config, relocalization=replace(reloc, classical_fallback=False,
                                                                   points_fallback=False))
-    why = []
-    assert mapper.relocalize(view, why) is None and 'no candidate keyframe' in why[-1]
+    found, message = session.relocalize(view)
+    assert found is None and 'no candidate keyframe' in message and 'depth points' not in message

@@ -355,8 +355,11 @@ class MapSession:
         took = f' ({1e3 * seconds:.0f} ms)'
         if reloc is None:
             self.counts['relocalize_failed'] += 1
-            return None, (why[0] if why else 'no pose found') + took
+            return None, ('; then '.join(why) if why else 'no pose found') + took
         self.counts['relocalized'] += 1
+        if not reloc.num_inliers:           # no keyframe verified it: the map's objects and depth points did
+            return reloc, (f'relocalized on the map\'s depth points from its objects (nearest keyframe '
+                           f'{reloc.keyframe_id}): {reloc.explained} detections explained by the map{took}')
         return reloc, (f'relocalized against keyframe {reloc.keyframe_id}: {reloc.num_inliers} inliers, '
                        f'{reloc.agreeing} agreeing keyframes, {reloc.explained} detections explained by the '
                        f'map{took}')
