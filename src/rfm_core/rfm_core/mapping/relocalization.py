@@ -170,9 +170,9 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
     keyframe verified a pose), or None (and the reason appended to ``why``). Against
     keyframes first; a query no keyframe places is then placed by the map's objects and its
     depth points (``points_fallback``: :func:`match_on_points`) and, with ``map_fallback``,
-    matched against the map's objects (:func:`match_to_map`, no gyroscope: another session). ``prior`` (a
-    localization track's prediction): only poses it admits, and ``stream_min_explained``
-    detections explained suffice."""
+    matched against the map's objects (:func:`match_to_map`, no gyroscope: another
+    session). ``prior`` (a localization track's prediction): only poses it admits, and
+    ``stream_min_explained`` detections explained suffice."""
     why = why if why is not None else []
     if len(query) < 2 or not index.poses:
         why.append(f'the query has {len(query)} detections; need >= 2' if index.poses else 'the map has no '
@@ -382,11 +382,10 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
         why.append('fewer than two detections, or no map to match')
         return None
     qb = np.asarray(query.map_boxes, float)
-    hypotheses = _map_hypotheses(query, index, matching, config, yaw_prior)
+    hypotheses, compatible = _map_hypotheses(query, index, matching, config, yaw_prior)
     if hypotheses is None:
         why.append('no detection the size of a mapped object')
         return None
-    compatible = size_similarity(qb, index.boxes) >= matching.size_ratio_gate
     found = []                                  # (explained, inliers, T_view_map, keyframe, relative)
     for t_map_view in hypotheses:
         result = _verify(query, t_map_view, qb, compatible, index, matching, config)
@@ -404,14 +403,15 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
 
 
 def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: MatchingConfig,
-                    config: RelocalizationConfig, yaw_prior: float | None = None) -> list | None:
+                    config: RelocalizationConfig, yaw_prior: float | None = None) -> tuple:
     """:func:`match_to_map`'s pose hypotheses (T_map_view), most supported first, at most
-    ``config.map_hypotheses`` distinct ones (None: no detection the size of a mapped object)."""
+    ``config.map_hypotheses`` distinct ones (None: no detection the size of a mapped object),
+    and the (query box, track) size compatibility they were found with."""
     qb = np.asarray(query.map_boxes, float)
     tb = index.boxes
     ii, jj = index.similar(qb, query.embeddings, matching.size_ratio_gate, config.map_correspondences)
     if not len(ii):
-        return None
+        return None, None
     if yaw_prior is not None:
         yaws = np.full((len(ii), 1), float(yaw_prior))
     else:                                       # box yaws are known up to quarter turns
@@ -430,7 +430,7 @@ def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: Matchin
         t_map_view = Pose4(float(hy[h]), trans[h])
         if not any(_same(t_map_view, other, config) for other in tried):
             tried.append(t_map_view)
-    return tried
+    return tried, compatible
 
 
 def match_on_points(query: FrameObservations, index: MapIndex, matching: MatchingConfig,
@@ -449,7 +449,7 @@ def match_on_points(query: FrameObservations, index: MapIndex, matching: Matchin
     why = why if why is not None else []
     if not matching.point_tracking or not len(query.cloud) or len(query) < 2 or not index.tracks:
         return None                             # nothing to try: the reason stays the keyframes'
-    hypotheses = _map_hypotheses(query, index, matching, config) or []
+    hypotheses = _map_hypotheses(query, index, matching, config)[0] or []
     found = []                                  # (explained, overlap, T_view_map)
     for t_map_view in hypotheses[:config.point_hypotheses]:
         a = track_on_points(t_map_view, index.cloud_near(t_map_view.t), query, matching)
