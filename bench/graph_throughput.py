@@ -2,12 +2,13 @@
 
 Replays one bag through `rfm run` several times for each variant (``NAME=--param settings``,
 runs alternating so machine load falls on all alike) and reports medians: frames processed
-and localized (of all the bag's colour frames), ARE/ATE when the bag has ground truth, and,
-in one process, the CPU seconds of each thread (the detector's worker, each node's executor):
-in one process the nodes share one interpreter lock, so these say what the frames wait for.
+and localized (of all the bag's colour frames), ARE/ATE when the bag has ground truth, and
+the CPU seconds of each node's process (with --no-processes: of each thread, the detector's
+worker and each node's executor; in one process the nodes share one interpreter lock, so
+these say what the frames wait for).
 
     ros_ws/env.sh python bench/graph_throughput.py --bag bags/demo --runs 5 \\
-        --variant "default=" --variant "IMU per sample=detector.imu_poll_period_s:=0" [--processes]
+        --variant "default=" --variant "IMU per sample=detector.imu_poll_period_s:=0" [--no-processes]
 """
 import argparse
 import json
@@ -23,7 +24,7 @@ from pathlib import Path
 def run_once(bag: str, params: list, processes: bool, work: Path) -> dict:
     out = work / 'out'
     cmd = ['rfm', 'run', '--bag', bag, '--output', str(out), '--force', '--quiet']
-    cmd += ['--processes'] if processes else []
+    cmd += ['--processes' if processes else '--no-processes']
     cmd += ['--param', *params] if params else []
     env = dict(os.environ, ROS_DOMAIN_ID=str(random.randint(100, 200)))
     subprocess.run(cmd, check=True, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -36,7 +37,8 @@ def main():
     parser.add_argument('--runs', type=int, default=3, help='runs per variant')
     parser.add_argument('--variant', action='append', metavar='NAME=PARAMS',
                         help="a name and the --param settings of rfm run (space separated; none: '')")
-    parser.add_argument('--processes', action='store_true', help='rfm run --processes')
+    parser.add_argument('--processes', action=argparse.BooleanOptionalAction, default=True,
+                        help="rfm run's nodes as processes (its default) or, --no-processes, in one process")
     args = parser.parse_args()
     variants = [v.partition('=') for v in args.variant or ['default=']]
     variants = [(name, params.split()) for name, _, params in variants]
@@ -52,7 +54,8 @@ def main():
     frames = results[variants[0][0]][0]['input_frames'] or 1
     mode = '--processes' if args.processes else 'one process'
     print(f'# {args.bag}, {frames} colour frames, {mode}, {args.runs} runs per variant (median [min-max])')
-    print('| variant | frames processed | frames localized | ARE (deg) | ATE (cm) | CPU s per thread (median) |')
+    print('| variant | frames processed | frames localized | ARE (deg) | ATE (cm) '
+          '| CPU s per process or thread (median) |')
     print('|---|---|---|---|---|---|')
 
     def spread(values, fmt='{:.0f}'):

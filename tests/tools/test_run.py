@@ -3,6 +3,7 @@ import json
 import re
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,8 +32,7 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     out = tmp_path / 'out'
     cmd = [shutil.which('rfm'), 'run', '--bag', str(short_bag), '--output', str(out), '--backend', 'ground_truth',
            '--quiet', '--settle', '2']
-    if processes:
-        cmd.append('--processes')
+    cmd.append('--processes' if processes else '--no-processes')
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for name in ('map.rfm', 'trajectory.tum', 'objects.json', 'report.md', 'top_down.png',
@@ -56,6 +56,10 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     with AnyReader([out / 'outputs.mcap']) as reader:
         topics = {c.topic for c in reader.connections}
     assert {'/rfm/detections', '/rfm/keyframes', '/rfm/object_map', '/rfm/keyframe_poses'} <= topics
+    # what each node counted, in either mode (as processes: from their /diagnostics)
+    summary = json.loads((out / 'summary.json').read_text())
+    assert summary['received'] >= 0.9 * 40 and summary['points_only'] == 0, summary
+    assert summary['matcher_frames']['processed'] >= 0.9 * 40 and summary['cpu_s_by_thread'], summary
 
 
 def test_rfm_run_parameters_are_typed_and_reach_every_node_that_has_them(tmp_path):
@@ -131,6 +135,46 @@ def test_rfm_run_on_a_bag_without_ground_truth_writes_every_output(short_bag, tm
     mapper = Mapper()
     load_map(mapper, out / 'map.rfm')
     assert len(mapper.frame_poses()) == len(tum)
+
+
+def _children(pid: int) -> list:
+    """The processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            if int(stat.read_text().rsplit(')', 1)[1].split()[1]) == pid:
+                out.append(int(stat.parent.name))
+        except (OSError, IndexError, ValueError):
+            pass
+    return out
+
+
+@pytest.mark.slow
+def test_rfm_run_stopped_by_sigterm_writes_its_outputs_and_stops_its_nodes(tmp_path):
+    """`kill` / `docker stop` / systemd stop `rfm run` with SIGTERM: like Ctrl-C, the map and
+    the report are written and the three node processes are stopped, none left running
+    (before: rfm run died at once and its nodes kept running)."""
+    import signal
+    import time
+    out = tmp_path / 'out'
+    proc = subprocess.Popen([shutil.which('rfm'), 'run', '--live', '--output', str(out), '--quiet'],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        log, deadline = out / 'mapper.log', time.monotonic() + 90
+        while not (log.is_file() and 'mapper ready' in log.read_text()):
+            assert proc.poll() is None and time.monotonic() < deadline, 'the mapper did not start'
+            time.sleep(0.2)
+        nodes = _children(proc.pid)
+        assert len(nodes) >= 3, nodes
+        time.sleep(2.0)                           # the graph is up (rfm run waits for all three)
+        proc.send_signal(signal.SIGTERM)
+        text, _ = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 0, text[-3000:]
+    assert (out / 'map.rfm').is_file() and (out / 'report.md').is_file(), text[-3000:]
+    assert not [p for p in nodes if Path(f'/proc/{p}').exists()], 'node processes left running'
 
 
 def test_rfm_run_says_what_a_bag_lacks(short_bag, user_bag, tmp_path):

@@ -9,7 +9,7 @@
     rfm eval-matching [--inputs depth_clusters ground_truth:rgbd ...] [--matchers learned classical]
     rfm train-depth-score [--scenes 32 --first-seed 3000]
     rfm train-matcher [--backend depth_clusters|ground_truth] [--scenes 60 --first-seed 3000]
-    rfm run --bag BAG | --live [--backend depth_clusters --processes --output DIR ...]
+    rfm run --bag BAG | --live [--backend depth_clusters --no-processes --output DIR ...]
     rfm eval [--scenes 20 --jobs 2]
     rfm eval-reloc [--detector depth_clusters --scenes 10 --jobs 2 --offline]
 
@@ -767,7 +767,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--matcher', default='learned', choices=('learned', 'classical'))
     p.add_argument('--posed', action='store_true',
                    help="posed mapping: poses from the bag's /ground_truth/camera_pose (as rfm/external_pose)")
-    p.add_argument('--processes', action='store_true', help='run the nodes as separate processes')
+    p.add_argument('--processes', action=argparse.BooleanOptionalAction, default=True,
+                   help='the nodes as three processes over DDS (the default: no node waits for another\'s '
+                        'interpreter lock); --no-processes: all in this process (one interpreter, less memory)')
     p.add_argument('--rate', type=float, default=1.0, help='bag playback speed')
     p.add_argument('--remap', nargs='+', metavar='FROM:=TO',
                    help='detector input remaps (defaults: RealSense-style /camera/... and /imu/data)')

@@ -1,8 +1,8 @@
 """`rfm run`: the detector -> matcher -> mapper graph on a bag or a live camera.
 
-In one process (each node on its own executor thread, the default) or, with ``--processes``, as three
-node processes talking over DDS. With ``--bag`` the bag is replayed by ``rfm play`` (with
-``/clock``; the nodes use sim time); when it ends, the graph is given time to settle, the
+As three node processes talking over DDS (the default) or, with ``--no-processes``, in one
+process (each node on its own executor thread). With ``--bag`` the bag is replayed by ``rfm
+play`` (with ``/clock``; the nodes use sim time); when it ends, the graph is given time to settle, the
 map is saved, and the output folder is written: ``map.rfm``, ``trajectory.tum``,
 ``keyframes.tum``, ``objects.json``, ``outputs.mcap/`` (the output topics, for Foxglove),
 ``report.md``, ``summary.json`` (the report's numbers) and ``top_down.png`` (with the ground
@@ -79,6 +79,9 @@ def _params(args, output: Path) -> dict:
                 nodes[n][param] = setting.check(value if setting.kind == 'str' else _parse_value(value))
             except ValueError as exc:
                 raise SystemExit(f'rfm run: --param {item!r}: {n}.{exc}') from None
+    # the run's map is saved into the output folder (by rfm/save_map with --processes), also when
+    # map_path names a map loaded from elsewhere (localization mode)
+    mapper.setdefault('map_dir', str(output.resolve()))
     return nodes
 
 
@@ -248,24 +251,31 @@ def _thread_cpu_seconds() -> dict:
     """CPU seconds spent so far by each thread of this process, by thread name (the
     detector's worker, each node's executor, ...; Linux only, else empty). In one process
     the nodes share one interpreter lock: these say which node the frames wait for."""
-    out = {}
-    for thread in threading.enumerate():
-        try:
-            with open(f'/proc/self/task/{thread.native_id}/stat') as f:
-                fields = f.read().rsplit(')', 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        out[thread.name] = round((int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK'), 2)
-    return out
+    seconds = {t.name: _cpu_seconds(f'/proc/self/task/{t.native_id}/stat') for t in threading.enumerate()}
+    return {k: v for k, v in seconds.items() if v is not None}
+
+
+def _cpu_seconds(stat_path: str) -> float | None:
+    """User + system CPU seconds of a process or thread from its /proc stat file (None where
+    there is none)."""
+    try:
+        with open(stat_path) as f:
+            fields = f.read().rsplit(')', 1)[1].split()
+        return round((int(fields[11]) + int(fields[12])) / os.sysconf('SC_CLK_TCK'), 2)
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 class _ProcessGraph:
-    """The three nodes as separate processes (proves the graph over DDS)."""
+    """The three nodes as separate processes talking over DDS (the default: each node has its
+    own interpreter, so none waits for another's lock). What they count comes from the
+    detector's and the matcher's /diagnostics and the mapper's rfm/status."""
 
     def __init__(self, params: dict, remaps: dict, log_dir: Path, detections):
         """``detections``: a callable giving the number of rfm/detections messages seen so far
         (the detector runs elsewhere; the recorder counts them)."""
         from ament_index_python.packages import get_package_prefix  # noqa: PLC0415
+        from diagnostic_msgs.msg import DiagnosticArray  # noqa: PLC0415
         from rclpy.node import Node  # noqa: PLC0415
         from rfm_msgs.msg import MapperStatus  # noqa: PLC0415
 
@@ -281,17 +291,31 @@ class _ProcessGraph:
                     cmd += ['-r', f'{a}:={b}']
             log = open(log_dir / f'{exe}.log', 'w')
             self.logs.append(log)
-            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT))
+            # a session of its own: a terminal's Ctrl-C reaches rfm run alone, which saves the map, then stops them
+            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
         self.node = Node('rfm_run')
         self.status = None
         self.detections = detections
+        self.diagnostics = {}                      # status name -> {key: value} (the latest)
         self.node.create_subscription(MapperStatus, 'rfm/status', self._on_status, 10)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
         from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
 
     def _on_status(self, msg):
         self.status = msg
+
+    def _on_diagnostics(self, msg):
+        for status in msg.status:
+            if status.name in ('rfm detector', 'rfm matcher'):
+                values = {}
+                for kv in status.values:
+                    try:
+                        values[kv.key] = int(kv.value)
+                    except ValueError:
+                        pass
+                self.diagnostics[status.name] = values
 
     def add(self, node):
         self.executor.add_node(node)
@@ -313,12 +337,30 @@ class _ProcessGraph:
     def progress(self) -> dict:
         s = self.status
         n = self.detections()
-        return {'frames': n, 'dropped': 0, 'detections': n,
-                'keyframes': s.num_keyframes if s else 0, 'registered': s.num_registered if s else 0,
+        detector, matcher = self.diagnostics.get('rfm detector'), self.diagnostics.get('rfm matcher')
+        counts = {'dropped': 0}
+        if detector:          # the detector's counters, as the one-process graph reads them (to the last second)
+            keys = dict(busy='dropped_busy', invalid='dropped_invalid', no_gravity='dropped_no_gravity',
+                        out_of_order='dropped_out_of_order', every_nth='skipped_nth',
+                        unsynchronised='dropped_unsynchronised')
+            dropped = {reason: detector.get(key, 0) for reason, key in keys.items()}
+            counts = {'received': detector.get('received'), 'points_only': detector.get('points_only'),
+                      'dropped': sum(dropped.values()), 'dropped_by_reason': dropped}
+        if matcher:
+            counts['matcher_frames'] = {k: matcher.get(k, 0) for k in ('received', 'processed', 'shed', 'lost')}
+        return {'frames': max(n, detector.get('processed', 0) if detector else 0), 'detections': n,
+                **counts, 'keyframes': s.num_keyframes if s else 0, 'registered': s.num_registered if s else 0,
                 'objects': s.num_objects if s else 0, 'lost': s.num_lost if s else 0, 'busy': False,
                 'relocalization': {'queries': s.num_relocalize_queries, 'relocalized': s.num_relocalized,
                                    'median_ms': 1e3 * s.relocalize_seconds_median,
-                                   'p95_ms': 1e3 * s.relocalize_seconds_p95} if s else {}}
+                                   'p95_ms': 1e3 * s.relocalize_seconds_p95} if s else {},
+                'cpu_s': self._cpu_seconds()}
+
+    def _cpu_seconds(self) -> dict:
+        """CPU seconds spent so far by each node's process (Linux only, else empty)."""
+        seconds = {name: _cpu_seconds(f'/proc/{p.pid}/stat') for name, p in zip(('detector', 'matcher', 'mapper'),
+                                                                                 self.procs)}
+        return {k: v for k, v in seconds.items() if v is not None}
 
     def save(self, path) -> bool:
         from rfm_msgs.srv import SaveMap  # noqa: PLC0415
@@ -356,8 +398,13 @@ def _bag_extent(bag, remaps: dict) -> tuple:
         return (reader.end_time - reader.start_time) / 1e9, frames
 
 
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
 def run_graph(args) -> int:
     import rclpy  # noqa: PLC0415
+    from rclpy.signals import SignalHandlerOptions  # noqa: PLC0415
 
     from rfm_bringup.recorder import BagRecorder  # noqa: PLC0415
 
@@ -376,7 +423,10 @@ def run_graph(args) -> int:
     if output.exists():
         shutil.rmtree(output)
     output.mkdir(parents=True)
-    rclpy.init()
+    # Ctrl-C, and kill / docker stop / systemd's SIGTERM, end the loop below; the context stays valid
+    # until the map is saved (rclpy's own handlers would shut it down first) and then the nodes are stopped
+    signal.signal(signal.SIGTERM, _interrupt)
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
     graph = recorder = player = done_at = None
     interrupted = False
     start = time.monotonic()
@@ -421,7 +471,9 @@ def run_graph(args) -> int:
             # player's own start-up and shut-down are not processing)
             if play_start is None and state['frames'] > 0:
                 play_start = now
-            key = (state['frames'], state['keyframes'], state['registered'])
+            # (with --processes the matcher's count says it still works through a queue)
+            key = (state['frames'], state['keyframes'], state['registered'],
+                   (state.get('matcher_frames') or {}).get('received'))
             if key != last_state or state['busy']:
                 last_state, settle_since = key, now
             if player is not None and player.poll() is None:

@@ -111,6 +111,8 @@ class MatcherNodeConfig:
                                     lo=0.0, hi=60.0)
     queue_depth: int = setting(300, 'rfm/detections messages held for the matcher (10 s of a 30 Hz camera); '
                                'beyond it the oldest are lost', lo=1, hi=100000, read_only=True)
+    diagnostics_period_s: float = setting(1.0, 'Period of /diagnostics (frames received, processed, skipped, lost; '
+                                          'keyframes, edges) (s)', lo=0.1, hi=60.0, read_only=True)
     matching: MatchingConfig = section(MatchingConfig, 'object matching and verification (paper 3.2-3.4)')
     keyframes: KeyframeConfig = section(KeyframeConfig, 'keyframes, candidates, motion prior, tracking')
 

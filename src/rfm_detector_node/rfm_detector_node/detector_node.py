@@ -102,7 +102,8 @@ class DetectorNode(Node):
             else:
                 self.create_subscription(Imu, 'imu', self._on_imu, sensor)
             inputs += ', imu' if self.backend != 'ground_truth' else ', imu (optional)'
-        self.create_timer(self.diagnostics_period, self._publish_diagnostics)
+        self.create_timer(self.diagnostics_period, self._publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))          # also while a bag pauses
         self.points_only = cfg.points_only_when_behind and self.detector.needs_depth and cfg.cloud_voxel_m > 0
         self.worker = FrameWorker(self._work, self._replaced, name='detector_worker',
                                   backlog=cfg.points_only_backlog if self.points_only else 1)

@@ -5,7 +5,8 @@ Subscribes rfm/detections (rfm_msgs/FrameDetections). Publishes rfm/keyframes
 (rfm_msgs/Keyframe) and rfm/view_graph/edges (rfm_msgs/ViewGraphEdge), reliable and
 transient local with deep queues (the last GRAPH_HISTORY are kept, so a mapper that starts or
 restarts later still gets them; numbered, so the mapper counts what it missed), and
-rfm/tracked_frames (rfm_msgs/TrackedFrame), one per localized frame. An edge's (yaw,
+rfm/tracked_frames (rfm_msgs/TrackedFrame), one per localized frame, and /diagnostics
+(frames received, processed, skipped under load, lost; keyframes, edges). An edge's (yaw,
 translation) is T_source_target, between the gravity-aligned camera frames of its
 keyframes; its inliers pair detection indices of the source and target keyframes.
 
@@ -18,6 +19,8 @@ import sys
 import time
 
 import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
@@ -58,6 +61,9 @@ class MatcherNode(Node):
         self.shedder = FrameShedder(cfg.shed_after_s, cfg.shed_max_gap_s)
         self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
                                  QoSProfile(depth=cfg.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
+                          clock=Clock(clock_type=ClockType.STEADY_TIME))          # also while a bag pauses
         self.get_logger().info(f'matcher ready ({cfg.matcher} object matcher): rfm/detections -> rfm/keyframes, '
                                'rfm/view_graph/edges, rfm/tracked_frames')
 
@@ -99,6 +105,18 @@ class MatcherNode(Node):
             self.edge_pub.publish(self._numbered(edge_msg(edge, obs.stamp_ns)))
         if track is not None:            # after its keyframe, so the mapper knows the keyframe
             self.track_pub.publish(self._numbered(tracked_frame_to_msg(track)))
+
+    def _publish_diagnostics(self) -> None:
+        counts = self.shedder.counts
+        status = DiagnosticStatus(name='rfm matcher', hardware_id=self.config.matcher)
+        status.level = DiagnosticStatus.WARN if counts['lost'] else DiagnosticStatus.OK
+        status.message = f'{counts["processed"]} of {counts["received"]} frames processed'
+        stats = self.graph.stats
+        values = dict(counts, keyframes=stats.keyframes, edges=self.sequence[ViewGraphEdge])
+        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        msg = DiagnosticArray(status=[status])
+        msg.header.stamp = self.get_clock().now().to_msg()
+        self.diag_pub.publish(msg)
 
     def _numbered(self, msg):
         self.sequence[type(msg)] += 1
