@@ -29,11 +29,11 @@ def short_bag(tmp_path_factory):
 @pytest.mark.slow
 @pytest.mark.parametrize('processes', [False, True], ids=['one-process', 'processes'])
 def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_path, processes):
-    out = tmp_path / 'out'
-    cmd = [shutil.which('rfm'), 'run', '--bag', str(short_bag), '--output', str(out), '--backend', 'ground_truth',
-           '--quiet', '--settle', '2']
+    out = tmp_path / 'runs' / 'out'
+    cmd = [shutil.which('rfm'), 'run', '--bag', str(short_bag), '--output', 'runs/out', '--backend', 'ground_truth',
+           '--quiet', '--settle', '2']          # a relative output folder, as make demo gives
     cmd.append('--processes' if processes else '--no-processes')
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240)
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for name in ('map.rfm', 'trajectory.tum', 'objects.json', 'report.md', 'top_down.png',
                  'outputs.mcap/metadata.yaml'):

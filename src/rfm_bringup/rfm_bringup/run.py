@@ -367,7 +367,8 @@ class _ProcessGraph:
         client = self.node.create_client(SaveMap, 'rfm/save_map')
         if not client.wait_for_service(timeout_sec=20):
             return False
-        future = client.call_async(SaveMap.Request(path=str(path)))
+        # absolute: the mapper takes a relative path inside its map_dir
+        future = client.call_async(SaveMap.Request(path=str(Path(path).resolve())))
         deadline = time.monotonic() + 60
         while not future.done() and time.monotonic() < deadline:
             time.sleep(0.05)
