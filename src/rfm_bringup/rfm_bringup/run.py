@@ -23,6 +23,7 @@ import threading
 import time
 from pathlib import Path
 
+from rfm_core.detection.frontend import DROP_COUNTERS
 from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
 
 __all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
@@ -224,8 +225,14 @@ class _InProcessGraph:
                 'keyframes': self.matcher.graph.stats.keyframes,
                 'registered': len(mp.poses), 'objects': self.mapper.num_objects, 'lost': self.mapper.num_lost,
                 'relocalization': self.mapper.session.relocalize_latency(),
-                'busy': self.mapper.session.dirty or not self.detector.worker.idle,
-                'cpu_s': _thread_cpu_seconds()}
+                'busy': self.mapper.session.dirty or not self.detector.worker.idle}
+
+    def cpu_seconds(self) -> dict:
+        """CPU seconds spent so far by each thread of this process, by thread name (the
+        detector's worker, each node's executor, ...; Linux only, else empty). In one process
+        the nodes share one interpreter lock: these say which node the frames wait for."""
+        seconds = {t.name: _cpu_seconds(f'/proc/self/task/{t.native_id}/stat') for t in threading.enumerate()}
+        return {k: v for k, v in seconds.items() if v is not None}
 
     def save(self, path) -> bool:
         """Save the map once the nodes have stopped spinning: no callback changes the map
@@ -245,14 +252,6 @@ class _InProcessGraph:
         self._halt()
         for node in (self.detector, self.matcher, self.mapper):
             node.destroy_node()
-
-
-def _thread_cpu_seconds() -> dict:
-    """CPU seconds spent so far by each thread of this process, by thread name (the
-    detector's worker, each node's executor, ...; Linux only, else empty). In one process
-    the nodes share one interpreter lock: these say which node the frames wait for."""
-    seconds = {t.name: _cpu_seconds(f'/proc/self/task/{t.native_id}/stat') for t in threading.enumerate()}
-    return {k: v for k, v in seconds.items() if v is not None}
 
 
 def _cpu_seconds(stat_path: str) -> float | None:
@@ -340,10 +339,8 @@ class _ProcessGraph:
         detector, matcher = self.diagnostics.get('rfm detector'), self.diagnostics.get('rfm matcher')
         counts = {'dropped': 0}
         if detector:          # the detector's counters, as the one-process graph reads them (to the last second)
-            keys = dict(busy='dropped_busy', invalid='dropped_invalid', no_gravity='dropped_no_gravity',
-                        out_of_order='dropped_out_of_order', every_nth='skipped_nth',
-                        unsynchronised='dropped_unsynchronised')
-            dropped = {reason: detector.get(key, 0) for reason, key in keys.items()}
+            dropped = {reason: detector.get(key, 0) for reason, key in DROP_COUNTERS.items()}
+            dropped['unsynchronised'] = detector.get('dropped_unsynchronised', 0)
             counts = {'received': detector.get('received'), 'points_only': detector.get('points_only'),
                       'dropped': sum(dropped.values()), 'dropped_by_reason': dropped}
         if matcher:
@@ -353,10 +350,9 @@ class _ProcessGraph:
                 'objects': s.num_objects if s else 0, 'lost': s.num_lost if s else 0, 'busy': False,
                 'relocalization': {'queries': s.num_relocalize_queries, 'relocalized': s.num_relocalized,
                                    'median_ms': 1e3 * s.relocalize_seconds_median,
-                                   'p95_ms': 1e3 * s.relocalize_seconds_p95} if s else {},
-                'cpu_s': self._cpu_seconds()}
+                                   'p95_ms': 1e3 * s.relocalize_seconds_p95} if s else {}}
 
-    def _cpu_seconds(self) -> dict:
+    def cpu_seconds(self) -> dict:
         """CPU seconds spent so far by each node's process (Linux only, else empty)."""
         seconds = {name: _cpu_seconds(f'/proc/{p.pid}/stat') for name, p in zip(('detector', 'matcher', 'mapper'),
                                                                                  self.procs)}
@@ -488,7 +484,7 @@ def run_graph(args) -> int:
         wall = (done_at or time.monotonic()) - (play_start or start)
         if not args.quiet:
             sys.stderr.write('\n')
-        cpu = graph.progress().get('cpu_s', {}) if graph is not None else {}     # while the threads run
+        cpu = graph.cpu_seconds() if graph is not None else {}     # while the threads run
         ok = graph.save(output / 'map.rfm') if graph is not None else False
         final = dict(graph.progress(), cpu_s=cpu) if graph is not None else {}
         if recorder is not None:

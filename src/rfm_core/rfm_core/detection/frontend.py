@@ -30,9 +30,13 @@ from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_m
 from rfm_core.io.sync import ApproximateTimeSynchronizer
 from rfm_core.observations import FrameObservations
 
-__all__ = ['DetectorFrontend', 'FrameWorker', 'TIME_JUMP_NS']
+__all__ = ['DetectorFrontend', 'FrameWorker', 'TIME_JUMP_NS', 'DROP_COUNTERS']
 
 TIME_JUMP_NS = 2_000_000_000      #: a stamp this much older than the last one: the bag looped
+#: the counter (in ``counts`` and on /diagnostics) behind each reason :meth:`DetectorFrontend.dropped`
+#: gives, but ``unsynchronised``
+DROP_COUNTERS = dict(busy='dropped_busy', invalid='dropped_invalid', no_gravity='dropped_no_gravity',
+                     out_of_order='dropped_out_of_order', every_nth='skipped_nth')
 
 
 class DetectorFrontend:
@@ -164,8 +168,7 @@ class DetectorFrontend:
         c = self.counts
         entered = c['received'] - c['dropped_out_of_order']
         unsynchronised = max(entered - self._synced, 0) if self.sync is not None else 0
-        return dict(busy=c['dropped_busy'], invalid=c['dropped_invalid'], no_gravity=c['dropped_no_gravity'],
-                    out_of_order=c['dropped_out_of_order'], every_nth=c['skipped_nth'], unsynchronised=unsynchronised)
+        return dict({reason: c[key] for reason, key in DROP_COUNTERS.items()}, unsynchronised=unsynchronised)
 
 
 class FrameWorker:
