@@ -29,7 +29,8 @@ import time  # noqa: E402
 import torch  # noqa: E402
 
 from rfm_core.detection import make_detector  # noqa: E402
-from rfm_core.mapping.mapper import EdgeRecord, Mapper  # noqa: E402
+from rfm_core.mapping.mapper import Mapper  # noqa: E402
+from rfm_core.observations import EdgeRecord
 from rfm_core.matching.factory import make_matcher  # noqa: E402
 from rfm_core.matching.view_graph import ViewGraphBuilder  # noqa: E402
 from rfm_core.sim.capture import Capture, CaptureConfig  # noqa: E402

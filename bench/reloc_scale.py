@@ -62,7 +62,8 @@ def main() -> int:
     from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.geometry import Pose4  # noqa: PLC0415
     from rfm_core.mapping.localization import StreamLocalizer  # noqa: PLC0415
-    from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig  # noqa: PLC0415
+    from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
+    from rfm_core.observations import EdgeRecord  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 

@@ -1,6 +1,6 @@
-"""Layering of rfm_core: the runtime (detection, matching, mapping) never imports the
-simulator, the evaluation or training, no ROS anywhere, and no module imports a module that
-imports it back."""
+"""Layering of rfm_core: each layer imports only its own and lower ones (imports inside
+functions count), the runtime never imports the simulator, the evaluation or training, no
+ROS anywhere, and no module imports a module that imports it back."""
 import ast
 from pathlib import Path
 
@@ -31,6 +31,37 @@ def _imports(path: Path, top_level_only: bool) -> set:
 
 
 MODULES = {_module(p): p for p in PACKAGE.rglob('*.py')}
+#: lowest first: data types, then I/O, the per-frame stages, the map, the pipelines, the offline tools
+LAYERS = (('rfm_core.settings', 'rfm_core.geometry'), ('rfm_core.clouds', 'rfm_core.observations'), ('rfm_core.io',),
+          ('rfm_core.detection', 'rfm_core.matching'), ('rfm_core.mapping',),
+          ('rfm_core.session', 'rfm_core.mapper_core', 'rfm_core.config'),
+          ('rfm_core.sim', 'rfm_core.evaluation', 'rfm_core.training'))
+
+
+def _layer(module: str) -> int | None:
+    for i, names in enumerate(LAYERS):
+        if any(module == n or module.startswith(n + '.') for n in names):
+            return i
+    return None
+
+
+def _module_of(name: str) -> str:
+    """'pkg.module.symbol' -> 'pkg.module'."""
+    while name and name not in MODULES:
+        name = name.rpartition('.')[0]
+    return name
+
+
+def test_every_module_has_a_layer():
+    assert [m for m in MODULES if m != 'rfm_core' and _layer(m) is None] == []
+
+
+@pytest.mark.parametrize('name', sorted(m for m in MODULES if m != 'rfm_core'))
+def test_no_module_imports_a_higher_layer(name):
+    """Also imports inside functions: a lazy import hides a dependency, it does not remove it."""
+    up = sorted({d for d in map(_module_of, _imports(MODULES[name], top_level_only=False))
+                 if d and _layer(d) > _layer(name)})
+    assert not up, f'{name} (layer {_layer(name)}) imports {up}'
 
 
 @pytest.mark.parametrize('name', sorted(m for m in MODULES if m.split('.')[1:2] and m.split('.')[1] in RUNTIME))
@@ -48,17 +79,11 @@ def test_rfm_core_has_no_ros_imports():
 
 
 def test_no_import_cycles():
-    """Module-level imports form no cycle (a cycle makes import order matter and hides
-    layering mistakes)."""
+    """Imports, anywhere in a module, form no cycle (a cycle makes import order matter and
+    hides layering mistakes)."""
     graph = {}
     for name, path in MODULES.items():
-        deps = set()
-        for m in _imports(path, top_level_only=True):
-            while m and m not in MODULES:          # 'pkg.module.symbol' -> 'pkg.module'
-                m = m.rpartition('.')[0]
-            if m and m != name:
-                deps.add(m)
-        graph[name] = deps
+        graph[name] = {m for m in map(_module_of, _imports(path, top_level_only=False)) if m and m != name}
     state, stack = {}, []
 
     def visit(node):
@@ -76,3 +101,12 @@ def test_no_import_cycles():
     for node in sorted(graph):
         if node not in state:
             visit(node)
+
+
+def test_nodes_only_translate_messages():
+    """The nodes wire topics and services to rfm_core and translate messages; what they decide
+    lives in the core (the mapper's in rfm_core.mapper_core)."""
+    src = PACKAGE.parents[1]
+    lines = {name: len((src / f'rfm_{name}_node' / f'rfm_{name}_node' / f'{name}_node.py').read_text().splitlines())
+             for name in ('detector', 'matcher', 'mapper')}
+    assert lines['mapper'] <= 150 and max(lines.values()) <= 200, lines

@@ -138,8 +138,9 @@ def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
         # ... and each keeps serving good input: the matcher makes keyframes of good frames,
         # the mapper maps them
         from rfm_msgs.srv import SetMode
-        mapper._guarded(mapper._srv_set_mode)(SetMode.Request(mode=0), SetMode.Response())
-        mapper.session.reset()
+        set_mode = next(s for s in mapper.services if s.srv_name.endswith('/set_mode'))
+        set_mode.callback(SetMode.Request(mode=0), SetMode.Response())
+        mapper.core.session.reset()
         before = matcher.graph.stats.keyframes
         kf_sub = next(s for s in mapper.subscriptions if s.topic_name == '/rfm/keyframes')
         published = []
@@ -149,7 +150,7 @@ def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
         assert matcher.graph.stats.keyframes > before
         for msg in published:
             kf_sub.callback(msg)
-        assert len(mapper.mapper.keyframes) == len(published) >= 2
+        assert len(mapper.core.mapper.keyframes) == len(published) >= 2
     finally:
         for node in nodes:
             if isinstance(node, DetectorNode):

@@ -149,40 +149,6 @@ def test_gyroscope_yaw_edges_outvote_a_heavier_wrong_edge():
     assert 6 not in fused.poses and all((s, t) != (5, 6) for s, t in fused.active_edges())
 
 
-def test_edges_that_would_turn_the_registered_map_are_refused():
-    """Injected wrong edges: two halves of a walk (keyframes 0-29 and 30-59) joined by four
-    correct one-object edges; later three consistent but wrong edges (yaw 10 deg off, three
-    objects each, as from partial boxes seen from the other side of the room) arrive between
-    the halves. Boxes alone follow the heavier edges and turn half the map by 10 deg; with
-    ``max_map_turn_deg`` the full solve that would turn the registered keyframes is re-run
-    without them, the map stays, and they stay out of later solves."""
-    truth, edges, _ = synthetic_view_graph(60, seed=12, neighbours=3, loops=0.0, yaw_noise_deg=0.3,
-                                           translation_noise_m=0.01)
-    edges = [e for e in edges if not (e[0] < 30 <= e[1])]
-    edges += [(i, j, truth[i] @ truth[j].inverse(), 1.0) for i, j in ((27, 31), (28, 33), (29, 30), (26, 32))]
-    offset = Pose4(np.radians(10.0), (0.0, 0.0, 0.0))
-    wrong = [(i, j, truth[i] @ (offset @ truth[j]).inverse(), 3.0) for i, j in ((5, 45), (6, 47), (8, 50))]
-
-    def solve(limit):
-        inc, _ = _incremental(edges, 60, AveragingConfig(max_map_turn_deg=limit))
-        before = inc.poses
-        for s, t, p, w in wrong:
-            inc.add_edge(s, t, p, w)
-            inc.update()
-        inc.update(force_full=True)
-        turned = max(np.degrees(inc.poses[k].angle_to(before[k])) for k in before)
-        return inc, turned
-
-    unchecked, turned = solve(0.0)
-    assert turned > 8.0 and _errors(unchecked.poses, truth)['ARE_median'] > 3.0
-    checked, turned = solve(3.0)
-    assert turned < 1.0 and checked.turns_refused >= 1
-    assert _errors(checked.poses, truth)['ARE_median'] < 0.5
-    active = set(checked.active_edges())
-    assert not any((s, t) in active for s, t, _, _ in wrong)
-    assert all((s, t) in active for s, t in ((27, 31), (28, 33), (29, 30), (26, 32)))
-
-
 def test_the_gyroscope_votes_where_the_first_keyframe_is_placed():
     """As on a realistic handheld capture: the first keyframe's correct edge to the second
     (two objects, weight 1) loses to a wrong one to the third (two objects, 59 deg off,

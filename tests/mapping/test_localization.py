@@ -92,7 +92,7 @@ def test_a_pose_that_contradicts_the_track_is_held_and_two_that_agree_replace_it
     why = []
     assert stream.step(jump, why) == [] and 'contradicts the track' in why[-1]
     # alone, the service's way, the same frame is placed where its keyframe is
-    assert _close(_stream(room, stream=False).step(jump)[0][1].pose, views[far][1])
+    assert _close(room.relocalize(jump).pose, views[far][1])
     again = replace(jump, stamp_ns=jump.stamp_ns + STEP_NS)
     moved = stream.step(again)
     assert [o.stamp_ns for o, _ in moved] == [jump.stamp_ns, again.stamp_ns]
@@ -136,15 +136,17 @@ def test_a_loaded_map_keeps_the_sessions_way_of_localizing(saved):
     from rfm_core.mapping.mapper import MapperConfig
     from rfm_core.session import MapSession
     config = MapperConfig()
-    mine = replace(config, relocalization=replace(config.relocalization, stream=False, min_explained=5))
+    mine = replace(config, relocalization=replace(config.relocalization, stream_max_gap_s=5.0, min_explained=5))
     session = MapSession(mine)
     _, changed = session.load(saved)
     assert session.mapper.config.relocalization.min_explained == 4 and 'relocalization.min_explained' in changed
-    assert session.mapper.config.relocalization.stream is False and 'relocalization.stream' not in changed
+    assert session.mapper.config.relocalization.stream_max_gap_s == 5.0
+    assert 'relocalization.stream_max_gap_s' not in changed
     session.mode = 'localization'
     view, truth = _views(session.mapper)[0]
-    placed = session.localize(view)                   # at once: each frame on its own, no confirmation
-    assert len(placed) == 1 and placed[0].stamp_ns == view.stamp_ns
+    assert session.localize(view) == []               # held until a later frame agrees
+    placed = session.localize(replace(view, stamp_ns=view.stamp_ns + STEP_NS))
+    assert [p.stamp_ns for p in placed] == [view.stamp_ns, view.stamp_ns + STEP_NS]
     expected = camera_to_map(truth, view.gravity_cam)
     assert np.linalg.norm(placed[0].matrix[:3, 3] - expected[:3, 3]) < 0.1
 
@@ -173,10 +175,7 @@ def test_walls_and_the_floor_a_query_shares_with_the_map_correct_its_pose(saved)
     query = replace(view, boxes=view.boxes + np.r_[shift, np.zeros(4)],
                     full_boxes=None if view.full_boxes is None else view.full_boxes + np.r_[shift, np.zeros(4)])
     truth = mapper.poses[k]
-    boxes_only = copy.copy(mapper)
-    boxes_only.config = replace(mapper.config, relocalization=replace(mapper.config.relocalization,
-                                                                      floor_and_walls=False))
-    off = boxes_only.relocalize(query)
+    off = mapper.relocalize(replace(query, walls=np.zeros((0, 3)), camera_height=float('nan')))    # boxes only
     assert off is not None and np.linalg.norm((off.pose.inverse() @ truth).t) > 0.04
     fixed = mapper.relocalize(query)
     assert fixed is not None
@@ -196,17 +195,17 @@ def test_keyframes_the_learned_matcher_does_not_place_are_matched_again_by_the_c
     """A candidate keyframe the (learned) matcher verifies no pose with is matched again by
     the classical matcher, whose proposals the relative-pose test and the whole-map check
     sort out: a keyframe's own view, which that matcher cannot match, relocalizes at the
-    keyframe's pose; without the fallback it is refused with the reason."""
+    keyframe's pose; a view neither matches (its embeddings turned around) is refused with
+    the reason."""
     mapper = Mapper(matcher=_MatchesNothing())
     load_map(mapper, saved)
     mapper.mode = 'localization'
     k = max(mapper.poses, key=lambda i: len(mapper.keyframes[i]))
     found = mapper.relocalize(mapper.keyframes[k])
     assert found is not None and _close(found.pose, mapper.poses[k], metres=0.05, degrees=1.0)
-    mapper.config = replace(mapper.config, relocalization=replace(mapper.config.relocalization,
-                                                                  classical_fallback=False))
     why = []
-    assert mapper.relocalize(mapper.keyframes[k], why) is None
+    view = mapper.keyframes[k]
+    assert mapper.relocalize(replace(view, embeddings=-view.embeddings), why) is None
     assert why and 'no candidate keyframe' in why[0]
 
 
@@ -233,7 +232,7 @@ def _room_points(centres: np.ndarray, spacing: float = 0.15) -> np.ndarray:
 def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
     """A frame of a live track without detections (the detector was behind and sent its
     depth points only) is aligned to the nearest map keyframe's points from the predicted
-    pose and accepted: within a centimetre of where it is. Switched off, it is not placed."""
+    pose and accepted: within a centimetre of where it is. Without its points, it is not placed."""
     mapper = Mapper()
     load_map(mapper, saved)
     mapper.mode = 'localization'
@@ -248,14 +247,13 @@ def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
     cloud = truth.transform_points(room) + rng.normal(0, 0.005, room.shape)
     query = FrameObservations(last.stamp_ns + STEP_NS, last.frame_id, last.intrinsics, last.gravity_cam,
                               cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
-    for point_tracking in (True, False):
-        mapper.config = replace(mapper.config, matching=replace(mapper.config.matching, point_tracking=point_tracking))
+    for with_points in (True, False):
         stream = StreamLocalizer(mapper)
         for view, _ in views[:2]:                                      # the track: the second confirms the first
             stream.step(view)
         assert len(stream.track) == 2
-        placed = stream.step(query)
-        if not point_tracking:
+        placed = stream.step(query if with_points else replace(query, cloud=query.cloud[:0]))
+        if not with_points:
             assert placed == [] and stream.counts['points'] == 0
             continue
         assert len(placed) == 1 and placed[0][1].num_inliers == 0 and stream.counts['points'] == 1
@@ -331,15 +329,13 @@ def test_a_view_no_keyframe_places_is_placed_by_the_maps_objects_and_depth_point
     """A view a little away from a keyframe's, whose detections no keyframe verifies (no
     matcher proposes a match): a box correspondence with the map's objects brings it near,
     the map's depth points place it, within a centimetre of where it is (no object inliers).
-    Without depth points, or with the fallback off, it is refused: no keyframe verified it."""
+    Without depth points it is refused: no keyframe verified it."""
     session = MapSession(MapperConfig(), matcher=_MatchesNothing())      # as the mapper node's rfm/relocalize
     session.load(saved)
     mapper = session.mapper
     room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
     for k, pose in mapper.poses.items():
         mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
-    reloc = mapper.config.relocalization
-    mapper.config = replace(mapper.config, relocalization=replace(reloc, classical_fallback=False))
     k = max(mapper.poses, key=lambda i: len(mapper.keyframes[i]))
     kf = mapper.keyframes[k]
     step = Pose4(np.radians(3.0), (0.15, -0.1, 0.0))                     # T_view_k
@@ -347,6 +343,7 @@ def test_a_view_no_keyframe_places_is_placed_by_the_maps_objects_and_depth_point
     rng = np.random.default_rng(3)
     cloud = truth.transform_points(room) + rng.normal(0, 0.005, room.shape)
     view = replace(kf, stamp_ns=kf.stamp_ns + STEP_NS, boxes=step.transform_boxes(kf.boxes),
+                   embeddings=-kf.embeddings,                           # nor does the classical matcher
                    full_boxes=None if kf.full_boxes is None else step.transform_boxes(kf.full_boxes),
                    walls=np.zeros((0, 3)), camera_height=float('nan'),
                    cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
@@ -356,8 +353,4 @@ def test_a_view_no_keyframe_places_is_placed_by_the_maps_objects_and_depth_point
     assert "on the map's depth points" in message
     why = []
     assert mapper.relocalize(replace(view, cloud=np.zeros((0, 3), np.float32)), why) is None
-    assert 'no candidate keyframe' in why[-1]
-    mapper.config = replace(mapper.config, relocalization=replace(reloc, classical_fallback=False,
-                                                                  points_fallback=False))
-    found, message = session.relocalize(view)
-    assert found is None and 'no candidate keyframe' in message and 'depth points' not in message
+    assert 'no candidate keyframe' in why[0]

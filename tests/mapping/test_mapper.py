@@ -32,27 +32,6 @@ def test_unposed_localization_and_mapping(mapped):
     assert m['AP25'] > 0.7 and m['AR25'] > 0.7, m
 
 
-def test_translation_averaging_weighted_by_edge_uncertainty():
-    """``averaging.edge_weights`` 'uncertainty' (each edge weighted in translation averaging
-    by how well its inlier boxes agree): the edges get translation weights of their own, and
-    the capture maps about as well (keyframes 3.8 cm median, the default's 3.3 cm; as on the
-    tuning scenes, not better: the default stays 'objects')."""
-    from dataclasses import replace  # noqa: PLC0415
-
-    from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
-
-    config = MapperConfig()
-    config = replace(config, averaging=replace(config.averaging, edge_weights='uncertainty'))
-    r = run_capture(SCENE, 'ground_truth:rgbd', noise_seed=3, mapper_config=config)
-    edges = r.mapper.averager.edges
-    full = ~edges.yaw_only
-    assert np.any(full) and not np.allclose(edges.translation_weight[full], edges.weight[full])
-    loc = r.localization
-    assert loc['keyframe_registered'] >= 0.95 and loc['registered'] >= 0.95
-    assert loc['keyframe_ATE_median'] < 0.045 and loc['keyframe_ARE_median'] < 1.0, loc
-    assert r.mapping['AP25'] > 0.7, r.mapping
-
-
 def test_posed_mapping_uses_the_given_poses():
     """Keyframes take the given poses exactly; the frames between them are tracked
     against their keyframe, so they carry the tracking's error (a few cm, as un-posed)."""

@@ -8,7 +8,8 @@ from rfm_core.detection import make_detector
 from rfm_core.geometry import Pose4
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.points import PointIndex, align_points, depth_cloud
+from rfm_core.clouds import PointIndex, depth_cloud
+from rfm_core.matching.points import align_points
 from rfm_core.matching.relative_pose import RelativePose, estimate_relative_pose, with_surfaces, with_points
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.sim.capture import Capture, CaptureConfig
@@ -141,8 +142,7 @@ def test_a_relative_pose_is_refined_where_the_points_overlap_and_kept_where_they
     # another place altogether (the points 3 m away): nothing overlaps, the boxes' pose stays
     elsewhere = FrameObservations(1, 'c', INTR, [0, 0, -1], cloud=target.cloud + [3.0, 3.0, 0.0])
     assert with_points(replace(boxes), source, elsewhere).pose == boxes.pose
-    # switched off, or a frame without points: the boxes' pose
-    assert with_points(replace(boxes), source, target, MatchingConfig(point_refine=False)).pose == boxes.pose
+    # a frame without points: the boxes' pose
     assert with_points(replace(boxes), source, FrameObservations(1, 'c', INTR, [0, 0, -1])).pose == boxes.pose
     # a correction beyond the bounds is refused
     tight = MatchingConfig(point_max_correction_m=0.05)
@@ -161,17 +161,17 @@ def test_depth_points_correct_the_boxes_relative_pose_between_rendered_views():
     det = make_detector('depth_clusters')
     obs = [det.detect(f.detector_input()) for f in frames]
     assert all(len(o.cloud) > 300 for o in obs)
-    off = MatchingConfig(point_refine=False)
+    cfg = MatchingConfig()
     errors = []
     for i in range(0, 28, 3):
         a, b = obs[i], obs[i + 12]
         m = ObjectMatches(*_true_matches(a, b, frames[i], frames[i + 12]))
-        rel = estimate_relative_pose(b.boxes, a.boxes, m, off)
+        rel = estimate_relative_pose(b.boxes, a.boxes, m, cfg)
         if rel is None:
             continue
         rel.swap_index_order()
         truth = frames[i].aligned_from_map() @ frames[i + 12].aligned_from_map().inverse()   # T_a_b
-        with_surfaces(rel, a, b, off)
+        with_surfaces(rel, a, b, cfg, points=False)
         before = np.linalg.norm(np.asarray(rel.pose.t) - truth.t)
         with_points(rel, a, b)
         after = np.linalg.norm(np.asarray(rel.pose.t) - truth.t)

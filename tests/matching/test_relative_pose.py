@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from rfm_core.detection import make_detector
-from rfm_core.geometry import Pose4, box_corners, iou_3d_paired, wrap_angle
+from rfm_core.geometry import Pose4, box_corners, iou_3d_paired, kabsch_4dof, wrap_angle
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches
 from rfm_core.matching.config import MatchingConfig, monocular
 from rfm_core.matching.corners import corner_permutation, quarter_turn_candidates, relabel
@@ -190,8 +190,8 @@ def _partial(boxes, shift):
 def test_the_refit_takes_its_yaw_from_the_box_faces_not_from_biased_centres():
     """Two views from opposite sides of three objects: each camera's partial boxes sit
     closer to it than the objects (by 4-25 cm, different per object), their orientation
-    right. The centres' spread then turns the refit (here by half a degree); the faces'
-    orientations do not (``matching.refine_yaw``)."""
+    right. The centres' spread turns a fit on the centres (here by half a degree); the refit
+    takes its yaw from the faces' orientations, which do not."""
     objects = np.array([[0.0, -0.8, 0.0, 0.8, 0.5, 0.7, 0.3], [0.3, 0.1, 0.0, 0.6, 0.6, 0.9, -0.2],
                         [-0.2, 1.0, 0.0, 1.0, 0.4, 0.8, 0.9]])
     cam_a = Pose4.from_centre(0.0, (-2.5, 0.0, 0.0))               # T_a_world
@@ -200,12 +200,11 @@ def test_the_refit_takes_its_yaw_from_the_box_faces_not_from_biased_centres():
     b = _partial(cam_b.transform_boxes(objects), [0.22, 0.04, 0.15])
     truth = cam_b @ cam_a.inverse()                                 # T_b_a
     matches = ObjectMatches(np.arange(3), np.arange(3), np.ones(3))
-    errors = {}
-    for mode in ('centres', 'faces'):
-        rel = estimate_relative_pose(a, b, matches, MatchingConfig(refine_yaw=mode))
-        assert rel is not None and len(rel.inliers) == 3
-        errors[mode] = np.degrees(rel.pose.angle_to(truth))
-    assert errors['centres'] > 0.4 and errors['faces'] < 0.01, errors
+    rel = estimate_relative_pose(a, b, matches, MatchingConfig())
+    assert rel is not None and len(rel.inliers) == 3
+    centres = kabsch_4dof(a[:, :3], b[:, :3])
+    errors = {'centres': np.degrees(centres.angle_to(truth)), 'faces': np.degrees(rel.pose.angle_to(truth))}
+    assert errors['centres'] > 0.3 and errors['faces'] < 0.01, errors
 
 
 def test_camera_heights_replace_the_vertical_translation_where_they_agree():
@@ -295,29 +294,3 @@ def test_walls_correct_the_horizontal_translation_along_their_normals():
             FrameObservations(1, 'c', intr, [0, 0, -1], walls=bad)
 
 
-def test_an_edge_whose_boxes_disagree_is_uncertain_whatever_its_count():
-    """``pose_uncertainty``: boxes that agree under the pose give an edge the detection noise
-    model's standard deviations (more objects, smaller); the same count of boxes that
-    disagree (partial views whose centres and faces moved) makes it several times less
-    certain, and the averaging weight follows; one object at the reference range (straight
-    above the camera: no lever arm) that agrees as the model expects weighs one."""
-    from rfm_core.matching.relative_pose import REFERENCE_RANGE_M, pose_uncertainty  # noqa: PLC0415
-
-    rng = np.random.default_rng(5)
-    a = scene_boxes(rng, 6)
-    truth = Pose4(0.3, (0.6, -0.2, 0.0))                 # T_b_a
-    b = truth.transform_boxes(a)
-    pairs = np.stack([np.arange(6), np.arange(6)], 1)
-    agree = pose_uncertainty(truth, a, b, pairs)
-    three = pose_uncertainty(truth, a, b, pairs[:3])
-    assert agree.translation_m < three.translation_m and agree.yaw_rad < three.yaw_rad
-    assert agree.weights[1] > three.weights[1] > 0
-    moved = b.copy()
-    moved[:, :2] += rng.normal(0.0, 0.15, (6, 2))        # centres 15 cm off, faces 8 deg off
-    moved[:, 6] += np.radians(rng.normal(0.0, 8.0, 6))
-    disagree = pose_uncertainty(truth, a, moved, pairs)
-    assert disagree.translation_m > 3 * agree.translation_m and disagree.yaw_rad > 3 * agree.yaw_rad
-    assert disagree.weights[1] < agree.weights[1] / 9
-    one = np.array([[0.0, 0.0, REFERENCE_RANGE_M, 1.0, 1.0, 1.0, 0.0]])
-    single = pose_uncertainty(Pose4(0.0, (0.0, 0.0, 0.0)), one, one, np.zeros((1, 2), int))
-    assert single.weights == pytest.approx((1.0, 1.0), rel=1e-6)

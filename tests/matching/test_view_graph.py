@@ -1,12 +1,18 @@
 """Keyframes and verified edges from a simulated detection stream."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from rfm_core.detection import make_detector
-from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
 from rfm_core.sim.capture import Capture, CaptureConfig
 
+
+def _without(graph: ViewGraphBuilder, stage: str) -> ViewGraphBuilder:
+    """``graph`` with one of its stages switched off (an ablation: what the stage does)."""
+    setattr(graph, stage, lambda *args, **kwargs: None)
+    return graph
 
 
 @pytest.fixture(scope='module')
@@ -48,8 +54,8 @@ def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
     a new stream segment), and a view of the start, replayed after the walk, retrieves the
     keyframes of the start."""
     det = make_detector('ground_truth', preset='perfect')
-    graph = ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=2, retrieved_keyframes=3,
-                                                      unordered_retrieved_keyframes=4, reuse_keyframes=False))
+    graph = _without(ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=2, retrieved_keyframes=3,
+                                                               unordered_retrieved_keyframes=4)), '_revisit')
     for frame in stream:
         graph.add(det.perturb(frame.ground_truth))
         assert len(graph.stats.last_candidates) <= 5
@@ -64,17 +70,16 @@ def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
 
 
 def test_a_revisited_place_reuses_its_keyframe(stream):
-    """The walk once more from the start (stamps going on): with keyframe reuse (default) the
-    second pass is tracked against the first pass's keyframes and adds (almost) none; without,
-    it adds about as many again (#19: a map that grows with the places seen, not with time)."""
-    from dataclasses import replace
+    """The walk once more from the start (stamps going on): the second pass is tracked
+    against the first pass's keyframes (revisits) and adds (almost) none; without revisits
+    it adds about as many again: the map grows with the places seen, not with time."""
     det = make_detector('ground_truth', preset='rgbd', seed=4)
     first = [det.perturb(f.ground_truth) for f in stream]
     span = first[-1].stamp_ns - first[0].stamp_ns + 250_000_000
     second = [replace(o, stamp_ns=o.stamp_ns + span) for o in first]
     counts = {}
     for reuse in (True, False):
-        graph = ViewGraphBuilder(keyframes=KeyframeConfig(reuse_keyframes=reuse))
+        graph = ViewGraphBuilder() if reuse else _without(ViewGraphBuilder(), '_revisit')
         steps = [graph.add(o) for o in first]
         n_first = len(graph.keyframes)
         steps = [graph.add(o) for o in second]
@@ -89,42 +94,10 @@ def test_a_revisited_place_reuses_its_keyframe(stream):
     assert n == n_off >= 5 and again <= 1 and again_off >= n // 2, counts
 
 
-def test_keyframes_are_spaced_by_min_interval(stream):
-    det = make_detector('ground_truth', preset='rgbd', seed=4)
-    counts, stamps = {}, {}
-    for interval in (0.0, 1.0):
-        graph = ViewGraphBuilder(keyframes=KeyframeConfig(min_interval_s=interval, max_translation_m=0.05))
-        for frame in stream:
-            graph.add(det.perturb(frame.ground_truth))
-        counts[interval] = graph.stats.keyframes
-        stamps[interval] = np.array([k.observations.stamp_ns for k in graph.keyframes]) / 1e9
-    assert np.all(np.diff(stamps[1.0]) >= 1.0 - 1e-6)
-    assert counts[1.0] < counts[0.0] and counts[1.0] >= 5    # 10 s of frames at 4 Hz
-
-
-def test_unordered_collections_need_three_objects_and_retrieve_more(stream):
-    """Without the motion prior a two-object edge is trusted nowhere (not even to the
-    latest keyframe), and retrieval offers more candidates instead."""
-    det = make_detector('ground_truth', preset='rgbd', seed=4)
-    inliers, candidates = {}, {}
-    for ordered in (True, False):
-        graph = ViewGraphBuilder(keyframes=KeyframeConfig(
-            motion_prior=ordered, recent_keyframes=1, retrieved_keyframes=2, unordered_retrieved_keyframes=6,
-            max_translation_m=0.1))
-        inliers[ordered], candidates[ordered] = [], 0
-        for frame in stream:
-            _, edges, _ = graph.add(det.perturb(frame.ground_truth))
-            inliers[ordered] += [len(e.relative.inliers) for e in edges]
-            candidates[ordered] = max(candidates[ordered], len(graph.stats.last_candidates))
-    assert candidates[True] == 3 and candidates[False] == 7
-    assert 2 in inliers[True] and inliers[False] and min(inliers[False]) >= 3
-
-
 def test_separate_views_are_told_from_a_stream_by_their_timing(stream):
     """No capture type is given: frames 0.25 s apart are one stream (motion prior on, two-object
     edges to recent keyframes, every frame tracked), the same frames 2 s apart are separate
     views (every edge and every tracked frame rests on three objects, more candidates)."""
-    from dataclasses import replace
     det = make_detector('ground_truth', preset='rgbd', seed=4)
     observations = [det.perturb(frame.ground_truth) for frame in stream]
     out = {}
@@ -185,7 +158,6 @@ def test_the_gyroscope_checks_tracking_and_predicts_the_boxes(stream):
 def _lost_for_a_moment(graph, stream) -> list:
     """Feed 16 frames whose 9th and 10th see nothing the others saw (their detections moved
     5 m away); returns the motion edges made, each with its true relative pose."""
-    from dataclasses import replace
     det = make_detector('ground_truth', preset='perfect')
     motion = []
     for i, f in enumerate(stream[:16]):
@@ -219,7 +191,6 @@ def test_motion_edges_never_chain_past_the_last_frame_objects_placed(stream):
     whose pose objects verified (or that started a new piece of the graph): a chain of held
     positions would pin a walk to one spot (as seen on a realsense capture: 13 keyframes in
     a row, 9 deg / 19 cm off)."""
-    from dataclasses import replace
     det = make_detector('ground_truth', preset='perfect')
     graph = ViewGraphBuilder()
     limit_ns = graph.config.max_motion_edge_s * 1e9
@@ -245,7 +216,6 @@ def test_a_frame_with_embeddings_of_another_length_is_refused_and_changes_nothin
     """One graph holds one detector's embeddings: a frame whose embeddings differ in length
     (the message allows any, or none) is refused with a reason; before, it replaced the
     retrieval index (after 64 keyframes: IndexError, and the matcher died; #19)."""
-    from dataclasses import replace
     det = make_detector('ground_truth', preset='rgbd', seed=4)
     graph = ViewGraphBuilder()
     for frame in stream[:20]:
@@ -279,85 +249,11 @@ def test_motion_edges_carry_the_cameras_velocity_on(stream):
     assert max(errors[1.0]) < 1.5 * 0.25 + 0.1, errors
 
 
-def test_a_new_keyframe_is_measured_again_through_frames_tracked_since_the_reference(stream):
-    """Within a stream, a new keyframe's edge to its reference is measured again through
-    frames tracked on the reference (their tracked pose, then their own verified pose to the
-    keyframe): further measurements of the pair, each agreeing with the truth; none with
-    ``through_frames=0``."""
-    det = make_detector('ground_truth', preset='rgbd', seed=4)
-    obs = [_with_gyroscope(f, det.perturb(f.ground_truth)) for f in stream]
-    truth = {f.stamp_ns: f for f in stream}
-
-    def pairs(config):
-        graph, measured = ViewGraphBuilder(keyframes=config), {}
-        for o in obs:
-            for e in graph.add(o).edges:
-                measured.setdefault((e.source_id, e.target_id), []).append(e)
-        return graph, measured
-
-    graph, measured = pairs(KeyframeConfig(through_frames=2))
-    stamp = {k.keyframe_id: k.observations.stamp_ns for k in graph.keyframes}
-    repeated = [m for m in measured.values() if len(m) > 1]
-    assert len(repeated) >= 2 and graph.stats.through >= len(repeated)
-    assert all(len(m) <= 3 for m in measured.values())              # the direct edge + at most 2
-    for m in repeated:
-        for e in m:
-            true = (truth[stamp[e.source_id]].aligned_from_map()
-                    @ truth[stamp[e.target_id]].aligned_from_map().inverse())
-            assert np.degrees(e.relative.pose.angle_to(true)) < 3.0
-            assert np.linalg.norm(e.relative.pose.t - true.t) < 0.2
-            assert len(e.relative.inliers) >= 2
-    _, direct = pairs(KeyframeConfig(through_frames=0))
-    assert all(len(m) == 1 for m in direct.values())
-
-
-def test_a_keyframe_is_made_at_the_last_frame_that_tracked_well(stream):
-    """Within a stream, a frame that would become a keyframe while it tracks on fewer objects
-    than the previous frame makes that frame the keyframe (``keyframe_at_previous``) and is
-    tracked against it: the keyframes' edges to their reference rest on more objects, and
-    each promoted keyframe is a frame already tracked (the step's track is the current frame
-    on the new keyframe)."""
-    det = make_detector('ground_truth', preset='rgbd', seed=4)
-    obs = [_with_gyroscope(f, det.perturb(f.ground_truth)) for f in stream]
-    truth = {f.stamp_ns: f for f in stream}
-
-    def run(config):
-        graph, steps = ViewGraphBuilder(keyframes=config), []
-        for o in obs:
-            steps.append(graph.add(o))
-        return graph, steps
-
-    def reference_inliers(graph, steps):
-        """Objects of each new keyframe's edge from the keyframe before it."""
-        out = []
-        for s in steps:
-            if s.keyframe is not None and s.keyframe.keyframe_id > 0:
-                e = [e for e in s.edges if e.source_id == s.keyframe.keyframe_id - 1]
-                out += [len(e[0].relative.inliers)] if e else []
-        return out
-
-    graph, steps = run(KeyframeConfig(keyframe_at_previous=True))
-    promoted = [i for i, s in enumerate(steps)
-                if s.keyframe is not None and s.track is not None and not s.track.is_keyframe]
-    assert promoted, 'no keyframe was made at the previous frame'
-    for i in promoted:
-        s, before = steps[i], steps[i - 1]
-        assert s.keyframe.observations.stamp_ns == before.track.stamp_ns      # the previous frame, tracked
-        assert s.track.keyframe_id == s.keyframe.keyframe_id                    # this frame tracked on it
-        true = (truth[s.keyframe.observations.stamp_ns].aligned_from_map()
-                @ truth[s.track.stamp_ns].aligned_from_map().inverse())
-        assert np.degrees(s.track.pose.angle_to(true)) < 3.0 and np.linalg.norm(s.track.pose.t - true.t) < 0.2
-    off_graph, off_steps = run(KeyframeConfig(keyframe_at_previous=False))
-    assert off_graph.stats.bridged < graph.stats.bridged
-    on, off = np.mean(reference_inliers(graph, steps)), np.mean(reference_inliers(off_graph, off_steps))
-    assert on > off, f'objects per edge to the previous keyframe: {on:.2f} with, {off:.2f} without'   # 6.6 vs 4.9
-
-
 def test_frames_sent_with_their_depth_points_only_are_tracked_on_them():
     """The detector sends a frame it is behind on with its depth points and no detections
     (``Detector.points_only``); the view graph tracks it on the points from the predicted
-    pose (``matching.point_tracking``): here two frames in three, each placed within
-    centimetres of the truth against its keyframe. Switched off, they are not localized."""
+    pose: here two frames in three, each placed within centimetres of the truth against its
+    keyframe. Without their points, they are not localized."""
     det = make_detector('depth_clusters')
     frames = list(Capture(CaptureConfig(seed=33, frames=36, fps=12)).frames())
     observations = []
@@ -367,10 +263,11 @@ def test_frames_sent_with_their_depth_points_only_are_tracked_on_them():
         observations.append(obs)
     assert all(len(o) == 0 and len(o.cloud) > 100 for o in observations[1::3])
     by_stamp = {f.stamp_ns: f for f in frames}
-    on, off = ViewGraphBuilder(), ViewGraphBuilder(MatchingConfig(point_tracking=False))
+    on, off = ViewGraphBuilder(), ViewGraphBuilder()
     errors, placed_off = [], 0
     for obs in observations:
-        track, without = on.add(obs).track, off.add(obs).track
+        track = on.add(obs).track
+        without = off.add(replace(obs, cloud=obs.cloud[:0]) if len(obs) == 0 else obs).track
         placed_off += len(obs) == 0 and without is not None
         if len(obs) == 0 and track is not None:
             assert track.num_inliers == 0 and not track.is_keyframe
@@ -386,10 +283,9 @@ def test_a_revisit_whose_objects_do_not_verify_is_aligned_on_its_depth_points():
     """Twice round a room; on the second loop the detections' embeddings are turned by a fixed
     random rotation, so that no object of the second loop matches one of the first (as when the
     detector sees the furniture differently on a revisit) while the second loop still tracks
-    itself. With ``revisit_on_points`` (default) frames that would become keyframes are aligned
-    on their depth points to the first loop's keyframes the graph puts near them: they add
-    about half the keyframes, and the frames placed that way lie within centimetres of the truth."""
-    from dataclasses import replace
+    itself. Frames that would become keyframes are aligned on their depth points to the first
+    loop's keyframes the graph puts near them: they add about half the keyframes they add
+    without that stage, and the frames placed that way lie within centimetres of the truth."""
     det = make_detector('depth_clusters')
     frames = list(Capture(CaptureConfig(seed=34, frames=112, fps=4)).frames())
     loop = 52                                               # the walk is back at its start (0.06 m)
@@ -404,7 +300,7 @@ def test_a_revisit_whose_objects_do_not_verify_is_aligned_on_its_depth_points():
     by_stamp = {f.stamp_ns: f for f in frames}
     added, errors = {}, []
     for on in (True, False):
-        graph = ViewGraphBuilder(keyframes=KeyframeConfig(revisit_on_points=on))
+        graph = ViewGraphBuilder() if on else _without(ViewGraphBuilder(), '_revisit_on_points')
         steps = [graph.add(o) for o in observations]
         first = {k.keyframe_id for k in graph.keyframes if k.observations.stamp_ns < frames[loop].stamp_ns}
         added[on] = sum(s.keyframe is not None for s in steps[loop:])

@@ -139,25 +139,25 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         n_tracked = sum(isinstance(m, TrackedFrame) for m in messages)
         # ... and once the input has been idle for idle_full_solve_s, all poses re-solved at once
         # (every keyframe is in the map, or was culled into one of it: keyframe culling)
-        done = h.wait(lambda: _held(mapper.mapper) == n_kf and not mapper.session.pending_edges
-                      and mapper.session.counts['edges'] == n_edges and not mapper.session.dirty
-                      and not mapper.session.full_solve_pending and mapper.mapper.averager.stats.kind == 'full'
-                      and h.poses and len(h.poses[-1].poses) == len(mapper.mapper.keyframes))
-        assert done, (_held(mapper.mapper), n_kf, len(mapper.session.pending_edges),
-                      len(h.poses[-1].poses) if h.poses else None, mapper.session.counts, mapper.session.message)
-        assert mapper.session.counts['dropped'] >= 1
+        done = h.wait(lambda: _held(mapper.core.mapper) == n_kf and not mapper.core.session.pending_edges
+                      and mapper.core.session.counts['edges'] == n_edges and not mapper.core.session.dirty
+                      and not mapper.core.session.full_solve_pending and mapper.core.mapper.averager.stats.kind == 'full'
+                      and h.poses and len(h.poses[-1].poses) == len(mapper.core.mapper.keyframes))
+        assert done, (_held(mapper.core.mapper), n_kf, len(mapper.core.session.pending_edges),
+                      len(h.poses[-1].poses) if h.poses else None, mapper.core.session.counts, mapper.core.session.message)
+        assert mapper.core.session.counts['dropped'] >= 1
         assert h.wait(lambda: h.maps and len(h.maps[-1].objects) >= 5)
-        assert h.wait(lambda: mapper.num_objects == len(h.maps[-1].objects))   # what status reports
+        assert h.wait(lambda: mapper.core.num_objects == len(h.maps[-1].objects))   # what status reports
         # published poses agree with the ground truth
-        ids = sorted(mapper.mapper.keyframes)
+        ids = sorted(mapper.core.mapper.keyframes)
         est = {k: pose_to_matrix(p) for k, p in zip(ids, h.poses[-1].poses)}
         err = trajectory_errors(est, truth)
         # (the median over the keyframes kept: culling one of the nine, below the median, moves it 2.9 -> 3.3 cm)
         assert err['ATE_median'] < 0.035 and err['ARE_median'] < 1.0, err
         # every tracked frame is logged, and a camera pose was published at the frames' rate
-        assert mapper.session.counts['frames'] == n_tracked == len(frames)
+        assert mapper.core.session.counts['frames'] == n_tracked == len(frames)
         frame_truth = {f.stamp_ns: f.pose_matrix for f, _ in frames}
-        assert trajectory_errors(mapper.mapper.frame_poses(), frame_truth)['registered'] == 1.0
+        assert trajectory_errors(mapper.core.mapper.frame_poses(), frame_truth)['registered'] == 1.0
         cams = {stamp_to_ns(c.header.stamp): pose_to_matrix(c.pose) for c in h.cameras}
         assert len(cams) >= 0.9 * len(frames)                       # in stamp order, never older
         assert [stamp_to_ns(c.header.stamp) for c in h.cameras] == sorted(cams)
@@ -198,7 +198,7 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         np.savez(tmp_path / 'crafted.npz', **arrays)
         crafted = h.call(LoadMap, 'rfm/load_map', LoadMap.Request(path=str(tmp_path / 'crafted.npz')))
         assert not crafted.success and 'revision' in crafted.message and 'unchanged' in crafted.message
-        assert _held(mapper.mapper) == n_kf                             # untouched
+        assert _held(mapper.core.mapper) == n_kf                             # untouched
         empty = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=FrameDetections()))
         assert not empty.success and empty.message
         frame, obs = frames[len(frames) // 2]
@@ -215,11 +215,11 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=1)).success
         h.kf_pub.publish(messages[0])                                   # ignored in localization mode
         time.sleep(0.3)
-        assert _held(mapper.mapper) == n_kf
-        poses_before = mapper.mapper.poses
-        tracks_before = [(t.track_id, t.box) for t in mapper.mapper.tracks()]
+        assert _held(mapper.core.mapper) == n_kf
+        poses_before = mapper.core.mapper.poses
+        tracks_before = [(t.track_id, t.box) for t in mapper.core.mapper.tracks()]
         assert h.call(Trigger, 'rfm/reset', Trigger.Request()).success
-        assert not mapper.mapper.keyframes
+        assert not mapper.core.mapper.keyframes
         h.close()
 
         # --- "kill" the mapper; a fresh one loads the saved map on start
@@ -227,18 +227,18 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
                                                 Parameter('load_map_on_start', value=True)])
         h2 = _Harness(fresh)
         harnesses.append(h2)
-        restored = fresh.mapper.poses
+        restored = fresh.core.mapper.poses
         assert set(restored) == set(poses_before)
-        assert len(fresh.mapper.frames) == len(frames)                 # the full-rate trajectory too
+        assert len(fresh.core.mapper.frames) == len(frames)                 # the full-rate trajectory too
         for k in restored:
             assert np.allclose(restored[k].t, poses_before[k].t, atol=1e-12)
-        tracks_after = [(t.track_id, t.box) for t in fresh.mapper.tracks()]
+        tracks_after = [(t.track_id, t.box) for t in fresh.core.mapper.tracks()]
         assert [i for i, _ in tracks_after] == [i for i, _ in tracks_before]
         np.testing.assert_allclose([b for _, b in tracks_after], [b for _, b in tracks_before], atol=1e-9)
         assert h2.wait(lambda: h2.maps and len(h2.maps[-1].objects) == len(tracks_before))
         # a matcher started afresh numbers its keyframes from 0 again: new keyframes of the
         # loaded map, never confused with its keyframes 0, 1, ... (#19)
-        loaded, loaded_held = {k: f.stamp_ns for k, f in fresh.mapper.keyframes.items()}, _held(fresh.mapper)
+        loaded, loaded_held = {k: f.stamp_ns for k, f in fresh.core.mapper.keyframes.items()}, _held(fresh.core.mapper)
         assert h2.wait(lambda: h2.kf_pub.get_subscription_count() > 0 and h2.edge_pub.get_subscription_count() > 0)
         restart = [m for m in messages if not isinstance(m, TrackedFrame)][:8]
         numbers = {Keyframe: iter([1, 2, 4, 5, 6, 7, 8, 9]), ViewGraphEdge: iter(range(1, 9))}
@@ -246,11 +246,11 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
             msg.session, msg.sequence = 77, next(numbers[type(msg)])
             (h2.kf_pub if isinstance(msg, Keyframe) else h2.edge_pub).publish(msg)
         n_new = sum(isinstance(m, Keyframe) for m in restart)
-        assert h2.wait(lambda: _held(fresh.mapper) == loaded_held + n_new)
-        assert all(fresh.mapper.keyframes[k].stamp_ns == s for k, s in loaded.items() if k in fresh.mapper.keyframes)
-        assert h2.wait(lambda: fresh.session.counts['edges'] >= 1)
-        assert fresh.num_lost == 1 and 'never arrived' in fresh.session.message
-        assert all(s not in loaded or t not in loaded for s, t in list(fresh.mapper.edges)[-fresh.session.counts['edges']:])
+        assert h2.wait(lambda: _held(fresh.core.mapper) == loaded_held + n_new)
+        assert all(fresh.core.mapper.keyframes[k].stamp_ns == s for k, s in loaded.items() if k in fresh.core.mapper.keyframes)
+        assert h2.wait(lambda: fresh.core.session.counts['edges'] >= 1)
+        assert fresh.core.num_lost == 1 and 'never arrived' in fresh.core.session.message
+        assert all(s not in loaded or t not in loaded for s, t in list(fresh.core.mapper.edges)[-fresh.core.session.counts['edges']:])
         h2.close()
     finally:
         for harness in harnesses:
@@ -278,15 +278,15 @@ def test_posed_mapper_node_takes_keyframe_poses_from_the_pose_topic():
         keyframes = [m for m in messages if isinstance(m, Keyframe)]
         for msg in keyframes:                   # keyframes first: they wait for their poses
             h.kf_pub.publish(msg)
-        assert h.wait(lambda: len(mapper.session.pending_keyframes) == len(keyframes))
-        assert not mapper.mapper.keyframes
+        assert h.wait(lambda: len(mapper.core.session.pending_keyframes) == len(keyframes))
+        assert not mapper.core.mapper.keyframes
         for frame, _ in frames:
             pose_pub.publish(pose_stamped_msg(frame.pose_matrix, frame.stamp_ns, 'map'))
         for msg in messages:
             if not isinstance(msg, Keyframe):
                 (h.track_pub if isinstance(msg, TrackedFrame) else h.edge_pub).publish(msg)
-        assert h.wait(lambda: len(mapper.mapper.poses) == len(truth) and not mapper.session.pending_keyframes
-                      and h.poses and len(h.poses[-1].poses) == len(truth)), mapper.session.counts
+        assert h.wait(lambda: len(mapper.core.mapper.poses) == len(truth) and not mapper.core.session.pending_keyframes
+                      and h.poses and len(h.poses[-1].poses) == len(truth)), mapper.core.session.counts
         est = {k: pose_to_matrix(p) for k, p in zip(sorted(truth), h.poses[-1].poses)}
         err = trajectory_errors(est, truth, align=False)
         assert err['registered'] == 1.0 and err['ATE_median'] < 1e-3 and err['ARE_median'] < 0.1, err

@@ -30,7 +30,7 @@ def test_node_parameters_are_the_configuration_and_reach_the_core(ros):
                                                Parameter('matching.inlier_iou', value=0.3)])
     mapper = MapperNode(parameter_overrides=[Parameter('matching.inlier_iou', value=0.3),
                                              Parameter('relocalization.min_inliers', value=3),
-                                             Parameter('averaging.gyro_yaw_weight', value=0.0),
+                                             Parameter('averaging.window', value=12),
                                              Parameter('autosave_every_n_keyframes', value=0)])
     detector = DetectorNode(parameter_overrides=[Parameter('depth_clusters.stride', value=3),
                                                  Parameter('score_threshold', value=0.4)])
@@ -38,8 +38,8 @@ def test_node_parameters_are_the_configuration_and_reach_the_core(ros):
         for node, name in ((detector, 'detector'), (matcher, 'matcher'), (mapper, 'mapper')):
             assert _declared(node) == {s.name for s in node_settings(name)}
         assert (matcher.graph.config.min_overlap, matcher.graph.matching.inlier_iou) == (0.45, 0.3)
-        core = mapper.mapper.config
-        assert (core.matching.inlier_iou, core.relocalization.min_inliers, core.averaging.gyro_yaw_weight) == (0.3, 3, 0.0)
+        core = mapper.core.mapper.config
+        assert (core.matching.inlier_iou, core.relocalization.min_inliers, core.averaging.window) == (0.3, 3, 12)
         assert (detector.detector.config.stride, detector.detector.config.score_threshold) == (3, 0.4)
         described = mapper.describe_parameter('averaging.max_yaw_residual_deg')
         assert 'paper: 3.0' in described.description and described.floating_point_range[0].to_value == 180.0

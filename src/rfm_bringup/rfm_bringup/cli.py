@@ -28,7 +28,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rfm_core.config import MATCHERS, RfmConfig
 from rfm_core.detection import BACKENDS
+from rfm_core.detection.ground_truth import PRESETS
 from rfm_core.io.topics import CAMERA_TOPICS
 
 __all__ = ['main', 'suite_configs']
@@ -306,18 +308,16 @@ def cmd_eval_matching(args) -> int:
                            visible=True, jobs=args.jobs)
     matchers = {'learned': lambda: LearnedMatcher(weights=args.weights),
                 'classical': ClassicalMatcher}
-    print('| input | matcher | refit yaw | pairs | match precision | match recall | F1 | verified | '
+    print('| input | matcher | pairs | match precision | match recall | F1 | verified | '
           f'median yaw (deg) | median translation (cm) | verified turned >= {WIDE_TURN_DEG:.0f} deg | '
           'their median yaw (deg) |')
-    print('|---|---|---|---|---|---|---|---|---|---|---|---|')
+    print('|---|---|---|---|---|---|---|---|---|---|---|')
     for spec in args.inputs:
-        for refine_yaw in args.refine_yaw:
-            # an RGB-only detector's poses are verified and refit along the viewing rays, as in rfm eval
-            config = MatchingConfig(refine_yaw=refine_yaw)
-            config = monocular(config) if detector_for_spec(spec).monocular else config
-            for name in args.matchers:
-                result = evaluate_pairs(pairs[spec], matchers[name](), config)
-                print(f'| {spec} | {name} | {refine_yaw} | {result.row()} |', flush=True)
+        # an RGB-only detector's poses are verified and refit along the viewing rays, as in rfm eval
+        config = monocular(MatchingConfig()) if detector_for_spec(spec).monocular else MatchingConfig()
+        for name in args.matchers:
+            result = evaluate_pairs(pairs[spec], matchers[name](), config)
+            print(f'| {spec} | {name} | {result.row()} |', flush=True)
     return 0
 
 
@@ -637,8 +637,8 @@ def build_parser() -> argparse.ArgumentParser:
                        help='object matching and relative-pose accuracy on simulated frame pairs')
     p.add_argument('--inputs', nargs='+', default=['depth_clusters', 'ground_truth:perfect',
                                                    'ground_truth:rgbd', 'ground_truth:rgb'],
-                   help='detector inputs: depth_clusters (depth_clusters:heuristic without the box refiner, '
-                        'depth_clusters:refined with its boxes) and/or ground_truth:PRESET')
+                   help='detector inputs: depth_clusters (depth_clusters:heuristic without the box refiner) '
+                        'and/or ground_truth:PRESET')
     p.add_argument('--matchers', nargs='+', default=['learned', 'classical'],
                    choices=('learned', 'classical'))
     p.add_argument('--weights', help='learned matcher checkpoint (default: the shipped one per detector)')
@@ -649,8 +649,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--gap', type=int, default=2, help='frames between the two of a pair (at 2 Hz)')
     p.add_argument('--world', choices=('boxes', 'realistic'), default='boxes', help='scenes (see rfm eval)')
     p.add_argument('--noise-seed', type=int, default=2)
-    p.add_argument('--refine-yaw', nargs='+', choices=('centres', 'faces'), default=['faces'],
-                   help="the relative pose refit's yaw (matching.refine_yaw), one row each")
     p.add_argument('--jobs', type=int, default=1, help='scenes rendered in parallel')
     p.set_defaults(func=cmd_eval_matching)
 
@@ -761,10 +759,12 @@ def build_parser() -> argparse.ArgumentParser:
                         '(default 500); off by default')
     p.add_argument('--output', help='output folder (default rfm_output/<bag name>)')
     p.add_argument('--force', action='store_true', help='replace an existing output folder')
-    p.add_argument('--backend', default='depth_clusters', choices=BACKENDS)
-    p.add_argument('--preset', default='rgbd', help='ground_truth noise preset (perfect, rgbd, rgb)')
+    defaults = RfmConfig()
+    p.add_argument('--backend', default=defaults.detector.backend, choices=BACKENDS)
+    p.add_argument('--preset', default=defaults.detector.ground_truth.preset, choices=PRESETS,
+                   help='ground_truth noise preset')
     p.add_argument('--cutr-checkpoint', help='cutr: path to cutr_rgb.pth / cutr_rgbd.pth')
-    p.add_argument('--matcher', default='learned', choices=('learned', 'classical'))
+    p.add_argument('--matcher', default=defaults.matcher.matcher, choices=MATCHERS)
     p.add_argument('--posed', action='store_true',
                    help="posed mapping: poses from the bag's /ground_truth/camera_pose (as rfm/external_pose)")
     p.add_argument('--processes', action=argparse.BooleanOptionalAction, default=True,

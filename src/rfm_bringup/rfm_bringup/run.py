@@ -216,16 +216,16 @@ class _InProcessGraph:
             self.threads.append(thread)
 
     def progress(self) -> dict:
-        mp = self.mapper.mapper
+        core = self.mapper.core
         dropped = self.detector.frontend.dropped()
         return {'received': self.detector.counts['received'], 'frames': self.detector.counts['processed'],
                 'points_only': self.detector.counts['points_only'],
                 'dropped': sum(dropped.values()), 'dropped_by_reason': dropped,
                 'detections': self.detector.counts['published'], 'matcher_frames': dict(self.matcher.shedder.counts),
                 'keyframes': self.matcher.graph.stats.keyframes,
-                'registered': len(mp.poses), 'objects': self.mapper.num_objects, 'lost': self.mapper.num_lost,
-                'relocalization': self.mapper.session.relocalize_latency(),
-                'busy': self.mapper.session.dirty or not self.detector.worker.idle}
+                'registered': len(core.mapper.poses), 'objects': core.num_objects, 'lost': core.num_lost,
+                'relocalization': core.session.relocalize_latency(),
+                'busy': core.session.dirty or not self.detector.worker.idle}
 
     def cpu_seconds(self) -> dict:
         """CPU seconds spent so far by each thread of this process, by thread name (the
@@ -238,8 +238,7 @@ class _InProcessGraph:
         """Save the map once the nodes have stopped spinning: no callback changes the map
         while it is written (with --live input still arrives)."""
         self._halt()
-        written, text = self.mapper._save(str(path))
-        return written is not None
+        return self.mapper.core.save(str(Path(path).resolve()))['success']
 
     def _halt(self):
         for executor in self.executors:

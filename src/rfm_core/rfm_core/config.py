@@ -30,8 +30,8 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import KeyframeConfig
 from rfm_core.settings import Setting, markdown_table, same_setting, section, setting, settings_of
 
-__all__ = ['DetectorNodeConfig', 'MatcherNodeConfig', 'MapperNodeConfig', 'RfmConfig', 'NODES', 'node_settings',
-           'update_parameter_tables']
+__all__ = ['DetectorNodeConfig', 'MatcherNodeConfig', 'MapperNodeConfig', 'RfmConfig', 'NODES', 'MATCHERS',
+           'node_settings', 'launch_arguments', 'update_parameter_tables']
 
 _COMMON = tuple(s.name for s in settings_of(DetectorConfig))     # set once for every backend
 MATCHERS = ('learned', 'classical')
@@ -39,33 +39,26 @@ MATCHERS = ('learned', 'classical')
 
 @dataclass(frozen=True)
 class DetectorNodeConfig:
-    backend: str = setting('depth_clusters', 'Detector: depth_clusters (RGB-D clusters + a small learned box '
-                           'refiner), cutr (Cubify Transformer, needs cutr.checkpoint), ground_truth (simulator '
-                           'ground truth + noise model, for evaluation only)', choices=BACKENDS, read_only=True)
+    backend: str = setting('depth_clusters', 'Detector: depth_clusters (RGB-D clusters and a small learned box '
+                           'refiner), cutr (Cubify Transformer, needs cutr.checkpoint) or ground_truth (the '
+                           "simulator's boxes with a noise model, for evaluation)", choices=BACKENDS, read_only=True)
     score_threshold: float = same_setting(DetectorConfig, 'score_threshold')
     max_detections: int = same_setting(DetectorConfig, 'max_detections')
     cloud_voxel_m: float = same_setting(DetectorConfig, 'cloud_voxel_m')
     cloud_max_range_m: float = same_setting(DetectorConfig, 'cloud_max_range_m')
     image_transport: str = setting('raw', "Colour image transport: 'raw' (rgb/image, sensor_msgs/Image) or "
-                                   "'compressed' (rgb/image/compressed: JPEG or PNG); rfm run picks it from the "
-                                   'bag', choices=('raw', 'compressed'), read_only=True)
+                                   "'compressed' (rgb/image/compressed, JPEG or PNG)", choices=('raw', 'compressed'),
+                                   read_only=True)
     every_nth_frame: int = setting(1, 'Process one synchronised frame in n', lo=1, hi=100)
-    points_only_when_behind: bool = setting(
-        True, 'A frame the detector is behind on (the next one already waits) is sent with its depth points '
-        'and no detections, at a fraction of the cost; the matcher tracks it on the points '
-        '(matching.point_tracking). A 30 Hz camera is then localized at its rate while detection runs as '
-        'often as the CPU allows. Backends with depth only; false: the newest frame waits, the others are '
-        'dropped', read_only=True)
-    points_only_backlog: int = setting(
-        8, '... frames that may wait for the detector (with points_only_when_behind): each taken while another '
-        'waits goes out with its points only, so the frames a slow detector falls behind on are localized '
-        'on their points instead of dropped; a frame arriving when this many wait pushes out the oldest '
-        '(counted as dropped). At 30 Hz, 8 frames hold 0.27 s', lo=1, hi=64, read_only=True)
-    queue_size: int = setting(10, 'Synchroniser queue per input', lo=1, hi=100, read_only=True)
-    sync_slop_s: float = setting(0.05, 'Max stamp difference between image, camera_info and depth (s)',
+    points_only_backlog: int = setting(8, 'Frames that may wait for the detector (with depth): each taken while '
+                                       'another waits is sent with its depth points and no detections, for the '
+                                       'matcher to track on its points; a frame arriving when this many wait '
+                                       'pushes out the oldest', lo=1, hi=64, read_only=True)
+    queue_size: int = setting(10, 'Synchroniser queue per input (messages)', lo=1, hi=100, read_only=True)
+    sync_slop_s: float = setting(0.05, 'Largest stamp difference between image, camera_info and depth (s)',
                                  lo=0.0, hi=1.0, read_only=True)
-    gravity_source: str = setting('imu', "Gravity from 'imu' (accelerometer + gyroscope complementary filter) "
-                                  "or 'parameter' (the gravity setting)", choices=('imu', 'parameter'),
+    gravity_source: str = setting('imu', "Gravity from 'imu' (accelerometer and gyroscope, complementary filter) "
+                                  "or 'parameter' (the gravity parameter)", choices=('imu', 'parameter'),
                                   read_only=True)
     gravity: list = setting([0.0, 1.0, 0.0], 'Gravity ("down") in the camera optical frame when gravity_source '
                             'is parameter', read_only=True)
@@ -75,12 +68,10 @@ class DetectorNodeConfig:
                                    lo=0.01, hi=60.0)
     imu_wait_s: float = setting(0.05, "Wait up to this long for IMU samples up to a frame's stamp (s)",
                                 lo=0.0, hi=1.0)
-    imu_poll_period_s: float = setting(0.05, 'IMU samples are queued (imu_queue_size) and taken in batches: every '
-                                       'this often and before each frame, instead of waking the node for each '
-                                       'sample (s); 0: a callback per sample', lo=0.0, hi=1.0, read_only=True)
-    imu_queue_size: int = setting(200, 'IMU samples held between two batches (0.5 s of a 400 Hz IMU)',
-                                  lo=1, hi=10000, read_only=True)
-    publish_markers: bool = setting(True, 'Publish rfm/detection_markers (boxes as line lists with score labels)',
+    imu_poll_period_s: float = setting(0.05, 'IMU samples are queued and taken in batches this often and before '
+                                       'each frame (s; 0: a callback per sample)', lo=0.0, hi=1.0, read_only=True)
+    imu_queue_size: int = setting(200, 'IMU samples held between two batches', lo=1, hi=10000, read_only=True)
+    publish_markers: bool = setting(True, 'Publish rfm/detection_markers (boxes with score labels)',
                                     read_only=True)
     diagnostics_period_s: float = setting(1.0, 'Period of /diagnostics (s)', lo=0.1, hi=60.0, read_only=True)
     depth_clusters: DepthClustersConfig = section(DepthClustersConfig, 'the depth_clusters backend',
@@ -96,23 +87,18 @@ class DetectorNodeConfig:
 @dataclass(frozen=True)
 class MatcherNodeConfig:
     matcher: str = setting('learned', "Object matcher: 'learned' (LightGlue-style, shipped weights per detector; "
-                           "falls back to 'classical' for detectors without weights) or 'classical' (embedding "
-                           'similarity + size gate, Hungarian)', choices=MATCHERS, read_only=True)
-    matcher_weights: str = setting('', "Learned matcher checkpoint (rfm train-matcher); empty: the shipped "
-                                   "weights for the frames' detector", read_only=True)
-    shed_after_s: float = setting(0.5, 'Under load: once a frame has waited longer than this in the queue, '
-                                  'frames with depth points only (no detections) are skipped where they follow '
-                                  'the last frame processed by less than an interval growing with the wait (0 '
-                                  'here, shed_max_gap_s at twice the wait): the matcher thins the stream evenly '
-                                  'to what it keeps up with, where the transport would drop bursts of the oldest '
-                                  'frames (a gap longer than keyframes.max_frame_gap_s breaks tracking). Frames '
-                                  'with detections are never skipped; 0: never skip', lo=0.0, hi=60.0)
-    shed_max_gap_s: float = setting(0.2, '... the longest that interval (keep it below keyframes.max_frame_gap_s)',
-                                    lo=0.0, hi=60.0)
-    queue_depth: int = setting(300, 'rfm/detections messages held for the matcher (10 s of a 30 Hz camera); '
-                               'beyond it the oldest are lost', lo=1, hi=100000, read_only=True)
-    diagnostics_period_s: float = setting(1.0, 'Period of /diagnostics (frames received, processed, skipped, lost; '
-                                          'keyframes, edges) (s)', lo=0.1, hi=60.0, read_only=True)
+                           "'classical' for detectors without them) or 'classical' (embedding similarity and a size "
+                           'gate, Hungarian)', choices=MATCHERS, read_only=True)
+    matcher_weights: str = setting('', "Learned matcher checkpoint (rfm train-matcher); empty: the shipped weights "
+                                   "for the frames' detector", read_only=True)
+    shed_after_s: float = setting(0.5, 'Under load, once a frame has waited this long, frames with depth points '
+                                  'only are skipped where they follow the last frame processed closely: the '
+                                  'stream is thinned evenly (s; 0: never skip)', lo=0.0, hi=60.0)
+    shed_max_gap_s: float = setting(0.2, '... the longest gap thinning leaves between two frames (s; keep it '
+                                    'below keyframes.max_frame_gap_s)', lo=0.0, hi=60.0)
+    queue_depth: int = setting(300, 'rfm/detections messages held for the matcher; beyond it the oldest are lost',
+                               lo=1, hi=100000, read_only=True)
+    diagnostics_period_s: float = setting(1.0, 'Period of /diagnostics (s)', lo=0.1, hi=60.0, read_only=True)
     matching: MatchingConfig = section(MatchingConfig, 'object matching and verification (paper 3.2-3.4)')
     keyframes: KeyframeConfig = section(KeyframeConfig, 'keyframes, candidates, motion prior, tracking')
 
@@ -126,34 +112,28 @@ class MapperNodeConfig:
                                   read_only=True)
     map_publish_period_s: float = setting(1.0, 'Rebuild and publish the object map at most this often (s)',
                                           lo=0.05, hi=60.0)
-    map_max_cpu_share: float = setting(0.2, 'Rebuilding the object map (tracks, merging) may take at most this '
-                                       'share of the time: a map that takes 0.3 s to build is published at '
-                                       'most every 1.5 s at 0.2', lo=0.01, hi=1.0)
-    idle_full_solve_s: float = setting(1.0, 'Once no keyframe or edge has arrived for this long after '
-                                       'incremental updates, re-solve all poses at once (the incremental solve '
-                                       're-solves a window of recent keyframes); 0: never', lo=0.0, hi=3600.0)
+    map_max_cpu_share: float = setting(0.2, 'Rebuilding the object map may take at most this share of the time',
+                                       lo=0.01, hi=1.0)
+    idle_full_solve_s: float = setting(1.0, 'Re-solve all poses at once after this long without new keyframes or '
+                                       'edges (s; 0: never)', lo=0.0, hi=3600.0)
     map_path: str = setting('', 'Map file of save_map / load_map requests with an empty path, and of autosave; '
                             'empty: $ROS_HOME/rfm/map.rfm (~/.ros/rfm/map.rfm)')
     map_dir: str = setting('', 'Directory that save_map / load_map requests may name files in (relative paths '
-                           'are taken inside it; paths outside it, symbolic links included, are refused); empty: '
-                           'the directory of map_path', read_only=True)
-    autosave_every_n_keyframes: int = setting(10, 'Save the map to map_path every n new keyframes: a crash '
-                                              'loses at most this many (those still in the running matcher\'s '
-                                              'kept history come back after a restart with load_map_on_start) '
-                                              '(0: never)', lo=0, hi=100000)
-    autosave_growth: float = setting(0.1, '... or, once the map is larger, when it has grown by this fraction '
-                                     'since the last save (a save rewrites the whole map: the total cost of '
-                                     'autosaving then stays linear in the map size)', lo=0.0, hi=10.0)
+                           'are taken inside it, paths outside it refused); empty: the directory of map_path',
+                           read_only=True)
+    autosave_every_n_keyframes: int = setting(10, 'Save the map to map_path every n new keyframes (0: never) ...',
+                                              lo=0, hi=100000)
+    autosave_growth: float = setting(0.1, '... or, for a larger map, once it has grown by this fraction since the '
+                                     'last save', lo=0.0, hi=10.0)
     load_map_on_start: bool = setting(False, 'Load map_path at start-up', read_only=True)
-    mode: str = setting('mapping', "Start in 'mapping' or 'localization' (the map is frozen, every frame is "
-                        'localized against it as a stream: relocalization.stream) mode; rfm/set_mode switches',
-                        choices=MODES, read_only=True)
-    pose_source: str = setting('', "Posed mode: '' (un-posed: averaging), 'topic' (rfm/external_pose, "
-                               "PoseStamped of the camera in the map frame) or 'tf' (map_frame -> camera frame "
-                               'lookups)', choices=('', 'topic', 'tf'), read_only=True)
-    matcher: str = setting('learned', "Relocalization object matcher: 'learned' or 'classical'",
+    mode: str = setting('mapping', "Start in 'mapping' or 'localization' mode (the map frozen, every frame "
+                        'localized against it); rfm/set_mode switches', choices=MODES, read_only=True)
+    pose_source: str = setting('', "Posed mode: '' (un-posed: pose averaging), 'topic' (rfm/external_pose, the "
+                               "camera's PoseStamped in the map frame) or 'tf' (map_frame -> camera frame)",
+                               choices=('', 'topic', 'tf'), read_only=True)
+    matcher: str = setting('learned', "Relocalization's object matcher: 'learned' or 'classical'",
                            choices=MATCHERS, read_only=True)
-    matcher_weights: str = setting('', 'Relocalization: learned matcher checkpoint; empty: shipped',
+    matcher_weights: str = setting('', "Relocalization's learned matcher checkpoint; empty: shipped",
                                    read_only=True)
     mapper: MapperConfig = section(MapperConfig, 'the mapper (averaging, tracks, relocalization, bundle '
                                    'adjustment)', inline=True)
@@ -174,6 +154,32 @@ def node_settings(node: str) -> list[Setting]:
     if node not in NODES:
         raise ValueError(f'unknown node {node!r}; one of {", ".join(NODES)}')
     return settings_of(getattr(RfmConfig(), node))
+
+
+#: rfm.launch.py's arguments that set node parameters: argument -> (node.parameter, ...)
+LAUNCH_PARAMETERS = {
+    'backend': ('detector.backend',),
+    'cutr_checkpoint': ('detector.cutr.checkpoint',),
+    'matcher': ('matcher.matcher', 'mapper.matcher'),
+    'map_path': ('mapper.map_path',),
+    'mode': ('mapper.mode',),
+    'load_map_on_start': ('mapper.load_map_on_start',),
+}
+
+
+def launch_arguments() -> list:
+    """[(argument, default as launch text, description, [(node, parameter)], is text)] of the
+    launch file's arguments that set node parameters, defaults and descriptions from the
+    settings (``is text``: a string parameter, which launch must not parse as YAML)."""
+    out = []
+    for name, targets in LAUNCH_PARAMETERS.items():
+        pairs = [tuple(t.split('.', 1)) for t in targets]
+        node, param = pairs[0]
+        s = next(s for s in node_settings(node) if s.name == param)
+        default = str(s.default).lower() if isinstance(s.default, bool) else str(s.default)
+        text = s.description + (f' (one of: {", ".join(s.choices)})' if s.choices else '')
+        out.append((name, default, text, pairs, s.kind == 'str'))
+    return out
 
 
 _TABLE = re.compile(r'(<!-- parameters: (\w+) -->\n).*?(<!-- end parameters -->)', re.S)

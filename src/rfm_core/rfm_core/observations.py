@@ -5,9 +5,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from rfm_core.clouds import PointIndex
 from rfm_core.geometry import BOX_DIM, Pose4, gravity_aligned_rotation
 
-__all__ = ['CameraIntrinsics', 'FrameObservations', 'FrameTrack']
+__all__ = ['CameraIntrinsics', 'FrameObservations', 'FrameTrack', 'EdgeRecord']
 
 
 @dataclass(frozen=True)
@@ -97,7 +98,7 @@ class FrameObservations:
     #: distance d > 0 (points p on it: n . p_xy = d); empty: none measured
     walls: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     #: (P, 3) float32 depth points of the frame, voxel-downsampled, in the gravity-aligned
-    #: camera frame (:func:`rfm_core.matching.points.depth_cloud`); empty: none (no depth)
+    #: camera frame (:func:`rfm_core.clouds.depth_cloud`); empty: none (no depth)
     cloud: np.ndarray = field(default_factory=lambda: _empty_f32(0, 3))
     _point_index: object = field(default=None, init=False, repr=False, compare=False)
 
@@ -184,10 +185,9 @@ class FrameObservations:
                        full_boxes=None if self.full_boxes is None else self.full_boxes[idx])
 
     def point_index(self):
-        """The cloud ready to be aligned to (:class:`rfm_core.matching.points.PointIndex`),
+        """The cloud ready to be aligned to (:class:`rfm_core.clouds.PointIndex`),
         built once per cloud."""
         if self._point_index is None or self._point_index.cloud is not self.cloud:
-            from rfm_core.matching.points import PointIndex  # noqa: PLC0415
             self._point_index = PointIndex(self.cloud)
         return self._point_index
 
@@ -231,3 +231,28 @@ class FrameTrack:
     def rotation_aligned_from_camera(self) -> np.ndarray:
         """R (3, 3) with p_aligned = R p_camera (see gravity_aligned_rotation)."""
         return gravity_aligned_rotation(self.gravity_cam)
+
+
+@dataclass
+class EdgeRecord:
+    """A verified edge of the view graph as the mapper keeps it (rfm_msgs/ViewGraphEdge)."""
+
+    source: int
+    target: int
+    pose: Pose4                              #: T_source_target
+    inliers: np.ndarray                      #: (K, 2) detection indices (source, target)
+    scores: np.ndarray                       #: (K,) match scores
+    corner_inliers: np.ndarray               #: (C, 5) source idx, corner, target idx, corner, error
+    score: float = 1.0
+
+    @property
+    def weight(self) -> float:
+        """Averaging weight: more verified objects, more trust."""
+        return float(max(len(self.inliers), 1)) * max(self.score, 1e-3)
+
+    @classmethod
+    def from_edge(cls, edge) -> 'EdgeRecord':
+        """From a view-graph edge (:class:`rfm_core.matching.view_graph.Edge`)."""
+        rel = edge.relative
+        return cls(edge.source_id, edge.target_id, rel.pose, rel.inliers, rel.inlier_scores,
+                   np.asarray(rel.corner_inliers, float).reshape(-1, 5), edge.score)

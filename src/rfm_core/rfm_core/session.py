@@ -27,10 +27,10 @@ from rfm_core.geometry import Pose4
 from rfm_core.mapping.frame_log import camera_to_map, pose_from_camera
 from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.map_io import load_map, save_map
-from rfm_core.mapping.mapper import MODES, EdgeRecord, Mapper, MapperConfig
+from rfm_core.mapping.mapper import MODES, Mapper, MapperConfig
 from rfm_core.mapping.relocalization import Relocalization
 from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
-from rfm_core.observations import FrameObservations, FrameTrack
+from rfm_core.observations import EdgeRecord, FrameObservations, FrameTrack
 
 __all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses', 'SequenceCheck']
 

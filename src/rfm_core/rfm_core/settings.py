@@ -1,7 +1,9 @@
 """Typed, described settings: the machinery behind :mod:`rfm_core.config`.
 
-Every threshold of rfm is a field of a frozen dataclass declared with :func:`setting`
-(default, description, range, the paper's value) or :func:`section` (a nested stage). From
+Every threshold of rfm is a field of a frozen dataclass declared with :func:`setting` (a node
+parameter: default, description, range, the paper's value), :func:`constant` (a value of the
+method that is no parameter: documented and typed in the same place, set only in code) or
+:func:`section` (a nested stage). From
 the dataclasses alone, :func:`settings_of` lists every setting under its dotted name, which
 is also its ROS parameter name (``keyframes.min_overlap``); :func:`with_values` builds a
 configuration from such names, checking types, ranges and choices; :func:`from_dict` reads
@@ -14,7 +16,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, fields, is_dataclass, replace
 
-__all__ = ['setting', 'section', 'same_setting', 'Setting', 'settings_of', 'with_values', 'from_dict', 'markdown_table']
+__all__ = ['setting', 'constant', 'section', 'same_setting', 'Setting', 'settings_of', 'with_values', 'from_dict', 'markdown_table']
 
 
 def setting(default, description: str, *, lo=None, hi=None, paper=None, choices=None,
@@ -27,6 +29,13 @@ def setting(default, description: str, *, lo=None, hi=None, paper=None, choices=
     if isinstance(default, (list, dict)):
         return field(default_factory=lambda: type(default)(default), metadata=meta)
     return field(default=default, metadata=meta)
+
+
+def constant(default, description: str, *, lo=None, hi=None, paper=None, choices=None):
+    """A dataclass field that is a value of the method, not a node parameter: what it is, its
+    unit and range, the paper's value. Tests, benchmarks and training set it in code; a user
+    never needs to (a stage's internals, noise models, solver budgets)."""
+    return setting(default, description, lo=lo, hi=hi, paper=paper, choices=choices, ros=False)
 
 
 def section(cls, description: str = '', *, inline: bool = False, exclude=()):
@@ -186,11 +195,13 @@ def _format(value) -> str:
 
 
 def markdown_table(settings: list[Setting]) -> str:
-    """A README table: parameter, default, meaning (with the paper's value, the choices, and
-    whether it is read at start-up only)."""
+    """A README table: parameter, default, meaning (with the range, the paper's value, the
+    choices, and whether it is read at start-up only)."""
     rows = ['| parameter | default | meaning |', '|---|---|---|']
     for s in settings:
         notes = []
+        if s.lo is not None and s.hi is not None:
+            notes.append(f'{_format(s.lo)} to {_format(s.hi)}')
         if s.choices:
             notes.append('one of ' + ', '.join(f'`{c}`' for c in s.choices))
         if s.paper is not None:

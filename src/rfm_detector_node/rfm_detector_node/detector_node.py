@@ -10,8 +10,8 @@ Publishes:
   rfm/detections (rfm_msgs/FrameDetections), rfm/detection_markers (MarkerArray),
   /diagnostics (diagnostic_msgs/DiagnosticArray: counters, latency).
 
-Frames are processed by one worker thread. With depth (points_only_when_behind), up to
-points_only_backlog frames may wait: a frame taken while the next one already waits is sent
+Frames are processed by one worker thread. With depth, up to points_only_backlog frames may
+wait: a frame taken while the next one already waits is sent
 with its depth points and no detections (a few ms; the matcher tracks it on the points), the
 frame it catches up on is detected in full, and a frame arriving while the backlog is full
 pushes out the oldest waiting (counted as dropped). Without, a frame arriving while the worker
@@ -20,17 +20,14 @@ Thin rclpy adapter: frames through rfm_core.detection.frontend, detections out.
 """
 from __future__ import annotations
 
-import sys
 import threading
 import time
 
-import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rfm_msgs.msg import FrameDetections
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
 from visualization_msgs.msg import MarkerArray
@@ -38,9 +35,9 @@ from visualization_msgs.msg import MarkerArray
 from rfm_core.config import DetectorNodeConfig
 from rfm_core.detection import make_detector
 from rfm_core.detection.frontend import DetectorFrontend, FrameWorker
-from rfm_core.geometry import box_corners
-from rfm_core.io.messages import box_markers_msg, frame_detections_to_msg
+from rfm_core.io.messages import detection_markers_msg, diagnostics_msg, frame_detections_to_msg
 from rfm_core.io.parameters import declare_config
+from rfm_core.io.qos import RELIABLE, SENSOR, qos
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
 from rfm_detector_node.polling import PolledGroup, take_all
 
@@ -70,16 +67,15 @@ class DetectorNode(Node):
         self.last_latency_ms = float('nan')
         self.last_detections = 0
 
-        reliable = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
-        self.pub = self.create_publisher(FrameDetections, 'rfm/detections', reliable)
-        self.marker_pub = (self.create_publisher(MarkerArray, 'rfm/detection_markers', reliable)
+        self.pub = self.create_publisher(FrameDetections, 'rfm/detections', qos(RELIABLE))
+        self.marker_pub = (self.create_publisher(MarkerArray, 'rfm/detection_markers', qos(RELIABLE))
                            if self.publish_markers else None)
-        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        sensor = qos_profile_sensor_data
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos(RELIABLE))
+        sensor = qos(SENSOR)
         add = self.frontend.add_image
         if self.backend == 'ground_truth':
             self.create_subscription(FrameDetections, 'ground_truth/detections', self.frontend.add_ground_truth,
-                                     QoSProfile(depth=50))
+                                     qos(RELIABLE, depth=50))
             inputs = 'ground_truth/detections'
         else:
             colour = 'rgb/image/compressed' if self.image_transport == 'compressed' else 'rgb/image'
@@ -93,10 +89,8 @@ class DetectorNode(Node):
             # gravity (unless given or simulated) and the gyroscope's orientation, taken in
             # batches (every imu_poll_period_s and before each frame), not a callback per sample
             if cfg.imu_poll_period_s > 0:
-                self.imu_sub = self.create_subscription(
-                    Imu, 'imu', self._on_imu, QoSProfile(
-                        depth=cfg.imu_queue_size, reliability=sensor.reliability, durability=sensor.durability),
-                    callback_group=PolledGroup())
+                self.imu_sub = self.create_subscription(Imu, 'imu', self._on_imu, qos(SENSOR, depth=cfg.imu_queue_size),
+                                                        callback_group=PolledGroup())
                 self.create_timer(cfg.imu_poll_period_s, self._take_imu,
                                   clock=Clock(clock_type=ClockType.STEADY_TIME))   # also while a bag pauses
             else:
@@ -104,7 +98,7 @@ class DetectorNode(Node):
             inputs += ', imu' if self.backend != 'ground_truth' else ', imu (optional)'
         self.create_timer(self.diagnostics_period, self._publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))          # also while a bag pauses
-        self.points_only = cfg.points_only_when_behind and self.detector.needs_depth and cfg.cloud_voxel_m > 0
+        self.points_only = self.detector.needs_depth and cfg.cloud_voxel_m > 0
         self.worker = FrameWorker(self._work, self._replaced, name='detector_worker',
                                   backlog=cfg.points_only_backlog if self.points_only else 1)
         self.get_logger().info(f'detector ready: backend={self.backend}, inputs: {inputs}')
@@ -156,35 +150,16 @@ class DetectorNode(Node):
             self.pub.publish(frame_detections_to_msg(obs))
             self.counts['published'] += 1
             if self.marker_pub is not None and not points_only:
-                self.marker_pub.publish(self._markers(obs))
+                self.marker_pub.publish(detection_markers_msg(obs))
         except Exception as exc:  # noqa: BLE001 - e.g. publishing during shutdown
             self.get_logger().debug(f'publish failed: {exc!r}')
 
-    # ------------------------------------------------------------------ outputs
-
-    def _markers(self, obs) -> MarkerArray:
-        """The frame's boxes in the camera's optical frame, coloured by score."""
-        corners = box_corners(obs.boxes).reshape(-1, 8, 3) @ obs.rotation_aligned_from_camera   # aligned -> camera
-        scores = np.asarray(obs.scores, float)
-        return box_markers_msg(
-            corners, [f'{label + " " if label else ""}{score:.2f}' for label, score in zip(obs.labels, scores)],
-            corners[:, 4:].mean(1), np.stack([1.0 - scores, scores, np.full_like(scores, 0.2), np.ones_like(scores)], 1),
-            obs.stamp_ns, obs.frame_id, line_width=0.01, text_size=0.08, text_colour=(1.0, 1.0, 1.0, 1.0),
-            namespaces=('boxes', 'scores'))
-
     def _publish_diagnostics(self) -> None:
-        status = DiagnosticStatus(name='rfm detector', hardware_id=self.backend)
-        dropped = self.counts['dropped_invalid'] + self.counts['dropped_no_gravity']
-        status.level = DiagnosticStatus.WARN if dropped else DiagnosticStatus.OK
-        status.message = f'{self.counts["published"]} frames published'
-        values = self.frontend.diagnostics()
-        values['last_latency_ms'] = round(self.last_latency_ms, 1)
-        values['last_detections'] = self.last_detections
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        msg = DiagnosticArray()
-        msg.header.stamp = self.get_clock().now().to_msg()
-        msg.status = [status]
-        self.diag_pub.publish(msg)
+        values = dict(self.frontend.diagnostics(), last_latency_ms=round(self.last_latency_ms, 1),
+                      last_detections=self.last_detections)
+        self.diag_pub.publish(diagnostics_msg(
+            'rfm detector', self.backend, bool(self.counts['dropped_invalid'] + self.counts['dropped_no_gravity']),
+            f'{self.counts["published"]} frames published', values, self.get_clock().now().nanoseconds))
 
     def destroy_node(self):
         self.worker.stop()
@@ -200,8 +175,7 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:                 # a bad parameter: say which, exit non-zero
-        print(f'detector: {exc}', file=sys.stderr)
-        raise SystemExit(1) from None
+        raise SystemExit(f'detector: {exc}') from None
     finally:
         if node is not None:
             node.destroy_node()

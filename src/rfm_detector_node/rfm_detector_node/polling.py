@@ -3,7 +3,7 @@
 
 rclpy's executors rebuild their wait set in Python on every wake-up (about 1 ms on a 2-core
 machine): a 200-400 Hz IMU that woke the detector's executor for every sample cost a quarter
-of a core before any detection (BENCHMARKS.md, session 16). The detector takes its IMU this
+of a core before any detection on a 2-core machine. The detector takes its IMU this
 way and ``rfm run``'s recorder its output topics.
 """
 from __future__ import annotations

@@ -3,8 +3,8 @@
 
 Subscribes rfm/detections (rfm_msgs/FrameDetections). Publishes rfm/keyframes
 (rfm_msgs/Keyframe) and rfm/view_graph/edges (rfm_msgs/ViewGraphEdge), reliable and
-transient local with deep queues (the last GRAPH_HISTORY are kept, so a mapper that starts or
-restarts later still gets them; numbered, so the mapper counts what it missed), and
+transient local with deep queues (rfm_core.io.qos.GRAPH: a mapper that starts or restarts
+later still gets them; numbered, so the mapper counts what it missed), and
 rfm/tracked_frames (rfm_msgs/TrackedFrame), one per localized frame, and /diagnostics
 (frames received, processed, skipped under load, lost; keyframes, edges). An edge's (yaw,
 translation) is T_source_target, between the gravity-aligned camera frames of its
@@ -15,22 +15,20 @@ Thin rclpy wrapper: the algorithms live in rfm_core.matching.
 from __future__ import annotations
 
 import random
-import sys
 import time
 
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 
 from rfm_core.config import MatcherNodeConfig
-from rfm_core.io.messages import (edge_msg, frame_detections_from_msg, frame_detections_to_msg, stamp_to_ns,
-                                  tracked_frame_to_msg)
+from rfm_core.io.messages import (diagnostics_msg, edge_msg, frame_detections_from_msg, frame_detections_to_msg,
+                                  stamp_to_ns, tracked_frame_to_msg)
 from rfm_core.io.parameters import declare_config
-from rfm_core.io.topics import GRAPH_HISTORY
+from rfm_core.io.qos import GRAPH, RELIABLE, STREAM, qos
 from rfm_core.matching.factory import make_matcher
 from rfm_core.matching.load import FrameShedder
 from rfm_core.matching.view_graph import ViewGraphBuilder
@@ -47,21 +45,17 @@ class MatcherNode(Node):
         except FileNotFoundError as exc:
             raise ValueError(str(exc)) from exc
         self.graph = ViewGraphBuilder(cfg.matching, cfg.keyframes, matcher=matcher)
-        deep = QoSProfile(depth=1000, history=HistoryPolicy.KEEP_LAST,
-                          reliability=ReliabilityPolicy.RELIABLE)
-        kept = QoSProfile(depth=GRAPH_HISTORY, history=HistoryPolicy.KEEP_LAST,
-                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', kept)
-        self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', kept)
-        self.track_pub = self.create_publisher(TrackedFrame, 'rfm/tracked_frames', deep)
+        self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', qos(GRAPH))
+        self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', qos(GRAPH))
+        self.track_pub = self.create_publisher(TrackedFrame, 'rfm/tracked_frames', qos(STREAM))
         # every published keyframe, edge and tracked frame is numbered (the mapper counts gaps)
         self.session_id = random.SystemRandom().randint(1, 2 ** 63 - 1)
         self.sequence = {Keyframe: 0, ViewGraphEdge: 0, TrackedFrame: 0}
         # a deep queue: under load the matcher thins the stream itself (FrameShedder), evenly
         self.shedder = FrameShedder(cfg.shed_after_s, cfg.shed_max_gap_s)
         self.create_subscription(FrameDetections, 'rfm/detections', self._on_detections,
-                                 QoSProfile(depth=cfg.queue_depth, reliability=ReliabilityPolicy.RELIABLE))
-        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+                                 qos(RELIABLE, depth=cfg.queue_depth))
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', qos(RELIABLE))
         self.create_timer(cfg.diagnostics_period_s, self._publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))          # also while a bag pauses
         self.get_logger().info(f'matcher ready ({cfg.matcher} object matcher): rfm/detections -> rfm/keyframes, '
@@ -108,15 +102,11 @@ class MatcherNode(Node):
 
     def _publish_diagnostics(self) -> None:
         counts = self.shedder.counts
-        status = DiagnosticStatus(name='rfm matcher', hardware_id=self.config.matcher)
-        status.level = DiagnosticStatus.WARN if counts['lost'] else DiagnosticStatus.OK
-        status.message = f'{counts["processed"]} of {counts["received"]} frames processed'
-        stats = self.graph.stats
-        values = dict(counts, keyframes=stats.keyframes, edges=self.sequence[ViewGraphEdge])
-        status.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-        msg = DiagnosticArray(status=[status])
-        msg.header.stamp = self.get_clock().now().to_msg()
-        self.diag_pub.publish(msg)
+        values = dict(counts, keyframes=self.graph.stats.keyframes, edges=self.sequence[ViewGraphEdge])
+        self.diag_pub.publish(diagnostics_msg(
+            'rfm matcher', self.config.matcher, bool(counts['lost']),
+            f'{counts["processed"]} of {counts["received"]} frames processed', values,
+            self.get_clock().now().nanoseconds))
 
     def _numbered(self, msg):
         self.sequence[type(msg)] += 1
@@ -133,8 +123,7 @@ def main(args=None):
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except ValueError as exc:                 # a bad parameter: say which, exit non-zero
-        print(f'matcher: {exc}', file=sys.stderr)
-        raise SystemExit(1) from None
+        raise SystemExit(f'matcher: {exc}') from None
     finally:
         if node is not None:
             node.destroy_node()

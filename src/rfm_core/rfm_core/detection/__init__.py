@@ -39,15 +39,12 @@ def make_detector(backend: str, config: DetectorConfig | None = None, **options)
 def detector_for_spec(spec: str, noise_seed: int = 0) -> Detector:
     """A detector from an evaluation spec: a backend name, ``ground_truth:PRESET``
     (``ground_truth`` alone: the rgbd preset) with ``noise_seed`` as its noise seed, or
-    ``depth_clusters:heuristic`` (no learned box refiner), ``depth_clusters:fitted`` (the
-    refiner's scores, fitted boxes only) or ``depth_clusters:refined`` (the refiner's
-    predicted boxes published instead of the fitted ones)."""
+    ``depth_clusters:heuristic`` (no learned box refiner)."""
     backend, _, preset = spec.partition(':')
     if backend == 'ground_truth':
         return make_detector('ground_truth', preset=preset or 'rgbd', seed=noise_seed)
     if backend == 'depth_clusters' and preset:
-        variants = {'heuristic': {'box_refiner': ''}, 'fitted': {'predicted_boxes': 'off'},
-                    'refined': {'predicted_boxes': 'all'}}
+        variants = {'heuristic': {'box_refiner': ''}}
         if preset not in variants:
             raise ValueError(f'unknown depth_clusters variant {preset!r}: one of {sorted(variants)}')
         return make_detector(backend, **variants[preset])

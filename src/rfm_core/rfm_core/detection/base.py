@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rfm_core.matching.points import depth_cloud
+from rfm_core.clouds import depth_cloud
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.settings import setting
 
@@ -52,8 +52,8 @@ class DetectorConfig:
                                      paper='0.25 on CA-1M')
     max_detections: int = setting(100, 'At most this many detections per frame (the best scores)', lo=1, hi=1000)
     cloud_voxel_m: float = setting(0.12, "Depth points sent with each frame's detections (FrameDetections.cloud, "
-                                   'for relative poses: matching.point_refine): one per cell of this size (m); '
-                                   '0: none', lo=0.0, hi=1.0)
+                                   'for relative poses and tracking on points): one per cell of this size (m; '
+                                   '0: none)', lo=0.0, hi=1.0)
     cloud_max_range_m: float = setting(6.0, '... from depth up to this range (m)', lo=0.5, hi=100.0)
 
 

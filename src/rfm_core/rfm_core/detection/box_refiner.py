@@ -1,4 +1,4 @@
-"""A learned box refiner for `depth_clusters` (issue #18): objectness, the amodal box and a
+"""A learned box refiner for `depth_clusters`: objectness, the amodal box and a
 class from each cluster's points.
 
 The heuristic detector (:mod:`rfm_core.detection.depth_clusters`) finds clusters of object

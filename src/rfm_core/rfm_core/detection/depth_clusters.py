@@ -15,9 +15,11 @@
    PointNet trained on simulated rooms) reads each cluster's points and predicts its
    objectness (the score), the object's full box and a class; fragments, clutter and
    pieces of structure score low and are dropped, overlapping boxes are suppressed, and the
-   fitted boxes are published for relative poses with the predicted ones attached as each
-   detection's full box for the map (``predicted_boxes``). With ``box_refiner=''`` the
-   fitted boxes are kept, scored by support (points) and shape and calibrated by a small logistic model (:mod:`rfm_core.detection.score_model`).
+   fitted boxes are published for relative poses (they repeat from view to view) with the
+   predicted ones attached as each detection's full box for the map. With
+   ``box_refiner=''`` (training the refiner) the fitted boxes are kept, scored by support
+   (points) and shape and calibrated by a small logistic model
+   (:mod:`rfm_core.detection.score_model`).
    Each box is described by an embedding of its colours (hue/value histograms, mean
    colour), sorted size and height above the floor.
 
@@ -34,7 +36,7 @@ from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput, fin
 from rfm_core.detection.score_model import DEFAULT_SCORE_MODEL, box_features, load_score_model
 from rfm_core.geometry import gravity_aligned_rotation
 from rfm_core.observations import FrameObservations
-from rfm_core.settings import setting
+from rfm_core.settings import constant, setting
 
 __all__ = ['DepthClustersConfig', 'DepthClustersDetector', 'Candidate', 'Candidates', 'EMBEDDING_DIM']
 
@@ -46,43 +48,37 @@ class DepthClustersConfig(DetectorConfig):
     stride: int = setting(2, 'Input resolution: use every n-th pixel', lo=1, hi=8)
     min_depth_m: float = setting(0.2, 'Ignore depth nearer than this (m)', lo=0.0, hi=10.0)
     max_depth_m: float = setting(6.0, 'Ignore depth farther than this (m)', lo=0.1, hi=100.0)
-    surface_tolerance_m: float = setting(0.04, 'Floor / ceiling / wall inlier distance at 0 m (m) ...',
-                                         lo=0.001, hi=1.0)
-    depth_noise_per_m2: float = setting(0.002, '... plus this x range^2 (depth error growth, 1/m)', lo=0.0, hi=1.0)
-    wall_min_height_m: float = setting(1.0, 'A wall spans at least this much vertically (m)', lo=0.1, hi=10.0)
-    wall_max_behind: float = setting(0.03, 'Share of points allowed behind a wall', lo=0.0, hi=1.0)
-    max_walls: int = setting(4, 'Walls removed per frame', lo=0, hi=20)
-    ransac_iterations: int = setting(120, 'RANSAC iterations per plane', lo=1, hi=10000)
-    voxel_m: float = setting(0.04, 'Clustering connectivity (m)', lo=0.005, hi=1.0)
-    min_cluster_points: int = setting(25, 'Least points of a cluster (after striding)', lo=1, hi=100000)
-    support_min_points: int = setting(20, 'Upward-facing points that make a support surface', lo=1, hi=100000)
-    floor_snap_m: float = setting(0.3, 'Extend boxes down to the floor within this (m), or from any height when '
-                                  'an occluder hides the bottom', lo=0.0, hi=5.0)
-    occluder_gap_m: float = setting(0.1, 'An occluder is this much nearer than the object (m)', lo=0.0, hi=5.0)
-    wall_snap_m: float = setting(0.5, "Extend a box's unseen back to a wall within this (m)", lo=0.0, hi=5.0)
-    amodal_min_depth_m: float = setting(0.3, 'A box whose back is unseen gets the depth of its visible width '
-                                        '(footprints are rarely slabs), clipped to at least this (m) ...',
-                                        lo=0.0, hi=5.0)
-    amodal_max_depth_m: float = setting(0.7, '... and at most this (m)', lo=0.0, hi=5.0)
-    truncated_score_factor: float = setting(0.6, 'Score multiplier of boxes cut by the image border',
-                                            lo=0.0, hi=1.0)
-    score_model: str = setting('default', "Calibrated score (rfm_core.detection.score_model): 'default' for the "
-                               "shipped model, a JSON path from rfm train-depth-score, or '' for the raw score "
-                               '(points x shape x truncation)')
-    box_refiner: str = setting('default', "Learned box refiner (rfm_core.detection.box_refiner): 'default' for "
-                               "the shipped weights, a checkpoint from rfm train-box-refiner, or '' for the "
-                               "heuristic boxes scored by score_model")
-    nms_iou: float = setting(0.3, 'Box refiner: of published boxes overlapping more than this (3D IoU), keep '
-                             'the best scored', lo=0.0, hi=1.0)
-    predicted_boxes: str = setting('map', "Box refiner: where its predicted full boxes go. 'map': attached to "
-                                   "each detection as its full box, the map's objects are built from them while "
-                                   "relative poses use the fitted boxes (which repeat from view to view); 'all': "
-                                   "published instead of the fitted boxes (relative poses from them are noisier); "
-                                   "'off': fitted boxes only (BENCHMARKS.md)", choices=('map', 'all', 'off'))
-    refine_gravity: bool = setting(True, 'Align gravity with the floor plane when visible')
-    max_gravity_correction_deg: float = setting(6.0, '... if it is within this of the input gravity (deg)',
-                                                lo=0.0, hi=90.0)
-    seed: int = setting(0, 'RANSAC sampling seed', lo=0, hi=2**31 - 1)
+    surface_tolerance_m: float = constant(0.04, 'Floor / ceiling / wall inlier distance at 0 m (m) ...',
+                                          lo=0.001, hi=1.0)
+    depth_noise_per_m2: float = constant(0.002, '... plus this x range^2 (depth error growth, 1/m)', lo=0.0, hi=1.0)
+    wall_min_height_m: float = constant(1.0, 'A wall spans at least this much vertically (m)', lo=0.1, hi=10.0)
+    wall_max_behind: float = constant(0.03, 'Share of points allowed behind a wall', lo=0.0, hi=1.0)
+    max_walls: int = constant(4, 'Walls removed per frame', lo=0, hi=20)
+    ransac_iterations: int = constant(120, 'RANSAC iterations per plane', lo=1, hi=10000)
+    voxel_m: float = constant(0.04, 'Clustering connectivity (m)', lo=0.005, hi=1.0)
+    min_cluster_points: int = constant(25, 'Least points of a cluster (after striding)', lo=1, hi=100000)
+    support_min_points: int = constant(20, 'Upward-facing points that make a support surface', lo=1, hi=100000)
+    floor_snap_m: float = constant(0.3, 'Extend boxes down to the floor within this (m), or from any height when '
+                                   'an occluder hides the bottom', lo=0.0, hi=5.0)
+    occluder_gap_m: float = constant(0.1, 'An occluder is this much nearer than the object (m)', lo=0.0, hi=5.0)
+    wall_snap_m: float = constant(0.5, "Extend a box's unseen back to a wall within this (m)", lo=0.0, hi=5.0)
+    amodal_min_depth_m: float = constant(0.3, 'A box whose back is unseen gets the depth of its visible width '
+                                         '(footprints are rarely slabs), clipped to at least this (m) ...',
+                                         lo=0.0, hi=5.0)
+    amodal_max_depth_m: float = constant(0.7, '... and at most this (m)', lo=0.0, hi=5.0)
+    truncated_score_factor: float = constant(0.6, 'Score multiplier of boxes cut by the image border',
+                                             lo=0.0, hi=1.0)
+    score_model: str = setting('default', "Calibrated score of the heuristic boxes: 'default' (shipped), a JSON "
+                               "file from rfm train-depth-score, or '' for the raw score", read_only=True)
+    box_refiner: str = setting('default', "Learned box refiner: 'default' (shipped weights), a checkpoint from rfm "
+                               "train-box-refiner, or '' for the heuristic boxes scored by score_model",
+                               read_only=True)
+    nms_iou: float = constant(0.3, 'Box refiner: of published boxes overlapping more than this (3D IoU), keep '
+                              'the best scored', lo=0.0, hi=1.0)
+    max_gravity_correction_deg: float = constant(6.0, 'Align gravity with the floor plane when visible and within '
+                                                 'this of the input gravity (deg)',
+                                                 lo=0.0, hi=90.0)
+    seed: int = constant(0, 'RANSAC sampling seed', lo=0, hi=2**31 - 1)
 
 
 def _normals(points: np.ndarray, step: int = 1) -> np.ndarray:
@@ -205,13 +201,10 @@ class DepthClustersDetector(Detector):
         full = None
         if self.box_refiner is not None:
             refined, scores, labels = self.box_refiner.refine(found)
-            if cfg.predicted_boxes == 'all':
-                boxes = refined
             keep = self.box_refiner.suppress(boxes, scores)
             items = [items[i] for i in keep]
             boxes, scores, labels = boxes[keep], scores[keep], [labels[i] for i in keep]
-            if cfg.predicted_boxes == 'map':
-                full = refined[keep]
+            full = refined[keep]
         else:
             # boxes cut by the image border are completed from a partial view: less certain
             raw = np.array([c.raw_score * (cfg.truncated_score_factor if c.truncated else 1.0)
@@ -249,7 +242,7 @@ class DepthClustersDetector(Detector):
         rot = gravity_aligned_rotation(gravity).astype(np.float32)
         pts_img = cam @ rot.T                                    # (h, w, 3) gravity-aligned
         normals_img = _normals(pts_img)
-        refined = self._floor_gravity(pts_img, normals_img, rot) if cfg.refine_gravity else None
+        refined = self._floor_gravity(pts_img, normals_img, rot)
         if refined is not None:                                  # re-express in the refined frame
             gravity = refined
             new_rot = gravity_aligned_rotation(gravity).astype(np.float32)

@@ -11,7 +11,7 @@ their fields (:mod:`rfm_core.io`), so rclpy and rosbags messages both work.
 waiting is dropped and counted when a new one arrives and the backlog is full), so nothing
 queues without bound. A frame the detector is behind on (others wait after it) is sent with
 its depth points and no detections (:meth:`DetectorFrontend.detect`, ``points_only``): the
-matcher tracks it on the points (``matching.point_tracking``) at a fraction of the cost,
+matcher tracks it on the points at a fraction of the cost,
 and the frames the detector catches up on are detected in full.
 """
 from __future__ import annotations

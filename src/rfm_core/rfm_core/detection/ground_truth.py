@@ -31,7 +31,7 @@ import numpy as np
 from rfm_core.detection.base import Detector, DetectorConfig, DetectorInput, finalize
 from rfm_core.geometry import wrap_angle
 from rfm_core.observations import FrameObservations
-from rfm_core.settings import setting
+from rfm_core.settings import constant, setting
 
 __all__ = ['GroundTruthNoise', 'PRESETS', 'GroundTruthConfig', 'GroundTruthDetector', 'EMBEDDING_DIM']
 
@@ -76,7 +76,7 @@ def _base_embedding(label: str, size) -> np.ndarray:
 @dataclass(frozen=True)
 class GroundTruthConfig(DetectorConfig):
     preset: str = setting('rgbd', 'Noise model of the simulated detections', choices=PRESETS)
-    noise: GroundTruthNoise | None = setting(None, 'Overrides the preset when given', ros=False)
+    noise: GroundTruthNoise | None = constant(None, 'Overrides the preset when given')
     seed: int = setting(0, 'Seed of the simulated detection noise', lo=0, hi=2**31 - 1)
 
 

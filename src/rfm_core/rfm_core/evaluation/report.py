@@ -14,7 +14,7 @@ import numpy as np
 from rfm_core.evaluation.mapping import evaluate_map
 from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4, bev_corners, iou_3d, quaternion_from_matrix
-from rfm_core.mapping.tracks import track_colour
+from rfm_core.io.messages import track_colour
 
 __all__ = ['GroundTruth', 'read_ground_truth', 'map_boxes', 'frames_seeing_mapped', 'evaluate_run', 'write_tum',
            'write_keyframes_tum', 'write_object_json', 'render_top_down', 'write_report']

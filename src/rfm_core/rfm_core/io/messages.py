@@ -18,8 +18,8 @@ from rfm_core.geometry import (
     BOX_EDGES, Pose4, box_corners, boxes_from_oriented, gravity_aligned_rotation, matrix_from_quaternion,
     oriented_from_boxes, quaternion_from_matrix,
 )
-from rfm_core.matching.points import MAX_CLOUD_POINTS
-from rfm_core.observations import CameraIntrinsics, FrameObservations, FrameTrack
+from rfm_core.clouds import MAX_CLOUD_POINTS
+from rfm_core.observations import CameraIntrinsics, EdgeRecord, FrameObservations, FrameTrack
 
 __all__ = [
     'ROS', 'RosMessages', 'BagMessages', 'ros_message_class', 'header', 'pose_stamped_msg', 'transform_stamped_msg',
@@ -28,7 +28,8 @@ __all__ = [
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
-    'transform_to_matrix', 'track_map_msgs',
+    'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs', 'object_map_outputs',
+    'tick_outputs', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg', 'diagnostics_msg',
 ]
 
 MAX_DETECTIONS = 1000       #: detections read from one frame message (the detectors' max_detections bound)
@@ -493,8 +494,6 @@ def edge_msg(edge, stamp_ns: int, make=ROS):
 def edge_record_from_msg(msg):
     """rfm_msgs/ViewGraphEdge -> :class:`rfm_core.mapping.mapper.EdgeRecord`; ValueError when
     malformed (a non-finite pose). A score outside [0, 1] is clipped, a non-finite one is 0."""
-    from rfm_core.mapping.mapper import EdgeRecord  # noqa: PLC0415 - io stays importable alone
-
     t = vector3_to_numpy(msg.translation)
     if not (np.isfinite(msg.yaw) and np.all(np.isfinite(t))):
         raise ValueError('edge pose is not finite')
@@ -514,13 +513,20 @@ def transform_to_matrix(transform) -> np.ndarray:
     return m
 
 
+def track_colour(track_id: int) -> tuple:
+    """A stable, distinct display colour per track, (r, g, b) in [0, 1]: a golden-ratio walk
+    around the hue circle at full saturation."""
+    h = (track_id * 0.618033988749895) % 1.0
+    k = int(h * 6)
+    f = h * 6 - k
+    return [(1, f, 0), (1 - f, 1, 0), (0, 1, f), (0, 1 - f, 1), (f, 0, 1), (1, 0, 1 - f)][k % 6]
+
+
 def track_map_msgs(tracks, stamp_ns: int, frame_id: str, revision: int = 0, make=ROS) -> tuple:
     """The mapper's object tracks (:class:`rfm_core.mapping.tracks.Track`) as the
     rfm_msgs/ObjectMap it publishes (class distributions, embeddings, observations) and the
     MarkerArray drawing them, each track in its own colour, labelled with class, score and
     number of views."""
-    from rfm_core.mapping.tracks import track_colour  # noqa: PLC0415
-
     boxes = np.array([t.box for t in tracks]).reshape(-1, 7)
     msg = object_map_msg(boxes, [t.label for t in tracks], [t.track_id for t in tracks], stamp_ns, frame_id,
                          scores=[t.score for t in tracks], revision=revision, make=make)
@@ -538,3 +544,86 @@ def track_map_msgs(tracks, stamp_ns: int, frame_id: str, revision: int = 0, make
         boxes[:, :3] + np.c_[np.zeros((len(boxes), 2)), boxes[:, 5] / 2 + 0.08],
         colours, stamp_ns, frame_id, ids=[int(t.track_id % 2**31) for t in tracks], make=make)
     return msg, markers
+
+
+# The mapper's outputs as [(topic, message)]: the node publishes each on its topic.
+
+def keyframe_pose_outputs(ids, poses: dict, stamps: dict, frame_id: str, make=ROS) -> list:
+    """rfm/keyframe_poses (geometry_msgs/PoseArray) and rfm/trajectory (nav_msgs/Path) of
+    keyframes' camera-to-map poses (``ids`` in order, ``poses`` {id: 4x4}, ``stamps`` {id:
+    stamp_ns}), stamped with the newest; [] without keyframes."""
+    if not len(ids):
+        return []
+    stamp = header(make, stamps[ids[-1]], frame_id)
+    array = make('geometry_msgs/msg/PoseArray', header=stamp, poses=[_pose(make, poses[k]) for k in ids])
+    path = make('nav_msgs/msg/Path', header=stamp,
+                poses=[pose_stamped_msg(poses[k], stamps[k], frame_id, make) for k in ids])
+    return [('rfm/keyframe_poses', array), ('rfm/trajectory', path)]
+
+
+def camera_pose_outputs(camera, frame_id: str, tf_child: str = '', make=ROS) -> list:
+    """rfm/camera_pose (geometry_msgs/PoseStamped) and /tf (``frame_id`` -> ``tf_child``, or
+    the frame's camera frame) of a localized frame (:class:`rfm_core.session.CameraPose`);
+    [] for None."""
+    if camera is None:
+        return []
+    child = tf_child or camera.frame_id or 'camera'
+    tf = make('tf2_msgs/msg/TFMessage', transforms=[
+        transform_stamped_msg(camera.matrix, camera.stamp_ns, frame_id, child, make)])
+    return [('rfm/camera_pose', pose_stamped_msg(camera.matrix, camera.stamp_ns, frame_id, make)), ('/tf', tf)]
+
+
+def object_map_outputs(tracks, stamp_ns: int, revision: int, frame_id: str, make=ROS) -> list:
+    """rfm/object_map and rfm/object_markers of the map's tracks (:func:`track_map_msgs`)."""
+    objects, markers = track_map_msgs(tracks, stamp_ns, frame_id, revision, make)
+    return [('rfm/object_map', objects), ('rfm/object_markers', markers)]
+
+
+def tick_outputs(tick, frame_id: str, tf_child: str = '', make=ROS) -> list:
+    """What a :class:`rfm_core.mapper_core.Tick` publishes: keyframe poses and trajectory, the
+    newest camera pose (and /tf), the object map and its markers."""
+    out = keyframe_pose_outputs(*tick.keyframe_poses, frame_id, make) if tick.keyframe_poses else []
+    out += camera_pose_outputs(tick.camera, frame_id, tf_child, make)
+    return out + (object_map_outputs(*tick.object_map, frame_id, make) if tick.object_map else [])
+
+
+def mapper_status_msg(status, stamp_ns: int, frame_id: str, make=ROS):
+    """rfm_msgs/MapperStatus of a :class:`rfm_core.mapper_core.MapStatus` (the same fields)."""
+    fields = dict(vars(status))
+    fields['mode'] = 1 if fields['mode'] == 'localization' else 0          # MODE_LOCALIZATION / MODE_MAPPING
+    return make('rfm_msgs/msg/MapperStatus', header=header(make, stamp_ns, frame_id), **fields)
+
+
+def relocalize_answer(query, relocalize, frame_id: str, make=ROS) -> dict:
+    """rfm_msgs/Relocalize's response fields for a query message: decoded (a malformed one is
+    refused with the reason), ``relocalize(obs)`` -> (Relocalization or None, message), the
+    pose as a PoseStamped in ``frame_id``."""
+    try:
+        obs = frame_detections_from_msg(query)
+    except ValueError as exc:
+        return dict(success=False, message=f'bad query: {exc}')
+    reloc, message = relocalize(obs)
+    if reloc is None:
+        return dict(success=False, message=message)
+    return dict(success=True, message=message, num_inliers=int(reloc.num_inliers), keyframe_id=int(reloc.keyframe_id),
+                pose=pose_stamped_msg(reloc.camera_to_map(obs), obs.stamp_ns, frame_id, make))
+
+
+def detection_markers_msg(obs: FrameObservations, make=ROS):
+    """visualization_msgs/MarkerArray of a frame's boxes in its camera optical frame, coloured
+    by score (red to green) and labelled with class and score."""
+    corners = box_corners(obs.boxes).reshape(-1, 8, 3) @ obs.rotation_aligned_from_camera    # aligned -> camera
+    scores = np.asarray(obs.scores, float)
+    return box_markers_msg(
+        corners, [f'{label + " " if label else ""}{score:.2f}' for label, score in zip(obs.labels, scores)],
+        corners[:, 4:].mean(1), np.stack([1.0 - scores, scores, np.full_like(scores, 0.2), np.ones_like(scores)], 1),
+        obs.stamp_ns, obs.frame_id, line_width=0.01, text_size=0.08, text_colour=(1.0, 1.0, 1.0, 1.0),
+        namespaces=('boxes', 'scores'), make=make)
+
+
+def diagnostics_msg(name: str, hardware_id: str, warn: bool, message: str, values: dict, stamp_ns: int, make=ROS):
+    """diagnostic_msgs/DiagnosticArray of one status (OK, or WARN) with key-value pairs."""
+    status = make('diagnostic_msgs/msg/DiagnosticStatus', level=bytes([1 if warn else 0]), name=name,
+                  message=message, hardware_id=hardware_id,
+                  values=[make('diagnostic_msgs/msg/KeyValue', key=k, value=str(v)) for k, v in values.items()])
+    return make('diagnostic_msgs/msg/DiagnosticArray', header=header(make, stamp_ns, ''), status=[status])

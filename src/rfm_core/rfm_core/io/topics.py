@@ -3,7 +3,7 @@ align_depth, and rfm's simulated bags), and of the simulator's ground truth: one
 the simulator, the bag readers, ``rfm run``'s default remaps and the launch file."""
 from __future__ import annotations
 
-__all__ = ['CAMERA_TOPICS', 'GROUND_TRUTH_TOPICS', 'GRAPH_HISTORY']
+__all__ = ['CAMERA_TOPICS', 'GROUND_TRUTH_TOPICS']
 
 CAMERA_TOPICS = {
     'color': '/camera/color/image_raw',
@@ -13,10 +13,6 @@ CAMERA_TOPICS = {
     'imu': '/imu/data',
     'tf_static': '/tf_static',
 }
-#: keyframes and edges the matcher keeps for subscribers that join later (rfm/keyframes and
-#: rfm/view_graph/edges are reliable, transient local, keep last GRAPH_HISTORY: a mapper
-#: started or restarted after the matcher still gets the view graph's recent history)
-GRAPH_HISTORY = 1000
 GROUND_TRUTH_TOPICS = {
     'gt_pose': '/ground_truth/camera_pose',
     'gt_objects': '/ground_truth/objects',

@@ -37,7 +37,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 
 from rfm_core.geometry import Pose4, circular_mean, wrap_angle
-from rfm_core.settings import setting
+from rfm_core.settings import constant, setting
 
 __all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager', 'agreement',
            'cycle_inconsistent', 'largest_component']
@@ -50,50 +50,23 @@ class AveragingConfig:
                                           lo=0.1, hi=180.0, paper=3.0)
     max_translation_residual_m: float = setting(0.10, 'Drop edges whose translation disagrees by more (m)',
                                                 lo=0.001, hi=10.0, paper=0.10)
-    yaw_scale_deg: float = setting(1.0, 'Robust (Cauchy) loss scale of yaw residuals (deg)', lo=0.01, hi=90.0)
-    translation_scale_m: float = setting(0.03, 'Robust (Cauchy) loss scale of translation residuals (m)',
-                                         lo=0.001, hi=10.0)
-    iterations: int = setting(8, 'Gauss-Newton / IRLS iterations per round', lo=1, hi=100)
+    yaw_scale_deg: float = constant(1.0, 'Robust (Cauchy) loss scale of yaw residuals (deg)', lo=0.01, hi=90.0)
+    translation_scale_m: float = constant(0.03, 'Robust (Cauchy) loss scale of translation residuals (m)',
+                                          lo=0.001, hi=10.0)
+    iterations: int = constant(8, 'Gauss-Newton / IRLS iterations per round', lo=1, hi=100)
     window: int = setting(30, 'Incremental solve: keyframes re-solved per update', lo=1, hi=100000)
-    full_every: int = setting(100, 'Incremental solve: full re-solve every n keyframes (0: only when a loop '
-                              'closes)', lo=0, hi=100000)
-    loop_min_edges: int = setting(2, 'Incremental solve: full re-solve once this many edges to keyframes '
-                                  'outside the window disagree', lo=1, hi=1000)
-    gyro_yaw_weight: float = setting(10.0, "Weight of the gyroscope's yaw between consecutive keyframes of a "
-                                     'stream in yaw averaging, in verified objects (yaw only: it neither '
-                                     'places nor connects keyframes; 0: boxes alone decide the yaw)',
-                                     lo=0.0, hi=1000.0)
-    turn_half_weight_deg: float = setting(0.0, 'An edge between views turned by this much (deg) counts half: '
-                                          'weight x 1 / (1 + (turn / this)^2). Views from different sides '
-                                          'see different faces of an object, and the partial boxes of a depth '
-                                          "detector shift towards the camera that saw them, so such edges' "
-                                          'yaw is biased (0: every turn counts fully)', lo=0.0, hi=360.0)
-
-    cycle_min_loops: int = setting(2, 'Cycle consistency: before each full solve, drop a measurement that agrees '
-                                   'with none of the triangles of keyframes it closes and disagrees with at least '
-                                   'this many whose other two pairs agree with loops of their own (a wrong edge '
-                                   'breaks every loop through it; 0: no check)', lo=0, hi=100)
-    cycle_tolerance: float = setting(2.0, '... a triangle agrees when its composed yaw and translation are '
-                                     'within this multiple of max_yaw_residual_deg / max_translation_residual_m '
-                                     'of the measurement (three edges add their errors)', lo=0.5, hi=20.0)
-    cycle_max_loops: int = setting(12, '... triangles tried per pair of keyframes (bounded cost)', lo=1, hi=1000)
-    edge_weights: str = setting('objects', "An edge's weight in translation averaging: 'objects' (its verified "
-                                'objects x its score, as in yaw averaging) or \'uncertainty\' (the inverse variance of '
-                                'its horizontal translation from how well its inlier boxes agree, in objects at 2 m: '
-                                'matching.relative_pose.pose_uncertainty). The second ranks edges by their true error '
-                                'better, yet made the maps worse on tuning scenes (BENCHMARKS.md)',
-                                choices=('objects', 'uncertainty'))
-    max_map_turn_deg: float = setting(0.0, 'A full re-solve may turn each keyframe registered before it by at '
-                                      'most this (deg): one that turns any further is re-run without the new '
-                                      'edges the previous map contradicts, which are rejected for good when '
-                                      'the map then stays (0: no check)',
-                                      lo=0.0, hi=180.0)
-
-    def turn_factor(self, yaw_rad: float) -> float:
-        """Weight factor of an edge whose views turned by ``yaw_rad``."""
-        if self.turn_half_weight_deg <= 0:
-            return 1.0
-        return 1.0 / (1.0 + (np.degrees(abs(wrap_angle(yaw_rad))) / self.turn_half_weight_deg) ** 2)
+    full_every: int = setting(100, 'Incremental solve: a full re-solve every this many keyframes (0: only when a '
+                              'loop closes)', lo=0, hi=100000)
+    loop_min_edges: int = constant(2, 'Incremental solve: a full re-solve once this many edges to keyframes '
+                                   'outside the window disagree', lo=1, hi=1000)
+    gyro_yaw_weight: float = constant(10.0, "Weight of the gyroscope's yaw between consecutive keyframes of a "
+                                      'stream, in verified objects (yaw only; 0: boxes alone)', lo=0.0, hi=1000.0)
+    cycle_min_loops: int = constant(2, 'Cycle check before each full solve: drop a measurement no triangle of '
+                                    'keyframes through it agrees with and at least this many whose other two pairs '
+                                    'close loops of their own contradict (0: no check)', lo=0, hi=100)
+    cycle_tolerance: float = constant(2.0, '... a triangle agrees within this multiple of the outlier thresholds',
+                                      lo=0.5, hi=20.0)
+    cycle_max_loops: int = constant(12, '... triangles tried per pair of keyframes', lo=1, hi=1000)
 
 
 @dataclass
@@ -416,14 +389,12 @@ def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np
     return flagged
 
 
-def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, allowed=None,
-               translation_weight=None):
+def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
     mask, component mask, and the mask of the edges the cycle check dropped. ``yaw_only``
     edges (the gyroscope's) count in the yaw stage only: they neither place nor connect
-    keyframes. Only ``allowed`` edges take part (default all)."""
-    tweight = weight if translation_weight is None else translation_weight
-    active = np.ones(len(src), bool) if allowed is None else np.asarray(allowed, bool).copy()
+    keyframes."""
+    active = np.ones(len(src), bool)
     full = ~yaw_only if yaw_only is not None else np.ones(len(src), bool)
     theta = np.full(n, np.nan)
     centres = np.full((n, 3), np.nan)
@@ -461,7 +432,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
                 bad = use & (yr > cfg.max_yaw_residual_deg)
             else:
                 centres = _solve_centres(theta, np.where(comp[:, None], centres, 0.0), src[use], dst[use],
-                                         trans[use], tweight[use], free, cfg)
+                                         trans[use], weight[use], free, cfg)
                 _, tr = _residuals(theta, centres, src, dst, yaw, trans)
                 bad = use & (tr > cfg.max_translation_residual_m)
             if not np.any(bad):
@@ -478,7 +449,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     return theta, centres, active, comp, cycle
 
 
-_EDGE_ARRAYS = ('_src', '_dst', '_yaw', '_trans', '_weight', '_tweight', '_active', '_yaw_only', '_blocked')
+_EDGE_ARRAYS = ('_src', '_dst', '_yaw', '_trans', '_weight', '_active', '_yaw_only')
 
 
 class _EdgeStore:
@@ -491,12 +462,10 @@ class _EdgeStore:
         self._yaw = np.zeros(64)
         self._trans = np.zeros((64, 3))
         self._weight = np.zeros(64)
-        self._tweight = np.zeros(64)
         self._active = np.zeros(64, bool)
         self._yaw_only = np.zeros(64, bool)
-        self._blocked = np.zeros(64, bool)
 
-    def append(self, s, t, yaw, trans, weight, yaw_only=False, translation_weight=None):
+    def append(self, s, t, yaw, trans, weight, yaw_only=False):
         if self.n == len(self._src):
             for name in _EDGE_ARRAYS:
                 old = getattr(self, name)
@@ -504,9 +473,7 @@ class _EdgeStore:
         i = self.n
         self._src[i], self._dst[i], self._yaw[i] = s, t, yaw
         self._trans[i], self._weight[i], self._active[i] = trans, weight, True
-        self._tweight[i] = weight if translation_weight is None else translation_weight
         self._yaw_only[i] = yaw_only
-        self._blocked[i] = False
         self.n += 1
 
     src = property(lambda self: self._src[:self.n])
@@ -514,10 +481,8 @@ class _EdgeStore:
     yaw = property(lambda self: self._yaw[:self.n])
     trans = property(lambda self: self._trans[:self.n])
     weight = property(lambda self: self._weight[:self.n])
-    translation_weight = property(lambda self: self._tweight[:self.n])   #: in translation averaging
     active = property(lambda self: self._active[:self.n])
     yaw_only = property(lambda self: self._yaw_only[:self.n])
-    blocked = property(lambda self: self._blocked[:self.n])      #: rejected for good (max_map_turn_deg)
 
     def __len__(self):
         return self.n
@@ -549,8 +514,6 @@ class IncrementalAverager:
         self._since_full = 0
         self._needs_full = False
         self._loop_votes = 0
-        self._settled_edges = 0              # edges before this index took part in a full solve
-        self.turns_refused = 0               # full solves re-run without new edges (max_map_turn_deg)
         self.cycle_dropped = 0               # edges the last full solve's cycle check dropped
         self.stats = UpdateStats()
 
@@ -567,7 +530,7 @@ class IncrementalAverager:
         self._new.append(keyframe_id)
 
     def add_edge(self, source_id: int, target_id: int, pose: Pose4, weight: float = 1.0,
-                 yaw_only: bool = False, translation_weight: float | None = None) -> None:
+                 yaw_only: bool = False) -> None:
         """An edge T_source_target; unknown keyframes are added. ``yaw_only``: only the yaw
         is measured (the gyroscope's rotation between two keyframes): it counts in yaw
         averaging but neither places nor connects keyframes."""
@@ -577,8 +540,7 @@ class IncrementalAverager:
         if s == t:
             return
         self.edges.append(s, t, float(pose.yaw), np.zeros(3) if yaw_only else np.asarray(pose.t, float),
-                          float(weight), yaw_only,
-                          None if translation_weight is None else float(translation_weight))
+                          float(weight), yaw_only)
         self._new_edges = True
 
     # ------------------------------------------------------------------ output
@@ -654,7 +616,6 @@ class IncrementalAverager:
         self._since_full = 0
         self._needs_full = False
         self._loop_votes = 0
-        self._settled_edges = len(self.edges)    # the restored edges are the previous map's
 
     def _outgrown(self) -> bool:
         """Whether the keyframes outside the registered component (with edges among
@@ -667,8 +628,8 @@ class IncrementalAverager:
         linked[src] = linked[dst] = True
         return np.count_nonzero(linked & ~self._registered) > np.count_nonzero(self._registered)
 
-    def _solve(self, allowed):
-        """A full solve over the ``allowed`` edges, in the previous gauge.
+    def _solve(self):
+        """A full solve, in the previous gauge.
 
         Solved in a canonical order (keyframes by id, edges by their keyframes' ids and
         measurement), not in arrival order: keyframes and edges come on two topics, and an
@@ -687,7 +648,7 @@ class IncrementalAverager:
         order = np.r_[np.flatnonzero(reg), np.flatnonzero(~reg)]
         theta, centres, active, comp, cycle = _solve_all(
             len(self.ids), rank[src][edge], rank[dst][edge], yaw[edge], trans[edge], weight[edge], self.config,
-            order, self.edges.yaw_only[edge], np.asarray(allowed, bool)[edge], self.edges.translation_weight[edge])
+            order, self.edges.yaw_only[edge])
         anchor = next((node[k] for k in order if comp[k]), None)
         back = np.empty_like(edge)
         back[edge] = np.arange(len(edge))                    # store index -> canonical position
@@ -700,42 +661,13 @@ class IncrementalAverager:
                 theta, centres = _regauge(theta, centres, anchor, self._theta[anchor], self._centres[anchor])
         return theta, centres, active, comp
 
-    def _turn(self, theta, comp) -> tuple[float, int]:
-        """(largest yaw change in deg, count) of the keyframes registered before and in ``comp``."""
-        common = self._registered & comp
-        if not np.any(common):
-            return 0.0, 0
-        return float(np.degrees(np.max(np.abs(wrap_angle(theta[common] - self._theta[common]))))), int(common.sum())
-
     def _full(self):
-        allowed = ~self.edges.blocked
-        theta, centres, active, comp = self._solve(allowed)
-        limit = self.config.max_map_turn_deg
-        if limit > 0:
-            # the suspects: edges that arrived since the last full solve between keyframes registered
-            # then, which that map contradicts (outlier residuals)
-            src, dst, yaw, trans, _ = self._arrays()
-            fresh = allowed & ~self.edges.yaw_only & (np.arange(len(self.edges)) >= self._settled_edges)
-            fresh &= self._registered[src] & self._registered[dst]
-            if np.any(fresh):
-                old_theta = np.where(self._registered, self._theta, 0.0)
-                old_centres = np.where(self._registered[:, None], self._centres, 0.0)
-                yr, tr = _residuals(old_theta, old_centres, src, dst, yaw, trans)
-                fresh &= (yr > self.config.max_yaw_residual_deg) | (tr > self.config.max_translation_residual_m)
-            turn, count = self._turn(theta, comp)
-            if turn > limit and np.any(fresh):
-                retry = self._solve(allowed & ~fresh)
-                retry_turn, retry_count = self._turn(retry[0], retry[3])
-                if retry_turn <= limit and retry_count >= count:
-                    theta, centres, active, comp = retry
-                    self.edges.blocked[fresh] = True
-                    self.turns_refused += 1
-        self.edges.active[:] = active & ~self.edges.blocked
+        theta, centres, active, comp = self._solve()
+        self.edges.active[:] = active
         self._theta, self._centres, self._registered = theta, centres, comp
         self._since_full = 0
         self._needs_full = False
         self._loop_votes = 0
-        self._settled_edges = len(self.edges)
 
     def _local(self) -> bool:
         """Register the new keyframes from their edges and re-solve a window around them.
@@ -769,8 +701,7 @@ class IncrementalAverager:
             return True
         theta = _solve_yaw(theta, src[use], dst[use], yaw[use], weight[use], free, cfg)
         ut = use & full
-        tweight = self.edges.translation_weight
-        centres = _solve_centres(theta, centres, src[ut], dst[ut], trans[ut], tweight[ut], free, cfg)
+        centres = _solve_centres(theta, centres, src[ut], dst[ut], trans[ut], weight[ut], free, cfg)
         yr, tr = _residuals(theta, centres, src[use], dst[use], yaw[use], trans[use])
         bad = (yr > cfg.max_yaw_residual_deg) | ((tr > cfg.max_translation_residual_m) & full[use])
         idx = np.flatnonzero(use)[bad]

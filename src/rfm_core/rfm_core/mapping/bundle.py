@@ -22,20 +22,20 @@ from scipy.optimize import least_squares
 
 from rfm_core.geometry import box_corners, wrap_angle
 from rfm_core.matching.corners import closest_turn, corner_permutation
-from rfm_core.settings import setting
+from rfm_core.settings import constant, setting
 
 __all__ = ['BundleConfig', 'refine_tracks']
 
 
 @dataclass(frozen=True)
 class BundleConfig:
-    max_evaluations: int = setting(60, 'Cost evaluations per track', lo=1, hi=100000)
+    max_evaluations: int = constant(60, 'Cost evaluations per track', lo=1, hi=100000)
     max_seconds: float = setting(2.0, 'Time per refinement; remaining tracks keep their boxes (s)',
                                  lo=0.01, hi=3600.0)
-    min_observations: int = setting(2, 'Refine tracks seen in at least this many keyframes', lo=1, hi=1000)
-    loss_scale: float = setting(0.01, 'Huber scale of the normalised reprojection error', lo=1e-4, hi=1.0)
-    prior_weight: float = setting(0.02, 'Weak pull to the starting box (m and log-size)', lo=0.0, hi=100.0)
-    min_depth_m: float = setting(0.1, 'Corners nearer the camera than this are ignored (m)', lo=0.0, hi=10.0)
+    min_observations: int = constant(2, 'Refine tracks seen in at least this many keyframes', lo=1, hi=1000)
+    loss_scale: float = constant(0.01, 'Huber scale of the normalised reprojection error', lo=1e-4, hi=1.0)
+    prior_weight: float = constant(0.02, 'Weak pull to the starting box (m and log-size)', lo=0.0, hi=100.0)
+    min_depth_m: float = constant(0.1, 'Corners nearer the camera than this are ignored (m)', lo=0.0, hi=10.0)
 
 
 def _params(box):

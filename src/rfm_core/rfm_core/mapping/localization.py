@@ -3,8 +3,7 @@
 Each frame relocalized on its own (:func:`rfm_core.mapping.relocalization.relocalize`) is
 right or wrong alone: look-alike furniture (two equal chairs, a shifted row of cabinets)
 explains three or four detections as well as the truth does, and a frame that sees two or
-three of the map's objects cannot be told from a look-alike by the map alone (BENCHMARKS.md,
-#20). A camera moves continuously, so a stream of frames can do what one frame cannot, as a
+three of the map's objects cannot be told from a look-alike by the map alone. A camera moves continuously, so a stream of frames can do what one frame cannot, as a
 robot's localization does with its odometry:
 
 - **A track.** Once a pose is accepted, the next frame's pose is predicted: its yaw from the
@@ -30,12 +29,10 @@ robot's localization does with its odometry:
   points (every registered keyframe's cloud merged:
   :meth:`rfm_core.mapping.map_index.MapIndex.cloud_near`; a view
   sees surfaces several keyframes saw), else to the map keyframes nearest the prediction
-  (``matching.point_tracking``: :func:`rfm_core.matching.relative_pose.track_on_points`),
+  (:func:`rfm_core.matching.relative_pose.track_on_points`),
   and accepted where the points fix every direction and the pose is within the
   prediction's bounds: the map's own surfaces place it, so a run of such frames does not
-  drift. On tuning rooms 40-49 (a 2 Hz walk against the graph's maps) the map's points
-  placed 84.6% of the frames that see two mapped objects against 63.3% with the nearest
-  keyframes alone, 0.6% of them wrong (BENCHMARKS.md).
+  drift.
 
 No ROS here: :class:`rfm_core.session.MapSession` calls :meth:`StreamLocalizer.step` for
 each frame in localization mode (``rfm/detections``), and ``rfm eval-reloc --offline`` does
@@ -152,7 +149,7 @@ class StreamLocalizer:
     def _on_points(self, obs: FrameObservations, prior: MotionPrior) -> Relocalization | None:
         """A frame of the live track placed on its depth points (see the module), or None."""
         matching = self.mapper.config.matching
-        if not matching.point_tracking or not len(obs.cloud):
+        if not len(obs.cloud):
             return None
         index = self.mapper.map_index()
         t_map_view = Pose4(prior.yaw, prior.centre)              # the prediction: the gyroscope's yaw, held
@@ -179,9 +176,6 @@ class StreamLocalizer:
         why = why if why is not None else []
         cfg = self.config
         relocalize = self.mapper.relocalize
-        if not cfg.stream:
-            reloc = relocalize(obs, why)
-            return [(obs, reloc)] if reloc is not None else []
         if self._live(obs):
             prior = motion_prior(self.track, obs, cfg)
             reloc = relocalize(obs, why, prior) if len(obs) >= 2 else None

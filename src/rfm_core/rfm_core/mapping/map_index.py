@@ -1,4 +1,4 @@
-"""What relocalization looks up in a map, indexed once per map revision (#20: a map of a
+"""What relocalization looks up in a map, indexed once per map revision (a map of a
 building holds thousands of objects; a query must cost what its own neighbourhood costs).
 
 - keyframe retrieval: the registered keyframes' bag-of-objects descriptors stacked in one
@@ -23,7 +23,7 @@ from scipy.spatial import cKDTree
 
 from rfm_core.geometry import iou_3d_paired, wrap_angle
 from rfm_core.matching.classical import size_similarity
-from rfm_core.matching.points import PointIndex, voxel_means
+from rfm_core.clouds import PointIndex, voxel_means
 from rfm_core.matching.view_graph import bag_of_objects
 
 __all__ = ['MapIndex', 'MapCloud', 'track_boxes']

@@ -29,7 +29,9 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.frame_log import FrameLog
-from rfm_core.mapping.mapper import EdgeRecord, Mapper, MapperConfig, Merged
+from rfm_core.mapping.culling import Merged
+from rfm_core.mapping.mapper import Mapper, MapperConfig
+from rfm_core.observations import EdgeRecord
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 
 __all__ = ['FORMAT', 'VERSION', 'MapFileError', 'save_map', 'load_map', 'read_map']

@@ -9,7 +9,8 @@ Modes: ``mapping`` (keyframes and edges extend the map) and ``localization`` (th
 frozen; frames are only relocalized). ``posed`` mode takes keyframe poses from outside
 (e.g. TF or a pose topic; the paper's "posed" rows) instead of averaging. In mapping mode a
 redundant keyframe of a stream is culled: merged into a neighbour that carries its edges and
-frames from then on (:meth:`Mapper._cull`).
+frames from then on (:mod:`rfm_core.mapping.culling`), and a keyframe outside the registered
+map is matched against the map's objects (:mod:`rfm_core.mapping.recovery`).
 """
 from __future__ import annotations
 
@@ -23,17 +24,17 @@ from scipy.sparse.csgraph import connected_components
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
+from rfm_core.mapping.culling import CullingConfig, Merged, protected_keyframes, redundant_keyframes
 from rfm_core.mapping.frame_log import FrameLog
-from rfm_core.mapping.relocalization import (MapIndex, MotionPrior, Relocalization, RelocalizationConfig, match_to_map,
-                                             relocalize)
+from rfm_core.mapping.relocalization import MapIndex, MotionPrior, Relocalization, RelocalizationConfig, relocalize
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
+from rfm_core.mapping.recovery import TrackingRecovery
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import pose_uncertainty
-from rfm_core.matching.view_graph import Edge, bag_of_objects
-from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
-from rfm_core.settings import from_dict, section, setting
+from rfm_core.matching.view_graph import bag_of_objects
+from rfm_core.observations import EdgeRecord, FrameObservations, FrameTrack, imu_relative_yaw
+from rfm_core.settings import constant, from_dict, section, setting
 
 __all__ = ['MapperConfig', 'CullingConfig', 'RelocalizationConfig', 'EdgeRecord', 'Relocalization', 'Merged', 'Mapper',
            'MODES']
@@ -46,55 +47,15 @@ MAX_PAIR_MEASUREMENTS = 16
 
 
 @dataclass(frozen=True)
-class CullingConfig:
-    enabled: bool = setting(True, 'Cull redundant keyframes of a stream (as ORB-SLAM and RTAB-Map do): a keyframe '
-                            'whose objects other keyframes see (each by min_views of them), or that lies where '
-                            'another keyframe is (colocated_m, colocated_deg), or that shares no object with the '
-                            'map, and adds no object to it alone, is merged into a neighbour: its edges and '
-                            'tracked frames are carried over through its pose relative to it, and its views still '
-                            'count for its objects. Revisits then stop growing the map')
-    min_views: int = setting(3, 'Other keyframes that must see each object of a keyframe culled', lo=1, hi=1000)
-    keep_newest: int = setting(3, 'The newest keyframes (by id) are not culled: their edges are still arriving ...',
-                               lo=1, hi=1000)
-    keep_newest_s: float = setting(10.0, '... until the camera has gone on this long (s, frame stamps) without a newer '
-                                   'one: where revisits stop growing the map, the last keyframes made are the ones '
-                                   "most likely redundant, and later edges naming them are carried over (0: kept for "
-                                   'good)', lo=0.0, hi=3600.0)
-    colocated_m: float = setting(0.4, 'A keyframe whose objects fewer than min_views others see is culled all the '
-                                 'same when a keyframe that sees one of its objects is within this distance (m, '
-                                 'the averaged poses) and colocated_deg, and no published object rests on it '
-                                 'alone: a revisit whose detections did not verify against the keyframes there '
-                                 '(its detections of objects that keyframe does not see are dropped). 0: off',
-                                 lo=0.0, hi=10.0)
-    colocated_deg: float = setting(15.0, '... and within this turn (deg)', lo=0.0, hi=180.0)
-
-
-@dataclass(frozen=True)
-class Merged:
-    """A culled keyframe, carried by the keyframe it was merged into."""
-
-    into: int                                #: the keyframe that carries it
-    pose: Pose4                              #: T_into_culled (the averaged poses when it was culled)
-    stamp_ns: int                            #: the culled keyframe's stamp
-    detections: np.ndarray                   #: (N,) its detection index -> ``into``'s (-1: none)
-
-    def then(self, outer: 'Merged') -> 'Merged':
-        """This merge followed by ``outer`` (``into`` itself culled into ``outer.into``)."""
-        d = np.where(self.detections >= 0, outer.detections[np.maximum(self.detections, 0)], -1)
-        return Merged(outer.into, outer.pose @ self.pose, self.stamp_ns, d)
-
-
-@dataclass(frozen=True)
 class MapperConfig:
     averaging: AveragingConfig = section(AveragingConfig, 'pose averaging (paper 3.5)')
     tracks: TrackConfig = section(TrackConfig, 'object tracks (paper 3.6)')
     matching: MatchingConfig = section(MatchingConfig, 'relocalization: object matching and verification '
                                        "(as the matcher's)")
     relocalization: RelocalizationConfig = section(RelocalizationConfig, 'relocalization (paper appendix)')
-    posed: bool = setting(False, 'Poses come from outside (set_keyframe_pose)', ros=False)
+    posed: bool = constant(False, 'Poses come from outside (set_keyframe_pose; the mapper node: pose_source)')
     bundle_adjustment: bool = setting(False, 'Refine object boxes by partial bundle adjustment against their '
-                                      'projected corners (paper 3.6; helps monocular RGB detectors when '
-                                      'poses are good)')
+                                      'projected corners (paper 3.6; for RGB-only detectors with good poses)')
     bundle: BundleConfig = section(BundleConfig, 'bundle adjustment')
     culling: CullingConfig = section(CullingConfig, 'keyframe culling (mapping mode)')
 
@@ -107,47 +68,6 @@ class MapperConfig:
         """From :meth:`to_dict`'s output; settings it lacks keep their defaults, unknown ones
         are ignored (files of other rfm versions). ValueError for a value of the wrong type."""
         return from_dict(cls, values)
-
-
-@dataclass
-class EdgeRecord:
-    source: int
-    target: int
-    pose: Pose4                              #: T_source_target
-    inliers: np.ndarray                      #: (K, 2) detection indices (source, target)
-    scores: np.ndarray                       #: (K,) match scores
-    corner_inliers: np.ndarray               #: (C, 5) source idx, corner, target idx, corner, error
-    score: float = 1.0
-
-    @property
-    def weight(self) -> float:
-        """Averaging weight: more verified objects, more trust."""
-        return float(max(len(self.inliers), 1)) * max(self.score, 1e-3)
-
-    @classmethod
-    def from_edge(cls, edge) -> 'EdgeRecord':
-        """From a view-graph edge (:class:`rfm_core.matching.view_graph.Edge`)."""
-        rel = edge.relative
-        return cls(edge.source_id, edge.target_id, rel.pose, rel.inliers, rel.inlier_scores,
-                   np.asarray(rel.corner_inliers, float).reshape(-1, 5), edge.score)
-
-
-def _connected(nodes: set, links, moved: dict) -> bool:
-    """Whether ``nodes`` (detections of one object) stay linked by ``links`` (pairs of
-    detections) once each detection in ``moved`` is replaced by its value (None: removed)."""
-    parent = {v: v for v in nodes}
-
-    def find(v):
-        while parent[v] != v:
-            parent[v] = parent[parent[v]]
-            v = parent[v]
-        return v
-
-    for a, b in links:
-        a, b = moved.get(a, a), moved.get(b, b)
-        if a in parent and b in parent:
-            parent[find(a)] = find(b)
-    return len({find(v) for v in nodes}) <= 1
 
 
 def camera_to_map(t_k_map: Pose4, obs: FrameObservations) -> np.ndarray:
@@ -179,7 +99,7 @@ class Mapper:
         self.frames = FrameLog()             # every localized frame (tracked or relocalized)
         self.origins: dict = {}              # id -> (view-graph session, its keyframe id), where numbered
         self.last_update_seconds = 0.0
-        self._recovery_tried: dict = {}      # id -> registered keyframes when it was last matched to the map
+        self.recovery = TrackingRecovery()   # tracking recovery's state (keyframes tried)
         self._newest_stamp_ns = -1           # of any keyframe or tracked frame received
         self.recovered: list = []            # edges that joined a keyframe to the map (tracking recovery)
         self.merged: dict = {}               # culled keyframe id -> Merged (keyframe culling)
@@ -247,17 +167,7 @@ class Mapper:
         self._pairs.setdefault(key, []).append(edge)
         if not self.config.posed:
             self._averaged[len(self.averager.edges)] = edge
-            turn = self.config.averaging.turn_factor(edge.pose.yaw)
-            self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight * turn,
-                                   translation_weight=self._translation_weight(edge) * turn)
-
-    def _translation_weight(self, edge: EdgeRecord) -> float:
-        """An edge's weight in translation averaging (``averaging.edge_weights``)."""
-        if self.config.averaging.edge_weights != 'uncertainty' or len(edge.inliers) < 2:
-            return edge.weight
-        u = pose_uncertainty(edge.pose, self.keyframes[edge.target].boxes, self.keyframes[edge.source].boxes,
-                             edge.inliers[:, ::-1], self.config.matching)
-        return u.weights[1] * max(edge.score, 1e-3)
+            self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight)
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
@@ -330,13 +240,9 @@ class Mapper:
         """Whether tracking recovery has yet to try this keyframe, which is outside the
         registered map (an update tries it once something newer has arrived)."""
         obs = self.keyframes.get(keyframe_id)
-        return (self.config.relocalization.recovery and self.mode == 'mapping' and not self.config.posed
-                and obs is not None and self._recoverable(obs) and keyframe_id not in self._recovery_tried
+        return (self.mode == 'mapping' and not self.config.posed and obs is not None
+                and self.recovery.awaits(keyframe_id, obs, self.config.relocalization)
                 and self.averager.pose(keyframe_id) is None)
-
-    def _recoverable(self, obs: FrameObservations) -> bool:
-        """Whether a keyframe has enough detections for tracking recovery to match it."""
-        return len(obs) >= max(self.config.relocalization.min_explained, 2)
 
     def frame_pose(self, track: FrameTrack) -> np.ndarray | None:
         """4x4 camera-to-map pose of a tracked frame now (None while its keyframe has none).
@@ -404,157 +310,33 @@ class Mapper:
         return stats
 
     def _recover(self) -> bool:
-        """Tracking recovery (``relocalization.recovery``): each keyframe outside the
-        registered map with enough detections is matched against the map's objects
-        (:func:`match_to_map`) once a keyframe or frame newer than it has arrived, and again
-        whenever the registered map has doubled since; a match it accepts
-        (:meth:`MapMatch.accepted`) adds its edge. A lost track then continues in the map
-        instead of starting a component that nothing joins. True when an edge was added.
-
-        Not before something newer: the keyframe's own edges come just after it on another
-        topic, and a pose update between the two (the mapper node's tick) used to match it to
-        the map and, when accepted, add a recovered edge beside the matcher's own, so that the
-        map depended on the messages' timing."""
-        cfg = self.config.relocalization
+        """Tracking recovery (:mod:`rfm_core.mapping.recovery`): the edges that join
+        keyframes outside the registered map to it; True when one was added."""
         poses = self.averager.poses
-        if not cfg.recovery or self.mode != 'mapping' or not poses:
+        if self.mode != 'mapping' or not poses:
             return False
-        due = []
-        for k, obs in self.keyframes.items():
-            if (k in poses or not self._recoverable(obs) or obs.stamp_ns >= self._newest_stamp_ns
-                    or len(poses) < 2 * self._recovery_tried.get(k, len(poses) / 2)):
-                continue
-            self._recovery_tried[k] = len(poses)
-            gyro = self._gyro_yaw(k, poses)
-            if gyro is not None or cfg.recovery_unaided:
-                due.append((k, gyro))
         added = False
-        index = self.map_index() if due else None
-        for k, gyro in due:
-            match = match_to_map(self.keyframes[k], index, self.config.matching, cfg, gyro)
-            if match is None or not match.accepted(cfg, len(self.keyframes[k]), gyro is not None):
-                continue
-            edge = EdgeRecord.from_edge(Edge(match.keyframe_id, k, match.relative))
+        for edge in self.recovery.edges(self.keyframes, poses, self._newest_stamp_ns, self.map_index, self._gyro_yaw,
+                                        self.config.relocalization, self.config.matching):
             if self.add_edge(edge):
                 self.recovered.append(edge)
                 added = True
         return added
 
     def _cull(self) -> bool:
-        """Keyframe culling (:class:`CullingConfig`): merge each redundant registered keyframe
-        into the keyframe that shares most of its objects; True when one was culled.
-
-        An object here is a set of detections linked by the kept edges' verified matches (a
-        track before merging and the evidence check). A keyframe K is redundant when it sees
-        at least two objects that other keyframes see too, each of them seen by ``min_views``
-        keyframes other than K and still one object without K's detections, and a registered
-        keyframe A that a kept edge links to K sees at least one of them; or when a keyframe A
-        that sees one of its objects lies within ``colocated_m`` and ``colocated_deg`` of it
-        (a revisit whose detections did not verify against the keyframes there; its
-        detections of objects A does not see are dropped) and no object of the published map
-        rests on K alone; or when it shares no object with any keyframe (an isolated view of a
-        revisit, with too few detections to verify one) and no object of the published map
-        rests on it alone (a track that duplicate merging joined to other keyframes' does
-        not), A being the neighbour of its strongest kept edge. Only keyframes of a stream
-        are culled (frames the view graph followed were tracked against them; separate
-        photos each keep their view, as keyframe reuse leaves them alone). K is then merged
-        into A: T_A_K from the current poses, K's detections mapped to A's of the same
-        objects; K's edges become A's (matches of K's other detections are dropped), frames
-        tracked against K are tracked against A, and later messages naming K are carried
-        over the same way
-        (:attr:`merged`). Only keyframes that new edges touched since the last pass are
-        checked; the first registered keyframe (the map's anchor) and the ``keep_newest``
-        newest are kept (while newer than ``keep_newest_s`` before the newest frame); nothing is
-        solved again (the kept keyframes keep their poses)."""
+        """Keyframe culling (:mod:`rfm_core.mapping.culling`): each redundant keyframe of a
+        stream that new edges touched since the last pass is merged into a neighbour
+        (:meth:`_merge`); True when one was."""
         cfg = self.config.culling
         poses = self.averager.poses
-        if not cfg.enabled or self.mode != 'mapping' or self.config.posed or len(poses) <= cfg.keep_newest + 1:
+        if self.mode != 'mapping' or self.config.posed or len(poses) <= cfg.keep_newest + 1:
             return False
-        ids = sorted(self.keyframes)
-        protected = {min(poses)} | {k for k in ids[-cfg.keep_newest:] if cfg.keep_newest_s <= 0
-                                    or self._newest_stamp_ns - self.keyframes[k].stamp_ns < cfg.keep_newest_s * 1e9}
+        protected = protected_keyframes(self.keyframes, poses, self._newest_stamp_ns, cfg)
         due = sorted((self._cull_due & set(poses) & self.streamed) - protected, reverse=True)
         self._cull_due &= protected
         if not due:
             return False
-        offset = dict(zip(ids, np.cumsum([0] + [len(self.keyframes[k]) for k in ids[:-1]]).tolist()))
-        n = sum(len(f) for f in self.keyframes.values())
-        owner = np.repeat(np.array(ids), [len(self.keyframes[k]) for k in ids])      # node -> keyframe
-        active = self.active_edges()
-        pairs = np.array([(offset[e.source] + a, offset[e.target] + b)
-                          for e in active for a, b in e.inliers], int).reshape(-1, 2)
-        if not len(pairs):
-            return False
-        label = connected_components(sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n)),
-                                     directed=False)[1]
-        members: dict = {}                                   # object -> {node}
-        for node, c in enumerate(label):
-            members.setdefault(int(c), set()).add(node)
-        links: dict = {}                                     # object -> [(node, node)] (its matches)
-        for a, b in pairs:
-            links.setdefault(int(label[a]), []).append((int(a), int(b)))
-        # keyframe -> {keyframe a kept edge links it to: (-its strongest weight, that edge's order)}
-        linked: dict = {}
-        for i, e in enumerate(active):
-            for a, b in ((e.source, e.target), (e.target, e.source)):
-                best = linked.setdefault(a, {}).get(b)
-                if best is None or -e.weight < best[0]:
-                    linked[a][b] = (-e.weight, i)
-        published = None                                     # keyframes that alone hold a published object (lazily)
-        culled, anchors, gone = {}, set(), set()
-        for k in due:
-            if k in anchors:
-                continue
-            nodes = range(offset[k], offset[k] + len(self.keyframes[k]))
-            node_set = set(nodes)
-            seen_by = {c: {int(owner[u]) for u in members[c]} - gone for c in {int(label[v]) for v in nodes}}
-            objects = {c for c, seen in seen_by.items() if len(seen) > 1}       # seen by other keyframes too
-            views = {c: seen_by[c] - {k} for c in objects}
-            if not objects:                                  # a view that shares no object with the map
-                published = self._sole_holders() if published is None else published
-                # (a registered keyframe may have no kept edge left: its edges dropped as outliers)
-                near = linked.get(k, {})
-                into = None if k in published else min(
-                    (j for j in near if j in poses and j not in gone), key=near.get, default=None)
-                if into is not None:
-                    culled[k] = Merged(into, poses[into] @ poses[k].inverse(), self.keyframes[k].stamp_ns,
-                                       np.full(len(self.keyframes[k]), -1))
-                    anchors.add(into)
-                    gone.add(k)
-                continue
-            share = {}                                       # K's neighbours (a kept edge) -> objects shared
-            for c in objects:
-                for j in views[c]:
-                    if j in poses and j in linked.get(k, ()):
-                        share[j] = share.get(j, 0) + 1
-            if len(objects) < 2 or any(len(v) < cfg.min_views for v in views.values()):
-                # a keyframe where another already is (a revisit its detections failed to verify)
-                near = {j for c in objects for j in views[c]
-                        if j in poses and (poses[j] @ poses[k].inverse()).within(cfg.colocated_m, cfg.colocated_deg)}
-                if not near:
-                    continue
-                published = self._sole_holders() if published is None else published    # (builds the tracks)
-                if k in published:
-                    continue
-                share = {j: sum(j in views[c] for c in objects) for j in near}
-            if not share:
-                continue
-            into = min(share, key=lambda j: (-share[j], float(np.linalg.norm(poses[j].t - poses[k].t))))
-            first = {}                                       # object -> into's first detection of it
-            for u in range(offset[into], offset[into] + len(self.keyframes[into])):
-                first.setdefault(int(label[u]), u)
-            moved = {v: first.get(int(label[v])) for v in nodes}          # K's node -> into's (or None)
-            if not all(_connected(members[c] - node_set, links.get(c, ()), moved) for c in objects):
-                continue
-            detections = np.array([moved[v] - offset[into] if moved[v] is not None and int(label[v]) in objects
-                                   else -1 for v in nodes], int)
-            culled[k] = Merged(into, poses[into] @ poses[k].inverse(), self.keyframes[k].stamp_ns, detections)
-            anchors.add(into)
-            gone.add(k)
-            for c in objects:                                # K's matches now end at into's detection
-                members[c] -= node_set
-                links[c] = [(moved.get(a, a), moved.get(b, b)) for a, b in links.get(c, ())
-                            if moved.get(a, a) is not None and moved.get(b, b) is not None]
+        culled = redundant_keyframes(self.keyframes, poses, self.active_edges(), due, cfg, self._sole_holders)
         if culled:
             self._merge(culled, poses)
         return bool(culled)
@@ -572,8 +354,7 @@ class Mapper:
                 self.merged[k] = m.then(culled[m.into])
         self.merged.update(culled)
         old, store = self._averaged, self.averager.edges
-        kept = [(self._resolved(old[i]), bool(store.active[i]), bool(store.blocked[i]))
-                for i in range(len(store)) if i in old]
+        kept = [(self._resolved(old[i]), bool(store.active[i])) for i in range(len(store)) if i in old]
         for k, m in culled.items():
             # the views of K (and of the keyframes culled into it) stay in the objects' evidence
             for d, into_d in enumerate(m.detections):
@@ -586,7 +367,7 @@ class Mapper:
                 self.streamed.discard(k)
                 self.streamed.add(m.into)
             self._descriptors.pop(k, None)
-            self._recovery_tried.pop(k, None)
+            self.recovery.tried.pop(k, None)
             self.frames.merge(k, m.stamp_ns, m.into, self.keyframes[m.into].stamp_ns, m.pose)
         self.edges, self._pairs, self._averaged, self._edges_to = {}, {}, {}, {}
         self.averager = IncrementalAverager(self.config.averaging)
@@ -595,17 +376,15 @@ class Mapper:
             self.averager.add_keyframe(k)
             if i:
                 self._add_gyroscope_edge(ids[i - 1], k)
-        active, blocked = {}, {}
-        for edge, was_active, was_blocked in kept:
+        active = {}
+        for edge, was_active in kept:
             key = (edge.source, edge.target)
             if edge.source == edge.target or len(self._pairs.get(key, ())) >= MAX_PAIR_MEASUREMENTS:
                 continue
-            active[len(self.averager.edges)], blocked[len(self.averager.edges)] = was_active, was_blocked
+            active[len(self.averager.edges)] = was_active
             self._record(edge)
         mask = np.array([active.get(i, True) for i in range(len(self.averager.edges))], bool)
         self.averager.restore({k: p for k, p in poses.items() if k in self.keyframes}, mask, fold=False)
-        for i, b in blocked.items():
-            self.averager.edges.blocked[i] = b
         self._changed()
 
     def _gyro_yaw(self, keyframe_id: int, poses: dict) -> float | None:

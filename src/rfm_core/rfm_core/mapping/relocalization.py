@@ -6,10 +6,9 @@ takes the keyframe with the most object inliers. Here every keyframe verified wi
 ``min_keyframe_inliers`` objects votes for its pose; the pose whose agreeing keyframes
 (within pose averaging's outlier thresholds) verify the most distinct query objects wins,
 needs ``min_inliers`` of them, is averaged over the agreeing keyframes, and is refitted on
-the map's object tracks. With ``floor_and_walls``, each keyframe's relative pose and the
-final pose are corrected by the floor and the walls the query and the keyframe both
-measured, and the final pose by their depth points too (as the view graph's edges:
-``relative_pose.with_surfaces``). Up to
+the map's object tracks. Each keyframe's relative pose and the final pose are corrected by
+the floor and the walls the query and the keyframe both measured, and the final pose by
+their depth points too (as the view graph's edges: ``relative_pose.with_surfaces``). Up to
 ``hypotheses`` such poses (groups of agreeing keyframes) are then checked against the whole
 map: the query's detections placed by each must overlap the map's objects, ``min_explained``
 of them (all, for a query with fewer); the pose explaining the most wins. No ROS here; the
@@ -20,7 +19,7 @@ mapper (and its node's ``rfm/relocalize`` service, and localization mode) call
 view may share objects with the map but with no single keyframe): the mapper's tracking
 recovery joins a keyframe that nothing else links to the map with it.
 :func:`match_on_points` places a query no keyframe places from the same pose hypotheses,
-aligned on its depth points to the map's (``points_fallback``).
+aligned on its depth points to the map's.
 """
 from __future__ import annotations
 
@@ -37,7 +36,7 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_relative_pose, track_on_points,
                                              with_surfaces)
 from rfm_core.observations import FrameObservations
-from rfm_core.settings import setting
+from rfm_core.settings import constant, setting
 
 __all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize',
            'match_to_map', 'match_on_points', 'refine_on_tracks', 'explained', 'track_boxes']
@@ -49,84 +48,39 @@ SHARED_VIEW_M = 10.0
 
 @dataclass(frozen=True)
 class RelocalizationConfig:
-    candidates: int = setting(10, 'Keyframes tried per relocalization query (most similar by bag of objects)',
-                              lo=1, hi=1000)
-    min_inliers: int = setting(2, 'Query objects the agreeing keyframes must verify; raise it to trade recall '
-                               'for fewer wrong poses', lo=1, hi=100,
+    candidates: int = setting(10, 'Keyframes tried per query (the most similar by bag of objects)', lo=1, hi=1000)
+    min_inliers: int = setting(2, 'Query objects the agreeing keyframes must verify; raise it to trade recall for '
+                               'fewer wrong poses', lo=1, hi=100,
                                paper='2 (one keyframe verified by the relative-pose test)')
-    min_keyframe_inliers: int = setting(2, "A keyframe's vote needs this many inliers", lo=1, hi=100)
-    min_explained: int = setting(4, "Query detections the pose must explain in the map (all of them, for a query "
-                                 "with fewer, but at least 3: two objects build a pose and verify nothing beyond "
-                                 "it): placed by it, each overlapping one of the map's objects (its box or a "
-                                 "view of it) with the relative pose test's IoU. Verifies the pose against the whole "
-                                 "map, not only the matched keyframes: a wrong pose from look-alike furniture "
-                                 "explains its two or three matches and little else (BENCHMARKS.md); 0: off",
-                                 lo=0, hi=100)
-    floor_and_walls: bool = setting(True, 'A relocalized pose takes its height from the query\'s and the keyframe\'s '
-                                    'camera heights above the floor, its yaw and its translation across walls '
-                                    'from the walls both see, and then (the final pose) the whole pose from their '
-                                    'depth points where they overlap, as the view graph\'s edges do '
-                                    '(matching.height_tolerance_m, matching.wall_tolerance_m, matching.point_refine)')
-    classical_fallback: bool = setting(True, 'A candidate keyframe the learned matcher verifies no pose with is '
-                                       'matched again by the classical one (appearance and size, one to one); the '
-                                       'relative-pose test and the whole-map check sort out its many proposals. '
-                                       'The learned matcher, trained on pairs of one walk, matches few objects '
-                                       'between two walks (BENCHMARKS.md)')
-    hypotheses: int = setting(3, 'Distinct poses (groups of agreeing keyframes, by support) verified against the '
-                              'map per query; the one explaining the most detections wins', lo=1, hi=20)
-    recovery: bool = setting(True, 'Mapping mode (tracking recovery): a keyframe outside the registered map '
-                             '(tracking lost, a view that matched no keyframe) is matched against the map\'s '
-                             'objects, every box correspondence proposing a pose under the gyroscope\'s yaw; a '
-                             'unique, verified match adds the edge that joins it to the map. Tried when the '
-                             'keyframe arrives and again each time the map doubles')
-    recovery_min_inliers: int = setting(3, 'Objects the edge of a recovered keyframe must verify (as '
-                                        'keyframes.min_retrieved_inliers: two verify nothing beyond the sample)',
-                                        lo=2, hi=100)
-    recovery_unaided: bool = setting(False, 'Recover keyframes the gyroscope does not link to the map (another '
-                                     'integration epoch: separate photos, no IMU) too, their yaw from box pairs. '
-                                     'Off: on sparse tuning captures 1 of 17 such edges was 126 deg off and '
-                                     'several 3-4 deg (BENCHMARKS.md)')
-    unaided_explained_share: float = setting(0.5, '... and such a match must also explain this share of the '
-                                             'keyframe\'s detections: a turned pose can explain four of twelve',
-                                             lo=0.0, hi=1.0)
-    map_hypotheses: int = setting(5, 'Distinct poses tried when matching a view to the map\'s objects (from '
-                                  'single box correspondences, most supported first)', lo=1, hi=50)
-    map_yaw_tolerance_deg: float = setting(10.0, 'Matching a view to the map: the yaw a hypothesis proposes '
-                                           '(the gyroscope\'s through the nearest registered keyframe, or a box '
-                                           'pair\'s) is trusted this far', lo=0.5, hi=180.0)
-    map_fallback: bool = setting(False, 'A query no keyframe places is matched against the map\'s objects '
-                                 '(as tracking recovery without the gyroscope: recovery_min_inliers, '
-                                 'unaided_explained_share)')
-    points_fallback: bool = setting(True, 'A query no keyframe places is placed by the map\'s objects and its depth '
-                                    'points: the map matching\'s pose hypotheses (map_hypotheses) aligned on '
-                                    'the query\'s points to the map\'s, the one explaining the most detections '
-                                    '(min_explained, more than any other pose) wins')
-    point_hypotheses: int = setting(2, '... of those hypotheses (most supported first), this many are aligned',
-                                    lo=1, hi=50)
-    distinct_m: float = setting(0.25, 'Two poses for one view are alternatives (look-alike furniture, a shift '
-                                'by one chair) when their camera centres are this far apart ...', lo=0.01, hi=10.0)
-    distinct_deg: float = setting(5.0, '... or their yaws this far: a match to the map must explain more of '
-                                  'the view than any alternative', lo=0.1, hi=180.0)
-    map_correspondences: int = setting(24, 'Matching a view to the map\'s objects: each detection proposes '
-                                       'poses from this many tracks of compatible size, the most similar '
-                                       '(embedding, then size): the cost stays bounded in a map of thousands '
-                                       'of objects', lo=1, hi=10000)
-    stream: bool = setting(True, 'Localization mode: frames are localized as a stream, as a robot\'s localization '
-                           'uses its odometry. A pose must agree with the last one accepted (the gyroscope\'s turn, '
-                           'a walking pace); without a live track a pose waits until a later frame\'s pose agrees '
-                           'with it. Off: every frame relocalized on its own (the rfm/relocalize service always is)')
-    stream_max_gap_s: float = setting(2.0, '... a track (or a pose waiting to be confirmed) lives this long '
-                                      'without a pose', lo=0.1, hi=60.0)
-    stream_speed_mps: float = setting(1.5, '... the fastest the camera moves between two frames (a brisk walk)',
+    min_keyframe_inliers: int = constant(2, "Inliers a keyframe's vote needs", lo=1, hi=100)
+    min_explained: int = setting(4, "Query detections a pose must place on the map's objects (all of a smaller "
+                                 'query, but at least 3): verifies it against the whole map (0: off)', lo=0, hi=100)
+    hypotheses: int = constant(3, 'Distinct poses (groups of agreeing keyframes) verified against the map per '
+                               'query', lo=1, hi=20)
+    recovery_min_inliers: int = constant(3, 'Tracking recovery: objects the edge that joins a keyframe to the map '
+                                         'must verify', lo=2, hi=100)
+    map_hypotheses: int = constant(5, "Matching a view to the map's objects: distinct poses tried (from single box "
+                                   'correspondences, most supported first)', lo=1, hi=50)
+    map_yaw_tolerance_deg: float = constant(10.0, '... the yaw a hypothesis proposes is trusted this far (deg)',
+                                            lo=0.5, hi=180.0)
+    point_hypotheses: int = constant(2, "A query no keyframe places: the map matching's hypotheses aligned on its "
+                                     'depth points', lo=1, hi=50)
+    distinct_m: float = constant(0.25, 'Two poses of one view are alternatives when their camera centres are this '
+                                 'far apart (m) ...', lo=0.01, hi=10.0)
+    distinct_deg: float = constant(5.0, '... or their yaws this far (deg)', lo=0.1, hi=180.0)
+    map_correspondences: int = constant(24, "Matching a view to the map's objects: tracks each detection is paired "
+                                        'with (the most similar of compatible size)', lo=1, hi=10000)
+    stream_max_gap_s: float = setting(2.0, 'Localization mode: a track of localized frames lives this long without '
+                                      'a pose (s)', lo=0.1, hi=60.0)
+    stream_speed_mps: float = setting(1.5, '... the fastest the camera moves between two frames (m/s)',
                                       lo=0.0, hi=100.0)
-    stream_turn_dps: float = setting(180.0, '... the fastest it turns, where no gyroscope measured the turn',
-                                     lo=0.0, hi=3600.0)
-    stream_slack_m: float = setting(0.3, '... plus this much: the error of two relocalized poses', lo=0.0, hi=10.0)
-    stream_slack_deg: float = setting(5.0, '... and this much of yaw', lo=0.0, hi=180.0)
-    stream_min_explained: int = setting(4, '... a pose where the track predicts it needs this many detections '
-                                        'explained in the map (all of them, for a query with fewer: the '
-                                        'prediction verifies the pose too). 3 localized more frames and more '
-                                        'of them wrong on tuning rooms (BENCHMARKS.md)', lo=0, hi=100)
+    stream_turn_dps: float = constant(180.0, '... the fastest it turns where no gyroscope measured the turn (deg/s)',
+                                      lo=0.0, hi=3600.0)
+    stream_slack_m: float = constant(0.3, '... plus this much: the error of two relocalized poses (m)',
+                                     lo=0.0, hi=10.0)
+    stream_slack_deg: float = constant(5.0, '... and this much of yaw (deg)', lo=0.0, hi=180.0)
+    stream_min_explained: int = constant(4, '... a pose where the track predicts it must explain this many '
+                                         'detections in the map (all of a smaller query)', lo=0, hi=100)
 
 
 @dataclass(frozen=True)
@@ -168,10 +122,8 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
                prior: MotionPrior | None = None) -> Relocalization | None:
     """The query's pose in the map (``index``: :class:`MapIndex`, its tracks built only once a
     keyframe verified a pose), or None (and the reason appended to ``why``). Against
-    keyframes first; a query no keyframe places is then placed by the map's objects and its
-    depth points (``points_fallback``: :func:`match_on_points`) and, with ``map_fallback``,
-    matched against the map's objects (:func:`match_to_map`, no gyroscope: another
-    session). ``prior`` (a localization track's prediction): only poses it admits, and
+    keyframes first; a query no keyframe places (and no track predicts) is then placed by the
+    map's objects and its depth points (:func:`match_on_points`). ``prior`` (a localization track's prediction): only poses it admits, and
     ``stream_min_explained`` detections explained suffice."""
     why = why if why is not None else []
     if len(query) < 2 or not index.poses:
@@ -179,18 +131,9 @@ def relocalize(query: FrameObservations, index: MapIndex, matcher, config: Reloc
                    'registered keyframes')
         return None
     found = _on_keyframes(query, index, matcher, config, matching, averaging, why, prior)
-    if found is None and prior is None and config.points_fallback:
+    if found is None and prior is None:
         found = match_on_points(query, index, matching, config, why)
-    if found is not None or not config.map_fallback or prior is not None:
-        return found
-    match = match_to_map(query, index, matching, config)
-    if match is None or not match.accepted(config, len(query), gyroscope=False):
-        why.append('matching the map\'s objects found no unique verified pose' if match is None or match.explained
-                   else 'no pose from the map\'s objects explains the query')
-        return None
-    rel = match.relative
-    return Relocalization(match.pose, match.keyframe_id, len(rel.inliers), rel.inliers[:, ::-1].copy(), 0,
-                          len(rel.inliers), 1, match.explained, match.runner_up)
+    return found
 
 
 def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, why, prior=None):
@@ -204,16 +147,14 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
                       <= prior.reach_m + SHARED_VIEW_M] + near
         candidates = list(dict.fromkeys(candidates))
     found = []
-    fallback = (ClassicalMatcher(matching) if config.classical_fallback and not isinstance(matcher, ClassicalMatcher)
-                else None)
+    fallback = ClassicalMatcher(matching) if not isinstance(matcher, ClassicalMatcher) else None
     for k, matches in zip(candidates, matcher.match_many(query, [keyframes[k] for k in candidates])):
         rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, matches, matching)
         if (rel is None or len(rel.inliers) < config.min_keyframe_inliers) and fallback is not None:
             rel = estimate_relative_pose(query.boxes, keyframes[k].boxes, fallback.match(query, keyframes[k]), matching)
         if rel is None or len(rel.inliers) < config.min_keyframe_inliers:
             continue
-        if config.floor_and_walls:      # the depth points only on the final pose: each costs ~3 ms
-            rel = _with_surfaces(rel, keyframes[k], query, matching, points=False)
+        rel = _with_surfaces(rel, keyframes[k], query, matching, points=False)   # points: the final pose only
         # rel.pose = T_kf_query; T_query_map = T_kf_query^-1 T_kf_map
         pose = rel.pose.inverse() @ poses[k]
         if prior is None or prior.admits(pose):
@@ -252,9 +193,9 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         return None
     runner_up = max((h[0] for h in hypotheses if not _same(h[2].inverse(), pose.inverse(), config)), default=0)
     k, rel, _ = found[best]
-    if config.floor_and_walls:      # again on the final pose: the refit on the tracks' centres moves it
-        final = replace(rel, pose=poses[k] @ pose.inverse())                     # T_k_query
-        pose = _with_surfaces(final, keyframes[k], query, matching).pose.inverse() @ poses[k]
+    # the floor, walls and depth points again on the final pose: the refit on the tracks' centres moves it
+    final = replace(rel, pose=poses[k] @ pose.inverse())                         # T_k_query
+    pose = _with_surfaces(final, keyframes[k], query, matching).pose.inverse() @ poses[k]
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count,
                           runner_up)
 
@@ -294,8 +235,7 @@ def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, index: Map
     refit is kept only when the query's full boxes still verify against the tracks' boxes
     and lie on the map's boxes better than under ``pose`` (the sum of each detection's
     largest IoU): partial boxes' centres move with the viewpoint, so in rooms of furniture
-    made of parts a refit on the tracks' centres often turned a right pose wrong
-    (BENCHMARKS.md). ``verified``: (keyframe id, relative pose, T_query_map) of the agreeing
+    made of parts a refit on the tracks' centres can turn a right pose wrong. ``verified``: (keyframe id, relative pose, T_query_map) of the agreeing
     keyframes."""
     votes, by_id = {}, {}
     for k, rel, _ in verified:
@@ -340,15 +280,12 @@ class MapMatch:
     explained: int                           #: view detections the pose places on the map's objects
     runner_up: int                           #: the same for the best distinct alternative pose (0: none)
 
-    def accepted(self, config: RelocalizationConfig, detections: int, gyroscope: bool) -> bool:
-        """Whether to trust the match (of a view with ``detections`` detections; ``gyroscope``:
-        its yaw came from the gyroscope): verified with ``recovery_min_inliers`` objects
-        against a keyframe, explaining ``min_explained`` detections in the whole map and more
-        than any alternative pose, and without the gyroscope also
-        ``unaided_explained_share`` of the view's detections."""
+    def accepted(self, config: RelocalizationConfig) -> bool:
+        """Whether to trust the match: verified with ``recovery_min_inliers`` objects against
+        a keyframe, explaining ``min_explained`` detections in the whole map and more than any
+        alternative pose."""
         return (len(self.relative.inliers) >= config.recovery_min_inliers and self.explained >= config.min_explained
-                and self.explained > self.runner_up
-                and (gyroscope or self.explained >= config.unaided_explained_share * detections))
+                and self.explained > self.runner_up)
 
 
 def _hits(query_boxes: np.ndarray, track_boxes_: np.ndarray, compatible: np.ndarray, yaws: np.ndarray,
@@ -447,7 +384,7 @@ def match_on_points(query: FrameObservations, index: MapIndex, matching: Matchin
     relative-pose test; the map's surfaces place the view wherever a box correspondence
     brings it near."""
     why = why if why is not None else []
-    if not matching.point_tracking or not len(query.cloud) or len(query) < 2 or not index.tracks:
+    if not len(query.cloud) or len(query) < 2 or not index.tracks:
         return None                             # nothing to try: the reason stays the keyframes'
     hypotheses = _map_hypotheses(query, index, matching, config)[0] or []
     found = []                                  # (explained, overlap, T_view_map)

@@ -21,8 +21,7 @@ keeps weak embeddings (colour statistics) from merging neighbouring objects.
 Not in the paper: a track enters the map only when its views make it likely to be a real
 object (:func:`view_evidence`): a fragment of furniture, a piece of wall or a burst of
 sensor noise that one keyframe detected and the many others looking at the same place did
-not is left out (on the realistic suite's tuning scenes: 2.0 -> 1.0 map objects per room
-object, 56% -> 33% of them overlapping nothing real; BENCHMARKS.md).
+not is left out.
 """
 from __future__ import annotations
 
@@ -33,9 +32,9 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from rfm_core.geometry import box_corners, giou_3d_paired, gravity_aligned_rotation, iou_3d_paired
-from rfm_core.settings import setting
+from rfm_core.settings import constant, setting
 
-__all__ = ['TrackConfig', 'Track', 'build_tracks', 'track_colour', 'view_evidence']
+__all__ = ['TrackConfig', 'Track', 'build_tracks', 'view_evidence']
 
 
 @dataclass(frozen=True)
@@ -44,22 +43,19 @@ class TrackConfig:
                                      paper=-0.6)
     merge_affinity: float = setting(0.25, 'Merge duplicate tracks whose affinity exceeds this', lo=0.0, hi=2.0,
                                     paper=0.25)
-    suppress_iou: float = setting(0.15, 'Suppress an unmerged track overlapping a stronger one above this '
-                                  'IoU3D', lo=0.0, hi=1.0, paper=0.15)
+    suppress_iou: float = setting(0.15, 'Suppress an unmerged track overlapping a stronger one above this IoU3D',
+                                  lo=0.0, hi=1.0, paper=0.15)
     min_observations: int = setting(1, 'Publish tracks seen in at least this many keyframes', lo=1, hi=1000)
-    single_view_iou: float = setting(0.25, 'Mutual-IoU term of a track seen once: no evidence of consistency, so '
-                                     'the least a verified second view would show (the inlier IoU); ranks it '
-                                     'below tracks whose views agree', lo=0.0, hi=1.0)
-    max_pair_observations: int = setting(6, 'Merging: observations per track compared (best scores)',
-                                         lo=1, hi=1000)
-    detection_rate: float = setting(0.5, 'View evidence: chance that a real object in a keyframe\'s view is '
-                                    'detected and matched into its track', lo=0.01, hi=0.99)
-    recurrence_rate: float = setting(0.05, 'View evidence: chance that a phantom (a fragment, a piece of '
-                                     'structure, noise) recurs at the same place in another view', lo=0.001,
-                                     hi=0.99)
-    min_evidence: float = setting(0.5, 'Publish tracks whose probability of being a real object (detection '
-                                  'score as prior, updated by the keyframes that saw it or should have) is at '
-                                  'least this (0: publish every track)', lo=0.0, hi=1.0)
+    single_view_iou: float = constant(0.25, 'Mutual-IoU term of a track seen once (the least a verified second view '
+                                      'would show)', lo=0.0, hi=1.0)
+    max_pair_observations: int = constant(6, 'Merging: observations per track compared (best scores)',
+                                          lo=1, hi=1000)
+    detection_rate: float = constant(0.5, "View evidence: chance that a real object in a keyframe's view is "
+                                     'detected and matched into its track', lo=0.01, hi=0.99)
+    recurrence_rate: float = constant(0.05, 'View evidence: chance that a phantom (a fragment, structure, noise) '
+                                      'recurs at the same place in another view', lo=0.001, hi=0.99)
+    min_evidence: float = setting(0.5, "Publish tracks whose probability of being a real object (from their views) "
+                                  'is at least this (0: every track)', lo=0.0, hi=1.0)
 
 
 @dataclass
@@ -80,15 +76,6 @@ class Track:
     @property
     def num_observations(self) -> int:
         return len(self.observations)
-
-
-def track_colour(track_id: int) -> tuple:
-    """A stable, distinct display colour per track, (r, g, b) in [0, 1]: a golden-ratio walk
-    around the hue circle at full saturation."""
-    h = (track_id * 0.618033988749895) % 1.0
-    k = int(h * 6)
-    f = h * 6 - k
-    return [(1, f, 0), (1 - f, 1, 0), (0, 1, f), (0, 1 - f, 1), (f, 0, 1), (1, 0, 1 - f)][k % 6]
 
 
 def _representative(boxes, scores, single_view_iou):

@@ -8,8 +8,8 @@ least ``min_inlier_ratio`` of all matches are; the accepted sample with the lowe
 matching error (1 - IoU3D over all matches) wins. Corners of inlier matches that land within
 ``corner_inlier_m`` of their counterparts are kept for bundle adjustment. Beyond the paper,
 the winning pose is refitted on all its inlier matches, weighted by their distance from the
-camera (``refine``; its yaw from the boxes' orientations, ``refine_yaw``), and kept when it
-still verifies and explains the matches as well.
+camera (its yaw from the boxes' orientations), and kept when it still verifies and explains
+the matches as well.
 
 For a detector that judges distance from RGB alone (``range_error`` > 0), whose
 errors run along the viewing rays, two things change: before its IoU is measured, a
@@ -37,8 +37,7 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 from rfm_core.matching.points import align_points
 
-__all__ = ['PoseUncertainty', 'RelativePose', 'YawPrior', 'estimate_relative_pose', 'pose_uncertainty', 'with_points',
-           'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
+__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'with_points', 'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
 
 
 @dataclass
@@ -144,9 +143,8 @@ def estimate_relative_pose(boxes_a: np.ndarray, boxes_b: np.ndarray, matches: Ob
     if best is None:
         return None
     error, pose, ious, inlier = best
-    if cfg.refine:
-        pose, ious, error = _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg)
-        inlier = ious >= cfg.inlier_iou
+    pose, ious, error = _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg)
+    inlier = ious >= cfg.inlier_iou
     idx = np.flatnonzero(inlier)
     return RelativePose(
         pose=pose,
@@ -245,7 +243,7 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
     image border can place a frame decimetres off; the prediction from the frame before
     does not drift that far). ``rel.on_points``: the points fixed every direction."""
     cfg = config or MatchingConfig()
-    if rel is None or not cfg.point_refine or not len(source.cloud) or not len(target.cloud):
+    if rel is None or not len(source.cloud) or not len(target.cloud):
         return rel
     starts = [rel.pose]
     if predicted is not None and (np.linalg.norm(np.asarray(predicted.t) - rel.pose.t) > cfg.point_match_m
@@ -268,7 +266,7 @@ def with_points(rel: RelativePose | None, source, target, config: MatchingConfig
 
 def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | None = None):
     """``target``'s frame placed in ``source``'s on the depth points alone, from ``predicted``
-    (T_source_target, a stream's motion prediction; :attr:`MatchingConfig.point_tracking`):
+    (T_source_target, a stream's motion prediction):
     aligned both in 4-DoF and in 6-DoF (the frames' gravity may differ by a degree or two;
     where the points pin the tilt poorly, its fit can slide instead), the alignment that puts
     more points on the source's surfaces kept of those with at least ``point_track_min_overlap``
@@ -276,9 +274,8 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
     either does: a 6-DoF fit can leave a direction free that the 4-DoF one fixes), returned as
     a :class:`~rfm_core.matching.points.PointAlignment`; None if neither. The caller checks the
     directions left free and the motion. (The refined overlap is not compared with the
-    prediction's: on 1,539 points-only frames of eight handheld tuning captures, a fit that
-    holds 5-25 points fewer in a hundred than its start was as close to the truth, 1.6 cm
-    median, as one that holds more.)
+    prediction's: a fit that holds a few points fewer than its start is as close to the truth
+    as one that holds more.)
 
     The overlaps are shares of what the source's surfaces can hold: divided by the share of
     the source's own points that lie on a surface (a cloud aligned to itself scores exactly
@@ -286,7 +283,7 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
     any surface the normals trust, against a fifth for clean depth, so a raw share would ask
     noisier frames to overlap more."""
     cfg = config or MatchingConfig()
-    if not cfg.point_tracking or not len(source.cloud) or not len(target.cloud):
+    if not len(source.cloud) or not len(target.cloud):
         return None
     index = source.point_index()
     surface = max(float(index.usable.mean()), 1e-3)
@@ -328,87 +325,17 @@ def _wall_pairs(pose: Pose4, ws: np.ndarray, wt: np.ndarray, cfg: MatchingConfig
     return pairs
 
 
-@dataclass(frozen=True)
-class PoseUncertainty:
-    """Standard deviations of a relative pose, from its inlier boxes (:func:`pose_uncertainty`)."""
-
-    yaw_rad: float               #: of its yaw
-    translation_m: float         #: of its horizontal translation (both axes together)
-    #: (yaw, translation) as inverse variances, in units of one object that agrees as the
-    #: noise model expects: its two boxes' faces at ``face_sigma_deg``, their centres at the
-    #: detection noise of ``REFERENCE_RANGE_M`` (and no lever arm)
-    weights: tuple
-
-
-#: where an object's detection noise is the reference of :attr:`PoseUncertainty.weights` (m)
-REFERENCE_RANGE_M = 2.0
-#: the detection noise model's (and the face yaw's) word, in objects, against the boxes' own
-#: scatter: an edge on two objects that happen to agree is not certain
-PRIOR_OBJECTS = 1.0
-
-
-def pose_uncertainty(pose: Pose4, boxes_a: np.ndarray, boxes_b: np.ndarray, pairs: np.ndarray,
-                     config: MatchingConfig | None = None) -> PoseUncertainty:
-    """How well a verified T_b_a (``pose``) is known, from how its inlier boxes (``pairs``:
-    (K, 2) indices into ``boxes_a``, ``boxes_b``) agree under it (not in the paper; #18).
-
-    Each object's error is the detection noise model's (``refine_sigma_m`` +
-    ``refine_sigma_per_m`` x range, per box) pooled with the object's own scatter about the
-    pose (``PRIOR_OBJECTS`` objects of prior against the residual degrees of freedom): boxes
-    that disagree (partial views, boxes the image border cuts differently, a look-alike)
-    make the edge uncertain whatever their count. The yaw's comes from the boxes'
-    orientations (each pair's yaw difference modulo a quarter turn, ``refine_yaw`` 'faces';
-    prior ``face_sigma_deg`` per box) or from the spread of their centres ('centres');
-    the translation's adds the yaw's times the objects' mean distance (a turn about the
-    camera moves the objects). Precision-weighted over objects as the refit is."""
-    cfg = config or MatchingConfig()
-    pairs = np.asarray(pairs, int).reshape(-1, 2)
-    a = np.asarray(boxes_a, np.float64)[pairs[:, 0]]
-    b = np.asarray(boxes_b, np.float64)[pairs[:, 1]]
-    n = len(pairs)
-    noise = lambda rng: cfg.refine_sigma_m + cfg.refine_sigma_per_m * rng  # noqa: E731
-    if n == 0:
-        return PoseUncertainty(np.pi, np.inf, (0.0, 0.0))
-    sigma = noise(0.5 * (np.linalg.norm(a[:, :3], axis=1) + np.linalg.norm(b[:, :3], axis=1)))
-    w = 1.0 / sigma ** 2
-    n_eff = float(w.sum() ** 2 / np.sum(w ** 2))
-    dof = max(n - 1, 0)                                      # residual degrees of freedom per object
-
-    def pooled(prior, residual_sq):                          # one object's variance
-        empirical = float(np.sum(w * residual_sq) / w.sum()) * n / max(n - 1, 1)
-        return (PRIOR_OBJECTS * prior + dof * empirical) / (PRIOR_OBJECTS + dof)
-
-    # horizontal centre residuals: two boxes per object, two axes
-    r = (b[:, :3] - pose.transform_points(a[:, :3]))[:, :2]
-    var_object = pooled(4.0 * float(np.sum(w * sigma ** 2) / w.sum()), np.sum(r ** 2, axis=1))
-    lever = np.sum(w[:, None] * a[:, :2], axis=0) / w.sum()
-    if cfg.refine_yaw == 'faces':
-        d = wrap_angle(b[:, 6] - a[:, 6] - pose.yaw)
-        d = (d + np.pi / 4) % (np.pi / 2) - np.pi / 4
-        var_yaw = pooled(2.0 * np.radians(cfg.face_sigma_deg) ** 2, d ** 2) / n_eff
-    else:                                                    # from the centres' spread about their mean
-        unit = w * n_eff / w.sum()                           # weights summing to n_eff objects
-        spread = float(np.sum(unit * np.sum((a[:, :2] - lever) ** 2, axis=1)))
-        var_yaw = min(var_object / 2.0 / max(spread, 1e-9), np.pi ** 2)
-    var_t = var_object / n_eff + var_yaw * float(lever @ lever)
-    ref_t = 4.0 * noise(REFERENCE_RANGE_M) ** 2
-    ref_yaw = 2.0 * np.radians(cfg.face_sigma_deg) ** 2
-    return PoseUncertainty(float(np.sqrt(var_yaw)), float(np.sqrt(var_t)),
-                           (float(ref_yaw / max(var_yaw, 1e-12)), float(ref_t / max(var_t, 1e-12))))
-
-
 def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
     """Local optimisation (not in the paper): refit the pose on all inlier matches, each
     weighted by the inverse variance of a detection at its distance (sigma = refine_sigma_m
     + refine_sigma_per_m x range): box centres when there are three or more inliers, else the
-    corners (each with the quarter turn that agrees with the sample's yaw); with
-    ``refine_yaw`` 'faces' (the default) the yaw then comes from the boxes' orientations
-    (:func:`_face_yaw`: partial boxes' centres shift towards the camera that saw them, by a
-    different amount per object, and their spread turns the pose). Kept when it still
-    verifies and its mean box error grows by at most ``refine_max_error_increase`` (partial
-    boxes of a depth-only detector have biased centres; the IoU criterion notices). Under along-ray
-    errors that refit only starts :func:`_refit_along_rays`, which is kept whenever it
-    verifies."""
+    corners (each with the quarter turn that agrees with the sample's yaw); the yaw then comes
+    from the boxes' orientations (:func:`_face_yaw`: partial boxes' centres shift towards the
+    camera that saw them, by a different amount per object, and their spread turns the pose).
+    Kept when it still verifies and its mean box error grows by at most
+    ``refine_max_error_increase`` (partial boxes of a depth-only detector have biased
+    centres; the IoU criterion notices). Under along-ray errors that refit only starts
+    :func:`_refit_along_rays`, which is kept whenever it verifies."""
     src, dst, weights, used = [], [], [], []
     for m in np.flatnonzero(inlier):
         pick = _best_turn(turns[m], pose.yaw)
@@ -431,7 +358,7 @@ def _refine(pose, a, b, corners_a, corners_b, turns, inlier, ious, error, cfg):
         refit = kabsch_4dof(src.reshape(-1, 3), dst.reshape(-1, 3), np.repeat(weights, 8))
     if cfg.along_rays:
         refit = _refit_along_rays(refit, a[:, :3], b[:, :3], cfg)
-    elif cfg.refine_yaw == 'faces':
+    else:
         refit = _face_yaw(refit, a[used], b[used], weights)
     refit_ious = _overlap(refit.transform_boxes(a), b, cfg)
     if np.mean(refit_ious >= cfg.inlier_iou) < cfg.min_inlier_ratio:

@@ -42,108 +42,55 @@ from rfm_core.matching.relative_pose import (
     RelativePose, YawPrior, estimate_relative_pose, track_on_points, with_surfaces)
 from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
 from rfm_core.observations import FrameObservations, FrameTrack, imu_relative_yaw
-from rfm_core.settings import setting
-
-#: frames tracked on the reference kept for :meth:`ViewGraphBuilder._through_tracked`
-_THROUGH_BUFFER = 64
+from rfm_core.settings import constant, setting
 
 __all__ = ['KeyframeConfig', 'Keyframe', 'Edge', 'GraphStep', 'ViewGraphBuilder', 'bag_of_objects']
 
 
 @dataclass(frozen=True)
 class KeyframeConfig:
-    min_overlap: float = setting(0.3, 'New keyframe when fewer than this share of objects match the last '
-                                 'keyframe (with the gyroscope checking tracking, 0.3 halves the keyframes '
-                                 'of 0.6 at the same accuracy: BENCHMARKS.md)', lo=0.0, hi=1.0)
-    max_translation_m: float = setting(0.5, 'New keyframe after moving this far from the last one (m)',
-                                       lo=0.0, hi=100.0)
-    max_yaw_deg: float = setting(20.0, 'New keyframe after turning this much from the last one (deg)',
-                                 lo=0.0, hi=180.0)
-    min_detections: int = setting(2, 'Skip frames with fewer detections', lo=0, hi=1000)
-    min_keyframe_detections: int = setting(3, 'Within a stream, a frame with fewer detections does not become a '
-                                           'new keyframe where a neighbour of the reference (other than the '
-                                           'reference) already covers its predicted pose (it is tracked when it '
-                                           'can be, else left unlocalized): it could not verify a revisit '
-                                           '(min_retrieved_inliers) and its edges rest on two objects, so on a '
-                                           'long capture such views would add keyframes with time, not with the '
-                                           'room. Elsewhere it links the walk as before', lo=0, hi=1000)
-    min_interval_s: float = setting(0.0, 'No new keyframe sooner than this after the last one (s; 0: off). '
-                                    'Fewer keyframes cost less matching but lower accuracy (BENCHMARKS.md)',
-                                    lo=0.0, hi=60.0)
-    recent_keyframes: int = setting(3, 'Match a new keyframe against this many latest keyframes', lo=0, hi=100)
-    retrieved_keyframes: int = setting(5, '... plus this many most similar older ones (retrieval)', lo=0, hi=100)
-    unordered_retrieved_keyframes: int = setting(
-        15, 'Retrieved keyframes for a keyframe that starts a stream segment (a separate view: retrieval '
-        'is what finds the overlaps)', lo=0, hi=100)
-    min_retrieval_similarity: float = setting(0.3, 'Retrieval: least bag-of-objects similarity of a '
-                                              'candidate keyframe', lo=0.0, hi=1.0)
-    max_frame_gap_s: float = setting(0.5, 'Frames further apart than this are separate views (photos): no '
-                                     'motion prior between them, and their edges need min_retrieved_inliers '
-                                     'objects; closer frames are one stream', lo=0.01, hi=3600.0)
-    max_yaw_rate_deg_s: float = setting(90.0, 'Motion prior: fastest plausible turn (deg/s)', lo=1.0, hi=3600.0)
-    max_speed_m_s: float = setting(1.5, 'Motion prior: fastest plausible motion (m/s)', lo=0.01, hi=100.0)
-    motion_slack_deg: float = setting(10.0, 'Motion prior: turn allowed on top of rate x time (detector '
-                                      'noise, deg)', lo=0.0, hi=180.0)
-    motion_slack_m: float = setting(0.3, 'Motion prior: motion allowed on top of speed x time (m)',
-                                    lo=0.0, hi=10.0)
-    max_motion_edge_s: float = setting(1.0, 'A keyframe that verified nothing, at most this long after the '
-                                       "last frame objects placed, is placed by the gyroscope's yaw and the "
-                                       'predicted position (velocity_window_s; no object matches, least averaging '
-                                       'weight; 0: never)',
-                                       lo=0.0, hi=60.0)
-    velocity_window_s: float = setting(1.0, "Motion prediction (tracking's predicted matches, motion edges): the "
-                                       'camera keeps the velocity it had between the last frame objects placed '
-                                       'and the oldest such frame on the same keyframe at most this long before '
-                                       "it (at least 0.2 s: tracked poses jitter by centimetres); 0: the position "
-                                       'is held', lo=0.0, hi=10.0)
-    track_gate_m: float = setting(0.3, "Tracking: a box matches the keyframe's box predicted nearest within "
-                                  'this (m, detector noise) plus the distance the camera can have moved',
-                                  lo=0.01, hi=5.0)
-    imu_yaw_tolerance_deg: float = setting(3.0, "Within a stream, a relative pose's yaw may differ from the "
-                                           "gyroscope's by this (deg; the averaging's outlier threshold) ...",
-                                           lo=0.1, hi=180.0)
-    imu_yaw_drift_deg_s: float = setting(1.0, '... plus this per second between the frames (gyroscope bias; '
-                                         'raise it for an uncalibrated IMU)', lo=0.0, hi=90.0)
-    motion_prior: bool = setting(True, 'Within a stream, reject tracking and edges implying faster motion than '
-                                 'max_yaw_rate_deg_s / max_speed_m_s plus the slack; false: every frame is a '
-                                 'separate view (stamps mean nothing)')
-    reuse_keyframes: bool = setting(True, 'Revisits: a frame of a stream that would become a keyframe (or '
-                                    'bridge lost tracking) is first localized against older keyframes (the '
-                                    "reference's graph neighbourhood, then the retrieved ones); one it verifies "
-                                    'against (min_retrieved_inliers objects, and overlapping as the reference '
-                                    'would need) becomes the reference instead of a new keyframe: the map grows '
-                                    'with the places seen, not with time')
-    revisit_edges: int = setting(8, 'Revisits: a frame that revisits links, as a keyframe would, the keyframe it '
-                                 'leaves to the one it revisits and that one to every other keyframe it verified '
-                                 'against (edges measured through the frame); at most this many measurements of one '
-                                 'keyframe pair (0: none). Without them a map that stops growing keeps its first '
-                                 'edges unchallenged', lo=0, hi=16)
-    revisit_on_points: bool = setting(True, 'Revisits on depth points: a frame of a stream that would still become a '
-                                      'keyframe (its objects verified no older keyframe) is aligned on its depth '
-                                      'points (as matching.point_tracking) to the older keyframes the view graph '
-                                      'puts within max_translation_m and max_yaw_deg of it (their poses composed '
-                                      'along verified edges from the reference; the newest recent_keyframes '
-                                      'excluded: a revisit, not the walk ahead). One whose surfaces it aligns to '
-                                      'in every direction becomes the reference and the frame is tracked against '
-                                      'it: the same place seen again adds no keyframe when its objects fail to '
-                                      'verify. Needs matching.point_tracking')
-    through_frames: int = setting(0, 'A new keyframe of a stream is linked to the reference again through this '
-                                  'many frames tracked on the reference since it (the latest and ones '
-                                  'between: each measures T_reference_keyframe as its tracked pose and its own '
-                                  'verified pose to the keyframe, weighted as the two legs in series). Off: '
-                                  'on tuning scenes 2 localized more frames and lowered ARE but left ATE and '
-                                  'AP25 where they were (BENCHMARKS.md, session 20)',
-                                  lo=0, hi=8)
-    keyframe_at_previous: bool = setting(False, 'Within a stream, a frame that would become a keyframe while '
-                                         'tracked on fewer objects than the previous frame makes that frame '
-                                         'the keyframe instead (it is then tracked against it), so that a new '
-                                         "keyframe's edge to the reference rests on more objects (as a keyframe "
-                                         'made when tracking fails). Off: on tuning scenes it lowered ARE and '
-                                         'localized more frames but cost AP25, and on the demo bag it traded '
-                                         'ATE for ARE (BENCHMARKS.md, session 21)')
+    min_overlap: float = setting(0.3, 'A frame becomes a keyframe when fewer than this share of its objects match '
+                                 'the reference keyframe ...', lo=0.0, hi=1.0)
+    max_translation_m: float = setting(0.5, '... or it has moved this far from it (m) ...', lo=0.0, hi=100.0)
+    max_yaw_deg: float = setting(20.0, '... or turned this far (deg)', lo=0.0, hi=180.0)
+    min_detections: int = setting(2, 'Frames with fewer detections are tracked on their depth points only',
+                                  lo=0, hi=1000)
+    min_keyframe_detections: int = constant(3, 'Within a stream, a frame with fewer detections becomes no keyframe '
+                                            'where a neighbour of the reference already covers its predicted pose',
+                                            lo=0, hi=1000)
+    recent_keyframes: int = setting(3, 'A new keyframe is matched against this many latest keyframes ...',
+                                    lo=0, hi=100)
+    retrieved_keyframes: int = setting(5, '... and this many older ones most similar by bag of objects',
+                                       lo=0, hi=100)
+    unordered_retrieved_keyframes: int = constant(15, 'Retrieved keyframes for a keyframe that starts a stream '
+                                                  'segment (a separate view)', lo=0, hi=100)
+    min_retrieval_similarity: float = constant(0.3, 'Least bag-of-objects similarity of a retrieved keyframe',
+                                               lo=0.0, hi=1.0)
+    max_frame_gap_s: float = setting(0.5, 'Frames further apart than this are separate views (photos): no motion '
+                                     'prior between them; closer frames are one stream (s)', lo=0.01, hi=3600.0)
+    max_yaw_rate_deg_s: float = setting(90.0, 'Motion prior within a stream: fastest turn of the camera (deg/s)',
+                                        lo=1.0, hi=3600.0)
+    max_speed_m_s: float = setting(1.5, 'Motion prior within a stream: fastest motion of the camera (m/s)',
+                                   lo=0.01, hi=100.0)
+    motion_slack_deg: float = constant(10.0, 'Motion prior: turn allowed on top of rate x time (deg)',
+                                       lo=0.0, hi=180.0)
+    motion_slack_m: float = constant(0.3, 'Motion prior: motion allowed on top of speed x time (m)', lo=0.0, hi=10.0)
+    max_motion_edge_s: float = constant(1.0, "A keyframe that verified nothing is placed by the gyroscope's yaw and "
+                                        'the predicted position at most this long after the last frame objects '
+                                        'placed (s; 0: never)', lo=0.0, hi=60.0)
+    velocity_window_s: float = constant(1.0, 'Motion prediction: the camera keeps the velocity of the frames '
+                                        'objects placed over at most this long (s; 0: the position is held)',
+                                        lo=0.0, hi=10.0)
+    track_gate_m: float = constant(0.3, "Tracking: a box matches the reference's box predicted nearest within "
+                                   'this (m) plus the distance the camera can have moved', lo=0.01, hi=5.0)
+    imu_yaw_tolerance_deg: float = constant(3.0, "Within a stream, a relative pose's yaw may differ from the "
+                                            "gyroscope's by this (deg) ...", lo=0.1, hi=180.0)
+    imu_yaw_drift_deg_s: float = setting(1.0, "... plus this per second between the frames (the gyroscope's bias; "
+                                         'raise it for an uncalibrated IMU, deg/s)', lo=0.0, hi=90.0)
+    revisit_edges: int = constant(8, 'Measurements of one keyframe pair that revisiting frames may add (0: none)',
+                                  lo=0, hi=16)
     min_retrieved_inliers: int = setting(3, 'Verified objects an edge needs where the motion prior cannot check '
-                                         'it (separate views, retrieved keyframes): two verify nothing beyond '
-                                         'the minimal sample, and repeated furniture aliases', lo=2, hi=100)
+                                         'it (separate views, retrieved keyframes)', lo=2, hi=100)
 
 
 @dataclass
@@ -163,13 +110,11 @@ class Edge:
     source_id: int
     target_id: int
     relative: RelativePose
-    trust: float = 1.0                #: in (0, 1]: below 1 for a pose composed of several measured ones
 
     @property
     def score(self) -> float:
-        """Confidence in [0, 1]: the share of matched objects that verified the pose (times
-        :attr:`trust`)."""
-        return float(np.clip(self.relative.inlier_ratio * self.trust, 0.0, 1.0))
+        """Confidence in [0, 1]: the share of matched objects that verified the pose."""
+        return float(np.clip(self.relative.inlier_ratio, 0.0, 1.0))
 
 
 def _reversed(rel: RelativePose) -> RelativePose:
@@ -196,8 +141,7 @@ def bag_of_objects(obs: FrameObservations) -> np.ndarray:
 class GraphStep(NamedTuple):
     """What one frame did to the view graph: the keyframe it became (or None), the new
     keyframe's verified edges, and the frame's pose relative to a keyframe (None when it
-    could not be localized: too few detections, or tracking failed within
-    ``min_interval_s`` of the last keyframe)."""
+    could not be localized)."""
 
     keyframe: Keyframe | None
     edges: list
@@ -265,7 +209,6 @@ class ViewGraphBuilder:
         self._index: dict = {}            # keyframe id -> index
         self._pair_edges: dict = {}       # (source id, target id) -> measurements of the pair sent
         self._ref = -1                    # index of the reference keyframe frames are tracked against
-        self._since_ref: list = []        # (_Tracking) frames tracked on the reference since it became one
 
     @property
     def _tracking(self) -> _Tracking | None:
@@ -425,13 +368,6 @@ class ViewGraphBuilder:
             ok = self._reachable(rel.pose, last.observations.stamp_ns, obs.stamp_ns)
         return rel if ok and self._imu_agrees(rel.pose, last.observations, obs) else None
 
-    def _too_soon(self, obs: FrameObservations) -> bool:
-        """Whether ``min_interval_s`` has not yet passed since the last keyframe."""
-        if self.config.min_interval_s <= 0 or not self.keyframes:
-            return False
-        dt = obs.stamp_ns - self.keyframes[-1].observations.stamp_ns
-        return 0 <= dt < self.config.min_interval_s * 1e9
-
     def _is_keyframe(self, obs: FrameObservations, last_rel: RelativePose | None,
                      reference: FrameObservations | None = None) -> bool:
         """Whether a frame becomes a keyframe, given its verified pose to the reference
@@ -467,8 +403,7 @@ class ViewGraphBuilder:
         """Whether a frame continues the stream of the previous one (no more than
         ``max_frame_gap_s`` later); updates the stream segment."""
         last, self._last_stamp = self._last_stamp, stamp_ns
-        stream = (self.config.motion_prior and last is not None
-                  and 0 < stamp_ns - last <= self.config.max_frame_gap_s * 1e9)
+        stream = last is not None and 0 < stamp_ns - last <= self.config.max_frame_gap_s * 1e9
         if not stream:
             self._segment += 1
             self.stats.segments += 1
@@ -500,30 +435,28 @@ class ViewGraphBuilder:
         start = time.perf_counter()
         last_rel = self._track(obs, stream) if self.keyframes else None
         self.stats.tracking_s += time.perf_counter() - start
-        if last_rel is not None and (self._too_soon(obs) or self._weak(obs, stream)
-                                     or not self._is_keyframe(obs, last_rel)):
+        if last_rel is not None and (self._weak(obs, stream) or not self._is_keyframe(obs, last_rel)):
             last = self.reference
             self._tracking = _Tracking(last.keyframe_id, last_rel.pose, obs.stamp_ns, obs, last_rel,
                                        verified_ns=self._verified_through(last.keyframe_id))
-            self._remember(self._tracking)
             self.stats.tracked += 1
             return GraphStep(None, [], FrameTrack(
                 obs.stamp_ns, obs.frame_id, obs.gravity_cam, last.keyframe_id, last.observations.stamp_ns, last_rel.pose,
                 len(last_rel.inliers), is_keyframe=False, continuous=stream))
-        if self.config.reuse_keyframes and stream and len(self.keyframes) > 1:
+        if stream and len(self.keyframes) > 1:
             revisit = self._revisit(obs, stream, last_rel)
-            if revisit is None and self.config.revisit_on_points:
+            if revisit is None:
                 revisit = self._revisit_on_points(obs, last_rel)
             if revisit is not None:
                 return revisit
         prev = self._tracking
         if (stream and prev is not None and prev.observations is not None
                 and len(prev.observations) >= self.config.min_detections
-                and (last_rel is None or self._promotes_previous(last_rel))):
+                and last_rel is None):
             bridged = self._bridge(obs)
             if bridged is not None:
                 return bridged
-        if self._too_soon(obs) or self._weak(obs, stream):          # lost, but no keyframe (yet)
+        if self._weak(obs, stream):                                 # lost, but no keyframe (yet)
             step = self._point_tracked(obs, stream)
             return step if step is not None else GraphStep(None, [], None)
         return self._new_keyframe(obs, last_rel, stream)
@@ -629,14 +562,14 @@ class ViewGraphBuilder:
 
     def _revisit_on_points(self, obs: FrameObservations, last_rel: RelativePose | None) -> GraphStep | None:
         """A frame of a stream about to become a keyframe, aligned on its depth points to an
-        older keyframe the view graph places near it (:attr:`KeyframeConfig.revisit_on_points`):
+        older keyframe the view graph places near it:
         of the three nearest within ``max_translation_m`` and ``max_yaw_deg`` of its pose to the
         reference (``last_rel``, else predicted), the one whose surfaces it aligns to in every
         direction with the most of its points becomes the reference, and the frame is tracked
         against it (no edge: no object verified it); None where none aligns."""
         cfg, prev = self.config, self._tracking
         pose = last_rel.pose if last_rel is not None else self._predicted_pose(obs)           # T_ref_frame
-        if pose is None or prev is None or not self.matching.point_tracking:
+        if pose is None or prev is None:
             return None
         start = time.perf_counter()
         n = len(self.keyframes)
@@ -664,7 +597,7 @@ class ViewGraphBuilder:
             return None
         j, a = found
         kf = self.keyframes[j]
-        self._ref, self._since_ref = j, []
+        self._ref = j
         self.stats.reused += 1
         self.stats.reused_on_points += 1
         return self._placed_on_points(obs, kf, a.pose, self._verified_through(kf.keyframe_id))
@@ -685,8 +618,6 @@ class ViewGraphBuilder:
         kf = self.keyframes[i]
         self._tracking = _Tracking(kf.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
                                    verified_ns=self._verified_through(kf.keyframe_id))
-        self._since_ref = []
-        self._remember(self._tracking)
         self.stats.tracked += 1
         self.stats.reused += 1
         return GraphStep(None, edges, FrameTrack(
@@ -738,58 +669,16 @@ class ViewGraphBuilder:
             pose, inliers, np.ones(len(inliers)), scores, max(leg.mean_error for leg in legs),
             max(len(inliers), int(np.ceil(len(inliers) / max(ratio, 1e-3))))))
 
-    def _remember(self, state: _Tracking) -> None:
-        """Keep a frame tracked on the reference (for :meth:`_through_tracked`; bounded)."""
-        if self.config.through_frames and state.relative is not None and state.verified_ns is None:
-            self._since_ref.append(state)
-            del self._since_ref[:-_THROUGH_BUFFER]
-
-    def _through_tracked(self, obs: FrameObservations, keyframe_id: int) -> list:
-        """Edges from the reference to a new keyframe of the stream (``obs``) measured
-        through frames tracked on the reference since it (:attr:`KeyframeConfig.through_frames`:
-        the latest and ones spread back towards the reference), each where the frame's own
-        pose to the keyframe verifies and is plausible."""
-        n = self.config.through_frames
-        frames = [f for f in self._since_ref if f.observations is not obs] if n else []
-        if not frames:
-            return []
-        ref = self.reference
-        picks = sorted({int(round(x)) for x in np.linspace(len(frames) - 1, 0, n + 1)[:n]}, reverse=True)
-        edges = []
-        for f in (frames[i] for i in picks):
-            step = self._plausible(self._relative(f.observations, obs, stream=True), f.observations, obs)
-            if step is None:
-                continue
-            edge = self._through(ref.keyframe_id, keyframe_id, f.pose @ step.pose, [f.relative, step])
-            if edge is not None:
-                # two measured legs add their errors: the weight of each leg's objects in series
-                n1, n2 = len(f.relative.inliers), len(step.inliers)
-                edge.trust = float(min(1.0, n1 * n2 / (n1 + n2) / len(edge.relative.inliers)))
-                edges.append(edge)
-        return edges
-
     def _count_pair(self, edge: Edge) -> int:
         """Count a measurement of the edge's keyframe pair; returns the pair's count."""
         key = (edge.source_id, edge.target_id)
         self._pair_edges[key] = self._pair_edges.get(key, 0) + 1
         return self._pair_edges[key]
 
-    def _promotes_previous(self, last_rel: RelativePose) -> bool:
-        """Whether a frame of a stream that would become a keyframe (tracked, but sharing too
-        few objects with the reference or too far from it) should instead make the previous
-        tracked frame the keyframe (:attr:`KeyframeConfig.keyframe_at_previous`): that frame
-        verified more objects against the reference, so the new keyframe's edge to it rests on
-        more of them."""
-        prev = self._tracking
-        return (self.config.keyframe_at_previous and prev.relative is not None and prev.verified_ns is None
-                and prev.keyframe_id == self.reference.keyframe_id
-                and len(prev.relative.inliers) > len(last_rel.inliers))
-
     def _bridge(self, obs: FrameObservations) -> GraphStep | None:
-        """Tracking failed against the last keyframe, or tracked on fewer objects than the
-        previous frame where this frame would become a keyframe: if the frame verifies against
-        the last frame that was tracked (moments earlier), that frame becomes the keyframe (it
-        is linked to the last keyframe by its tracked pose) and this frame is tracked against it."""
+        """Tracking failed against the last keyframe: if the frame verifies against the last
+        frame that was tracked (moments earlier), that frame becomes the keyframe (it is linked
+        to the last keyframe by its tracked pose) and this frame is tracked against it."""
         prev = self._tracking
         if prev.keyframe_id == self.reference.keyframe_id and self._weak(prev.observations, True, prev.pose):
             return None
@@ -803,7 +692,6 @@ class ViewGraphBuilder:
         keyframe = step.keyframe
         self._tracking = _Tracking(keyframe.keyframe_id, rel.pose, obs.stamp_ns, obs, rel,
                                    verified_ns=self._verified_through(keyframe.keyframe_id))
-        self._remember(self._tracking)
         self.stats.bridged += 1
         return GraphStep(keyframe, step.edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, keyframe.observations.stamp_ns,
@@ -863,8 +751,6 @@ class ViewGraphBuilder:
             if rel is not None and ((same and (i >= recent_from or i == last))
                                     or len(rel.inliers) >= self.config.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
-        if stream and self.keyframes:
-            edges += self._through_tracked(obs, keyframe.keyframe_id)
         if not edges and stream and self.keyframes:
             motion = self._motion_edge(obs)
             if motion is not None:
@@ -897,7 +783,6 @@ class ViewGraphBuilder:
         self.stats.keyframe_s += time.perf_counter() - start
         self._tracking = _Tracking(keyframe.keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), obs.stamp_ns, None,
                                    verified_ns=self._verified_through(keyframe.keyframe_id))
-        self._since_ref = []
         return GraphStep(keyframe, edges, FrameTrack(
             obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe.keyframe_id, obs.stamp_ns,
             Pose4(0.0, (0.0, 0.0, 0.0)), 0, is_keyframe=True, continuous=stream))

@@ -1,0 +1,91 @@
+"""Depth points: a frame's cloud (``FrameObservations.cloud``) and what aligning to it needs.
+
+:func:`depth_cloud` turns a depth image into the gravity-aligned, voxel-downsampled points
+the detector sends with every frame; :class:`PointIndex` holds a cloud ready to be aligned
+to (a k-d tree and the points' surface normals). The alignment itself is
+:mod:`rfm_core.matching.points`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from rfm_core.geometry import gravity_aligned_rotation
+
+__all__ = ['depth_cloud', 'voxel_means', 'PointIndex', 'MAX_CLOUD_POINTS']
+
+#: at most this many points per frame (a message bound; a 12 cm voxel grid of a room holds ~1,500)
+MAX_CLOUD_POINTS = 20_000
+_NORMAL_NEIGHBOURS = 10
+_WIDE_NEIGHBOURS = 30      #: ... tried for points whose nearest ten are no surface
+_MAX_CURVATURE = 0.05       #: points whose neighbourhood is not a surface (edges, noise) take no part
+
+
+def depth_cloud(depth: np.ndarray, intrinsics, gravity_cam, voxel_m: float, max_range_m: float,
+                columns: int = 160) -> np.ndarray:
+    """(P, 3) float32 points of a depth image (metres, NaN / 0 missing) in the frame's
+    gravity-aligned camera frame (:func:`rfm_core.geometry.gravity_aligned_rotation`): pixels
+    on a grid about ``columns`` wide (every second of a 320-pixel image, every fourth of a
+    640) within ``max_range_m``, one point per ``voxel_m`` cell (the mean of its points), at
+    most :data:`MAX_CLOUD_POINTS` (a coarser grid past that)."""
+    if depth is None or voxel_m <= 0:
+        return np.zeros((0, 3), np.float32)
+    stride = max(1, int(round(depth.shape[1] / columns)))
+    z = np.asarray(depth, np.float32)[::stride, ::stride]
+    v, u = np.mgrid[0:depth.shape[0]:stride, 0:depth.shape[1]:stride]
+    ok = np.isfinite(z) & (z > 0.1) & (z <= max_range_m)
+    z = z[ok].astype(np.float64)
+    p = np.stack([(u[ok] - intrinsics.cx) / intrinsics.fx * z, (v[ok] - intrinsics.cy) / intrinsics.fy * z, z], 1)
+    p = p @ gravity_aligned_rotation(gravity_cam).T
+    while True:
+        out = voxel_means(p, voxel_m)
+        if len(out) <= MAX_CLOUD_POINTS:
+            return out.astype(np.float32)
+        voxel_m *= 1.5
+
+
+def voxel_means(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """(C, 3) float64: the mean of the ``points`` in each occupied cell of a ``voxel_m`` grid."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    if not len(p):
+        return p
+    cells = np.floor(p / voxel_m).astype(np.int64)
+    cells -= cells.min(0)
+    span = cells.max(0) + 1
+    key = (cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2]
+    _, inv, count = np.unique(key, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    return np.stack([np.bincount(inv, weights=p[:, k]) for k in range(3)], 1) / count[:, None]
+
+
+class PointIndex:
+    """A frame's cloud ready to be aligned to: a k-d tree and each point's surface normal
+    (from its neighbours; points off a surface are left out)."""
+
+    def __init__(self, cloud: np.ndarray):
+        from scipy.spatial import cKDTree  # noqa: PLC0415
+        self.cloud = cloud                    #: the array it was built from
+        self.points = np.asarray(cloud, np.float64).reshape(-1, 3)
+        self.tree = cKDTree(self.points) if len(self.points) else None
+        self.normals = np.zeros_like(self.points)
+        self.usable = np.zeros(len(self.points), bool)
+        if len(self.points) > _NORMAL_NEIGHBOURS:
+            self.normals, self.usable = self._surfaces(np.arange(len(self.points)), _NORMAL_NEIGHBOURS)
+        if len(self.points) > _WIDE_NEIGHBOURS:
+            # noisy depth (an active-stereo camera at 4-6 m) turns a wall into a slab a few
+            # cells thick whose ten nearest points form no surface; its thirty nearest do
+            # (the noise across stays, the extent along grows), while an edge's stay two surfaces
+            rest = np.flatnonzero(~self.usable)
+            if len(rest):
+                normals, usable = self._surfaces(rest, _WIDE_NEIGHBOURS)
+                self.normals[rest[usable]] = normals[usable]
+                self.usable[rest[usable]] = True
+
+    def _surfaces(self, which: np.ndarray, k: int):
+        """Normals of points ``which`` from their ``k`` nearest, and whether those lie on a surface."""
+        _, idx = self.tree.query(self.points[which], k=k)
+        nb = self.points[idx] - self.points[idx].mean(1, keepdims=True)
+        values, vectors = np.linalg.eigh(np.einsum('nki,nkj->nij', nb, nb))
+        return vectors[:, :, 0], values[:, 0] <= _MAX_CURVATURE * np.maximum(values.sum(1), 1e-12)
+
+    def __len__(self) -> int:
+        return int(self.usable.sum())

@@ -1,0 +1,342 @@
+"""The mapper node without ROS: what ``rfm_mapper_node`` does between decoding a message and
+publishing one, as core code with core tests.
+
+:class:`MapperCore` owns the :class:`~rfm_core.session.MapSession` (paper 3.5-3.6 and
+appendix) and the node's policy around it:
+
+- delivery checks of the matcher's numbered topics (:class:`~rfm_core.session.SequenceCheck`);
+- :meth:`MapperCore.tick`, every 0.1 s: solves what arrived and returns a :class:`Tick`
+  (the poses changed, the newest frame's camera pose, keyframes recovered or culled, whether
+  the object map is due, the autosave written);
+- autosave (:class:`Autosave`: every n keyframes, or once a larger map has grown by a
+  fraction), and once more when the node stops (:meth:`MapperCore.close`);
+- the object map rebuilt at most every ``map_publish_period_s`` and at most
+  ``map_max_cpu_share`` of the time (:class:`Throttle`);
+- the files a service request may name (:class:`MapFiles`: inside ``map_dir``);
+- a :class:`MapStatus` snapshot for ``rfm/status``.
+
+Each method takes decoded inputs and returns what to publish; the node translates messages.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+from rfm_core.mapping.map_io import MapFileError
+from rfm_core.mapping.mapper import MODES
+from rfm_core.matching.factory import make_matcher
+from rfm_core.observations import FrameObservations, FrameTrack
+from rfm_core.session import CameraPose, ExternalPoses, MapSession, SequenceCheck
+
+__all__ = ['MapperCore', 'Tick', 'MapStatus', 'MapFiles', 'Autosave', 'Throttle', 'default_map_path']
+
+MAX_PATH_CHARS = 1024           #: longest path a service request may name
+
+
+def default_map_path(environ=os.environ) -> str:
+    """``$ROS_HOME/rfm/map.rfm`` (``~/.ros/rfm/map.rfm`` without ROS_HOME), as ROS 2 places a
+    node's files."""
+    return str(Path(environ.get('ROS_HOME', '~/.ros')) / 'rfm' / 'map.rfm')
+
+
+class MapFiles:
+    """The map file (``map_path``; empty: :func:`default_map_path`) and the directory service
+    requests may name files in (``map_dir``; empty: the map file's)."""
+
+    def __init__(self, map_path: str = '', map_dir: str = ''):
+        self.path = map_path or default_map_path()
+        self.dir = Path(map_dir or Path(self.path).expanduser().parent).expanduser().resolve()
+
+    def resolve(self, requested: str) -> str:
+        """The file a request names: the map file when empty, else a path inside the directory
+        (relative ones are taken there). ValueError saying why for any other."""
+        if not requested:
+            return self.path
+        if len(requested) > MAX_PATH_CHARS or '\x00' in requested:
+            raise ValueError(f'the path is longer than {MAX_PATH_CHARS} characters or holds a NUL')
+        p = Path(requested).expanduser()
+        resolved = (p if p.is_absolute() else self.dir / p).resolve()
+        if self.dir not in resolved.parents:
+            raise ValueError(f"{requested} is outside map_dir {self.dir} (the mapper's map_dir parameter sets where "
+                             'maps may be saved and loaded)')
+        return str(resolved)
+
+
+@dataclass(frozen=True)
+class Autosave:
+    """Save every ``every_n`` new keyframes (0: never) or, once the map is larger, when it has
+    grown by ``growth`` since the last save: a save rewrites the whole map, so the total cost
+    of autosaving stays linear in the map's size."""
+
+    every_n: int
+    growth: float
+
+    def due(self, since_save: int, keyframes: int) -> bool:
+        return bool(self.every_n) and since_save >= max(self.every_n, self.growth * keyframes)
+
+
+class Throttle:
+    """Rebuilding the object map (tracks, merging) at most every ``period_s`` and at most
+    ``cpu_share`` of the time: a map that takes 0.3 s to build is published at most every
+    1.5 s at 0.2. :meth:`due` once something changed and the wait is over; :meth:`done` with
+    what the rebuild cost."""
+
+    def __init__(self, period_s: float, cpu_share: float, clock: Callable[[], float] = time.monotonic):
+        self.period_s, self.cpu_share, self.clock = period_s, cpu_share, clock
+        self.pending = False                  # changed since the last rebuild
+        self.last = -float('inf')             # clock time of the last rebuild's end
+        self.seconds = 0.0                    # its cost
+
+    def due(self) -> bool:
+        wait = max(self.period_s, self.seconds / self.cpu_share)
+        return self.pending and self.clock() - self.last >= wait
+
+    def done(self, seconds: float) -> None:
+        self.pending, self.last, self.seconds = False, self.clock(), seconds
+
+
+@dataclass
+class Tick:
+    """What one :meth:`MapperCore.tick` did, and what to publish."""
+
+    keyframe_poses: tuple | None = None       #: the poses changed: :meth:`MapperCore.keyframe_poses`
+    camera: CameraPose | None = None          #: the newest frame's new camera pose
+    object_map: tuple | None = None           #: the object map was due: :meth:`MapperCore.object_map`
+    saved: str | None = None                  #: the autosave written
+    log: list = field(default_factory=list)   #: lines for the node's log (recovery, culling)
+
+
+@dataclass
+class MapStatus:
+    """A snapshot for ``rfm/status`` (rfm_msgs/MapperStatus: the same field names)."""
+
+    mode: str
+    num_keyframes: int
+    num_culled: int
+    num_registered: int
+    num_edges: int
+    num_edges_rejected: int
+    num_objects: int
+    num_components: int
+    num_frames: int
+    num_lost: int
+    last_update_seconds: float
+    num_relocalize_queries: int
+    num_relocalized: int
+    relocalize_seconds_median: float
+    relocalize_seconds_p95: float
+    message: str
+
+
+class MapperCore:
+    """The mapper node's work (see the module), configured by a
+    :class:`~rfm_core.config.MapperNodeConfig`. ``lookup_tf``: posed mode's pose from TF
+    (``pose_source`` 'tf'); ``warn``: where dropped input is reported (the node logs it,
+    throttled); ``matcher``: relocalization's object matcher (default: the configured one).
+    With ``load_map_on_start`` the map file is loaded. ValueError for a matcher checkpoint or
+    a map file that cannot be loaded."""
+
+    def __init__(self, config, lookup_tf=None, warn: Callable[[str], None] | None = None,
+                 clock: Callable[[], float] = time.monotonic, matcher=None):
+        self.config = config
+        self.warn = warn or (lambda text: None)
+        if matcher is None:
+            try:
+                matcher = make_matcher(config.matcher, config.mapper.matching, config.matcher_weights or None,
+                                       on_fallback=self.warn)
+            except FileNotFoundError as exc:
+                raise ValueError(str(exc)) from exc
+        self.files = MapFiles(config.map_path, config.map_dir)
+        self.autosave = Autosave(config.autosave_every_n_keyframes, config.autosave_growth)
+        self.throttle = Throttle(config.map_publish_period_s, config.map_max_cpu_share, clock)
+        self.external_poses = ExternalPoses()
+        lookup = {'topic': self.external_poses, 'tf': lookup_tf}.get(config.pose_source)
+        mapper = replace(config.mapper, posed=bool(config.pose_source))
+        self.session = MapSession(mapper, matcher=matcher, pose_lookup=lookup,
+                                  idle_full_solve_s=config.idle_full_solve_s, warn=self.warn, clock=clock)
+        self.session.mode = config.mode
+        self.num_objects = 0                  # objects in the last object map built
+        self._republish = False               # a map loaded or cleared: publish it all at the next tick
+        self._log: list = []                  # lines for the next tick's log
+        if config.load_map_on_start:
+            answer = self.load()
+            if not answer['success']:
+                raise ValueError(f"load_map_on_start: {answer['message']}")
+            self._log.append(answer['message'])
+        self._sequences: dict = {}            # delivery checks of the matcher's numbered topics
+
+    @property
+    def mapper(self):
+        return self.session.mapper
+
+    @property
+    def num_lost(self) -> int:
+        """Messages the matcher numbered that never arrived."""
+        return sum(c.lost for c in self._sequences.values())
+
+    # ------------------------------------------------------------------ input
+
+    # Inputs: None stands for a message that could not be decoded (the node reported it with
+    # :meth:`dropped`); ``session`` and ``sequence`` number the matcher's messages.
+
+    def dropped(self, what: str, why) -> None:
+        """A message that could not be used: counted and reported."""
+        self.session.counts['dropped'] += 1
+        self.warn(f'{what} dropped: {why}')
+
+    def failed(self, what: str, exc: Exception) -> None:
+        """An unexpected error in a callback: counted, reported and kept for rfm/status."""
+        self.session.message = f'{what}: unexpected error {exc!r}'
+        self.dropped(what, f'unexpected error {exc!r}')
+
+    def delivered(self, what: str, session: int, sequence: int) -> None:
+        """Check a numbered message of the matcher's for a gap before it."""
+        check = self._sequences.setdefault(what, SequenceCheck())
+        lost = check.add(int(session), int(sequence))
+        if lost:
+            self.session.message = (f'{lost} {what} from the matcher never arrived ({check.lost} in all): a full '
+                                    'queue or a dropped connection; the map has a gap there')
+            self.warn(self.session.message)
+
+    def keyframe(self, keyframe_id: int, obs: FrameObservations | None, session: int = 0, sequence: int = 0) -> None:
+        self.delivered('keyframes', session, sequence)
+        if obs is not None:
+            self.session.add_keyframe(keyframe_id, obs, int(session))
+
+    def edge(self, edge, session: int = 0, sequence: int = 0) -> None:
+        self.delivered('edges', session, sequence)
+        if edge is not None:
+            self.session.add_edge(edge, int(session))
+
+    def tracked_frame(self, track: FrameTrack | None, session: int = 0, sequence: int = 0) -> CameraPose | None:
+        """Mapping mode: the frame logged; its camera pose once its keyframe has one."""
+        self.delivered('tracked frames', session, sequence)
+        if track is None or self.session.mode != 'mapping':
+            return None
+        return self.session.add_frame(track, int(session))
+
+    def external_pose(self, stamp_ns: int, matrix) -> None:
+        """Posed mode (pose_source 'topic'): a camera-to-map pose."""
+        if matrix is not None:
+            self.external_poses.add(stamp_ns, matrix)
+            self.session.attach_external_poses()
+
+    def detections(self, obs: FrameObservations | None) -> list:
+        """Localization mode: the frame localized as part of a stream; the camera poses found."""
+        if obs is None or self.session.mode != 'localization':
+            return []
+        return self.session.localize(obs)
+
+    # ------------------------------------------------------------------ output
+
+    def tick(self) -> Tick:
+        """Solve what arrived (see :meth:`MapSession.tick`), autosave when due; the poses to
+        publish when they changed, the object map when it is due."""
+        mapper = self.mapper
+        recovered, culled = len(mapper.recovered), len(mapper.merged)
+        changed = self.session.tick()
+        out = Tick(log=self._log)
+        self._log = []
+        for edge in mapper.recovered[recovered:]:
+            out.log.append(f'tracking recovered: keyframe {edge.target} matched the map through keyframe '
+                           f'{edge.source} ({len(edge.inliers)} objects verified)')
+        if len(mapper.merged) > culled:                     # (culled keyframes are added at the end)
+            merged = {k: m.into for k, m in list(mapper.merged.items())[culled:]}
+            out.log.append(f'culled {len(merged)} redundant keyframe(s) ('
+                           + ', '.join(f'{k} into {a}' for k, a in sorted(merged.items()))
+                           + f'); the map holds {len(mapper.keyframes)}, {len(mapper.merged)} culled')
+        if changed is not False:
+            out.camera = changed
+            self.throttle.pending = True
+            if self.autosave.due(self.session.since_save, len(mapper.keyframes)):
+                out.saved = self.save()['path'] or None
+        if changed is not False or self._republish:
+            out.keyframe_poses = self.keyframe_poses()
+        if self.throttle.due() or self._republish:
+            out.object_map = self.object_map()
+        self._republish = False
+        return out
+
+    def object_map(self) -> tuple:
+        """The object map now: (tracks, stamp_ns of the newest keyframe, revision); its cost
+        goes into the throttle."""
+        start = time.monotonic()
+        tracks = self.mapper.tracks()
+        self.throttle.done(time.monotonic() - start)
+        self.num_objects = len(tracks)
+        stamp_ns = max((f.stamp_ns for f in self.mapper.keyframes.values()), default=0)
+        return tracks, stamp_ns, self.mapper.revision
+
+    def keyframe_poses(self) -> tuple:
+        """([keyframe id], {id: 4x4 camera-to-map}, {id: stamp_ns}) of the registered keyframes."""
+        poses = self.mapper.camera_poses()
+        return sorted(poses), poses, {k: self.mapper.keyframes[k].stamp_ns for k in poses}
+
+    def status(self) -> MapStatus:
+        mp, latency = self.mapper, self.session.relocalize_latency()
+        active = len(mp.active_edges())
+        return MapStatus(mp.mode, len(mp.keyframes), len(mp.merged), len(mp.poses), active,
+                         len(mp.measurements()) - active, self.num_objects, mp.num_components(), len(mp.frames),
+                         self.num_lost, float(mp.last_update_seconds), latency['queries'], latency['relocalized'],
+                         latency['median_ms'] / 1e3, latency['p95_ms'] / 1e3, self.session.message)
+
+    # ------------------------------------------------------------------ services
+    # Each answers with the service response's fields (success, message, ...).
+
+    def relocalize(self, obs: FrameObservations):
+        """The query's pose in the map: (Relocalization or None, what happened)."""
+        return self.session.relocalize(obs)
+
+    def save(self, requested: str = '') -> dict:
+        """Save the map to the file a request names (empty: the map file): success, message, path."""
+        try:
+            path = self.files.resolve(requested)
+        except ValueError as exc:
+            return dict(success=False, message=f'not saved: {exc}', path='')
+        try:
+            written = self.session.save(path)
+        except (OSError, ValueError) as exc:
+            self.session.message = f'saving the map to {path} failed: {exc}'
+            self.warn(self.session.message)
+            return dict(success=False, message=self.session.message, path='')
+        return dict(success=True, message=f'saved {len(self.mapper.keyframes)} keyframes to {written}', path=written)
+
+    def load(self, requested: str = '') -> dict:
+        """Replace the map by the file a request names (empty: the map file): success, message,
+        num_keyframes, num_objects. On failure the current map is unchanged. The mapper takes
+        the configuration the map was built with; settings that differ from this node's are said."""
+        try:
+            path = self.files.resolve(requested)
+            header, changed = self.session.load(path)
+        except (MapFileError, ValueError) as exc:
+            return dict(success=False, message=f'{exc} (the current map is unchanged)')
+        self._republish = True
+        self.num_objects = len(self.mapper.tracks())
+        text = f'loaded {path}: {header["keyframes"]} keyframes, {self.num_objects} objects'
+        if changed:
+            text += ("; built with other mapper settings, using the map's: "
+                     + ', '.join(f'{k}={file} (parameter: {mine})' for k, (file, mine) in changed.items()))
+        return dict(success=True, message=text, num_keyframes=len(self.mapper.keyframes),
+                    num_objects=self.num_objects)
+
+    def reset(self) -> dict:
+        self.session.reset()
+        self._republish = True
+        self.num_objects = 0
+        return dict(success=True, message='map cleared')
+
+    def set_mode(self, mode: int) -> dict:
+        """Switch to SetMode's mode (0 mapping, 1 localization)."""
+        if mode not in (0, 1):
+            return dict(success=False, message=f'unknown mode {mode}: 0 mapping, 1 localization')
+        self.session.mode = MODES[mode]
+        return dict(success=True, message=f'mode: {self.session.mode}')
+
+    def close(self) -> str | None:
+        """The node stops: the last autosave, when there is something unsaved (the path written)."""
+        if self.autosave.every_n and self.mapper.keyframes and self.session.since_save:
+            return self.save()['path'] or None
+        return None

@@ -1,0 +1,108 @@
+"""The mapper node's policy without ROS (rfm_core.mapper_core): the files a request may name,
+autosave, the object map's throttle, and what one tick returns."""
+import os
+
+import numpy as np
+import pytest
+from sim_frames import detected_frames
+
+from rfm_core.config import MapperNodeConfig
+from rfm_core.mapper_core import Autosave, MapFiles, MapperCore, Throttle, default_map_path
+from rfm_core.matching.view_graph import ViewGraphBuilder
+from rfm_core.observations import EdgeRecord
+from rfm_core.settings import with_values
+
+
+@pytest.fixture(scope='module')
+def observations():
+    return detected_frames(frames=40)
+
+
+class _Clock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_requests_name_files_inside_map_dir_only(tmp_path):
+    files = MapFiles(str(tmp_path / 'maps' / 'map.rfm'))
+    assert files.dir == (tmp_path / 'maps').resolve()
+    assert files.resolve('') == str(tmp_path / 'maps' / 'map.rfm')
+    assert files.resolve('other.rfm') == str((tmp_path / 'maps' / 'other.rfm').resolve())
+    assert files.resolve(str(tmp_path / 'maps' / 'sub' / 'a.rfm')).endswith('sub/a.rfm')
+    (tmp_path / 'maps').mkdir()
+    os.symlink(tmp_path, tmp_path / 'maps' / 'out')                 # a link leading outside
+    for bad in ('../elsewhere.rfm', str(tmp_path / 'elsewhere.rfm'), 'out/elsewhere.rfm', 'a\x00b', 'x' * 2000):
+        with pytest.raises(ValueError):
+            files.resolve(bad)
+    assert MapFiles('', str(tmp_path)).path == default_map_path()
+    assert default_map_path({'ROS_HOME': '/r'}) == '/r/rfm/map.rfm'
+
+
+def test_autosave_every_n_keyframes_then_by_growth():
+    autosave = Autosave(every_n=10, growth=0.1)
+    assert not autosave.due(9, 9) and autosave.due(10, 10)
+    assert not autosave.due(40, 500) and autosave.due(50, 500)      # a large map: 10% of it
+    assert not Autosave(every_n=0, growth=0.1).due(1000, 1000)
+
+
+def test_the_object_map_is_rebuilt_at_most_every_period_and_share_of_the_time():
+    clock = _Clock()
+    throttle = Throttle(period_s=1.0, cpu_share=0.2, clock=clock)
+    assert not throttle.due()                                      # nothing changed
+    throttle.pending = True
+    assert throttle.due()
+    throttle.done(0.3)                                             # a 0.3 s rebuild: at most every 1.5 s
+    throttle.pending = True
+    clock.now = 1.4
+    assert not throttle.due()
+    clock.now = 1.5
+    assert throttle.due()
+
+
+def test_a_tick_says_what_changed_and_autosaves(tmp_path, observations):
+    """Keyframes and edges in; the tick after them returns the keyframe poses, the object map
+    when due and the autosave written; the next tick, with nothing new, returns nothing. The
+    status counts what arrived; closing saves what is unsaved."""
+    clock = _Clock()
+    config = with_values(MapperNodeConfig(), {'map_path': str(tmp_path / 'map.rfm'),
+                                              'autosave_every_n_keyframes': 3, 'idle_full_solve_s': 0.0})
+    core = MapperCore(config, clock=clock)
+    graph = ViewGraphBuilder(core.mapper.config.matching)
+    keyframes = 0
+    for obs in observations[:30]:
+        keyframe, edges, track = graph.add(obs)
+        if keyframe is not None:
+            keyframes += 1
+            core.keyframe(keyframe.keyframe_id, keyframe.observations, session=7, sequence=keyframes)
+        for e in edges:
+            core.edge(EdgeRecord.from_edge(e))
+    assert keyframes >= 3
+    tick = core.tick()
+    ids, poses, stamps = tick.keyframe_poses
+    assert len(ids) == len(core.mapper.poses) >= 2 and set(poses) == set(ids) == set(stamps)
+    assert tick.object_map is not None and len(tick.object_map[0]) == core.num_objects > 0
+    assert tick.saved == str(tmp_path / 'map.rfm') and os.path.exists(tick.saved)
+    quiet = core.tick()
+    assert quiet.keyframe_poses is None and quiet.object_map is None and quiet.saved is None
+    status = core.status()
+    assert (status.mode, status.num_keyframes, status.num_lost) == ('mapping', len(core.mapper.keyframes), 0)
+    core.keyframe(99, None, session=7, sequence=keyframes + 3)      # a malformed one; two never arrived
+    assert core.status().num_lost == 2 and 'never arrived' in core.status().message
+    # services answer with the response's fields
+    assert core.set_mode(5) == {'success': False, 'message': 'unknown mode 5: 0 mapping, 1 localization'}
+    assert core.save('../outside.rfm')['success'] is False
+    answer = core.load('nothing.rfm')
+    assert answer['success'] is False and 'unchanged' in answer['message']
+    for obs in observations[30:]:                                   # more keyframes, not yet saved
+        keyframe, edges, _ = graph.add(obs)
+        if keyframe is not None:
+            core.keyframe(keyframe.keyframe_id, keyframe.observations)
+    saved = core.close()
+    assert saved == str(tmp_path / 'map.rfm')
+    loaded = MapperCore(with_values(config, {'load_map_on_start': True}), clock=clock)
+    assert len(loaded.mapper.keyframes) == len(core.mapper.keyframes)
+    assert loaded.tick().log and loaded.tick().log == []            # 'loaded ...' once
+    np.testing.assert_equal(sorted(loaded.mapper.keyframes), sorted(core.mapper.keyframes))
