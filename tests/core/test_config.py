@@ -40,8 +40,8 @@ def test_every_setting_is_described_once_with_a_valid_default():
 
 def test_values_are_checked_by_name_and_reach_the_nested_stage():
     cfg = with_values(RfmConfig().matcher, {'keyframes.min_overlap': 0.4, 'matching.inlier_iou': 0.3})
-    assert (cfg.keyframes.min_overlap, cfg.matching.inlier_iou) == (0.4, 0.3)
-    assert cfg.keyframes.max_yaw_deg == RfmConfig().matcher.keyframes.max_yaw_deg       # others untouched
+    assert (cfg.graph.keyframes.min_overlap, cfg.matching.inlier_iou) == (0.4, 0.3)
+    assert cfg.graph.keyframes.max_yaw_deg == RfmConfig().matcher.graph.keyframes.max_yaw_deg       # others untouched
     mapper = with_values(RfmConfig().mapper, {'averaging.rounds': 5, 'mode': 'localization'})
     assert (mapper.mapper.averaging.rounds, mapper.mode) == (5, 'localization')
     for values, says in (({'keyframes.min_overlaps': 0.4}, 'unknown setting'),

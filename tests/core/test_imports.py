@@ -16,10 +16,17 @@ def _module(path: Path) -> str:
     return '.'.join(parts[:-1] if parts[-1] == '__init__' else parts)
 
 
+def _type_checking_only(tree) -> set:
+    """ids of the import nodes under ``if TYPE_CHECKING:`` (for annotations: never executed)."""
+    return {id(n) for block in ast.walk(tree) if isinstance(block, ast.If)
+            and getattr(block.test, 'id', None) == 'TYPE_CHECKING' for n in ast.walk(block)}
+
+
 def _imports(path: Path, top_level_only: bool) -> set:
-    """rfm_core modules ``path`` imports (anywhere, or only at module level)."""
+    """rfm_core modules ``path`` imports (anywhere, or only at module level), annotations aside."""
     tree = ast.parse(path.read_text())
-    nodes = tree.body if top_level_only else ast.walk(tree)
+    skip = _type_checking_only(tree)
+    nodes = [n for n in (tree.body if top_level_only else ast.walk(tree)) if id(n) not in skip]
     out = set()
     for node in nodes:
         if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from rfm_core.detection import make_detector
-from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
+from rfm_core.matching.motion import MotionConfig
+from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder, ViewGraphConfig
 from rfm_core.sim.capture import Capture, CaptureConfig
 
 
@@ -54,8 +55,8 @@ def test_candidates_are_bounded_and_retrieve_revisited_places(stream):
     a new stream segment), and a view of the start, replayed after the walk, retrieves the
     keyframes of the start."""
     det = make_detector('ground_truth', preset='perfect')
-    graph = _without(ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=2, retrieved_keyframes=3,
-                                                               unordered_retrieved_keyframes=4)), '_revisit')
+    graph = _without(ViewGraphBuilder(config=ViewGraphConfig(KeyframeConfig(
+        recent_keyframes=2, retrieved_keyframes=3, unordered_retrieved_keyframes=4))), 'revisit')
     for frame in stream:
         graph.add(det.perturb(frame.ground_truth))
         assert len(graph.stats.last_candidates) <= 5
@@ -79,7 +80,7 @@ def test_a_revisited_place_reuses_its_keyframe(stream):
     second = [replace(o, stamp_ns=o.stamp_ns + span) for o in first]
     counts = {}
     for reuse in (True, False):
-        graph = ViewGraphBuilder() if reuse else _without(ViewGraphBuilder(), '_revisit')
+        graph = ViewGraphBuilder() if reuse else _without(ViewGraphBuilder(), 'revisit')
         steps = [graph.add(o) for o in first]
         n_first = len(graph.keyframes)
         steps = [graph.add(o) for o in second]
@@ -102,8 +103,8 @@ def test_separate_views_are_told_from_a_stream_by_their_timing(stream):
     observations = [det.perturb(frame.ground_truth) for frame in stream]
     out = {}
     for gap_s in (0.25, 2.0):
-        graph = ViewGraphBuilder(keyframes=KeyframeConfig(recent_keyframes=1, retrieved_keyframes=2,
-                                                          unordered_retrieved_keyframes=6, max_translation_m=0.1))
+        graph = ViewGraphBuilder(config=ViewGraphConfig(KeyframeConfig(
+            recent_keyframes=1, retrieved_keyframes=2, unordered_retrieved_keyframes=6, max_translation_m=0.1)))
         inliers, tracks, candidates = [], [], 0
         for i, obs in enumerate(observations):
             keyframe, edges, track = graph.add(replace(obs, stamp_ns=obs.stamp_ns + int(i * (gap_s - 0.25) * 1e9)))
@@ -151,8 +152,8 @@ def test_the_gyroscope_checks_tracking_and_predicts_the_boxes(stream):
     _with_gyroscope(stream[2], b)
     true = stream[0].aligned_from_map() @ stream[2].aligned_from_map().inverse()
     from rfm_core.geometry import Pose4
-    assert graph._imu_agrees(Pose4(true.yaw + np.radians(1.0), true.t), a, b)
-    assert not graph._imu_agrees(Pose4(true.yaw + np.radians(30.0), true.t), a, b)
+    assert graph.motion.imu_agrees(Pose4(true.yaw + np.radians(1.0), true.t), a, b)
+    assert not graph.motion.imu_agrees(Pose4(true.yaw + np.radians(30.0), true.t), a, b)
 
 
 def _lost_for_a_moment(graph, stream) -> list:
@@ -193,7 +194,7 @@ def test_motion_edges_never_chain_past_the_last_frame_objects_placed(stream):
     a row, 9 deg / 19 cm off)."""
     det = make_detector('ground_truth', preset='perfect')
     graph = ViewGraphBuilder()
-    limit_ns = graph.config.max_motion_edge_s * 1e9
+    limit_ns = graph.config.keyframes.max_motion_edge_s * 1e9
     last_verified, motion, unlinked = None, 0, []
     for i, f in enumerate(stream[:20]):
         obs = _with_gyroscope(f, det.perturb(f.ground_truth))
@@ -222,12 +223,12 @@ def test_a_frame_with_embeddings_of_another_length_is_refused_and_changes_nothin
         graph.add(det.perturb(frame.ground_truth))
     dim, n = graph.embedding_dim, len(graph.keyframes)
     assert dim and n >= 2
-    index = graph._desc_buffer.copy()
+    index = graph.descriptors.copy()
     obs = det.perturb(stream[20].ground_truth)
     for other in (np.zeros((len(obs), 0), np.float32), np.ones((len(obs), dim + 3), np.float32)):
         with pytest.raises(ValueError, match='embeddings'):
             graph.add(replace(obs, embeddings=other))
-    np.testing.assert_array_equal(graph._desc_buffer, index)
+    np.testing.assert_array_equal(graph.descriptors, index)
     assert len(graph.keyframes) == n and graph.embedding_dim == dim
     for frame in stream[20:]:                                # the stream goes on as before
         graph.add(det.perturb(frame.ground_truth))
@@ -240,7 +241,7 @@ def test_motion_edges_carry_the_cameras_velocity_on(stream):
     (``velocity_window_s``), and lands nearer the truth than the held position."""
     errors = {}
     for window in (1.0, 0.0):
-        graph = ViewGraphBuilder(keyframes=KeyframeConfig(velocity_window_s=window))
+        graph = ViewGraphBuilder(config=ViewGraphConfig(motion=MotionConfig(velocity_window_s=window)))
         errors[window] = [np.linalg.norm(e.relative.pose.t - true.t) for e, true in _lost_for_a_moment(graph, stream)]
     assert errors[1.0] and len(errors[1.0]) == len(errors[0.0])
     # the first extrapolates the tracked frames' velocity (later ones carry it through a
@@ -300,7 +301,7 @@ def test_a_revisit_whose_objects_do_not_verify_is_aligned_on_its_depth_points():
     by_stamp = {f.stamp_ns: f for f in frames}
     added, errors = {}, []
     for on in (True, False):
-        graph = ViewGraphBuilder() if on else _without(ViewGraphBuilder(), '_revisit_on_points')
+        graph = ViewGraphBuilder() if on else _without(ViewGraphBuilder(), 'revisit_on_points')
         steps = [graph.add(o) for o in observations]
         first = {k.keyframe_id for k in graph.keyframes if k.observations.stamp_ns < frames[loop].stamp_ns}
         added[on] = sum(s.keyframe is not None for s in steps[loop:])

@@ -37,7 +37,7 @@ def test_node_parameters_are_the_configuration_and_reach_the_core(ros):
     try:
         for node, name in ((detector, 'detector'), (matcher, 'matcher'), (mapper, 'mapper')):
             assert _declared(node) == {s.name for s in node_settings(name)}
-        assert (matcher.graph.config.min_overlap, matcher.graph.matching.inlier_iou) == (0.45, 0.3)
+        assert (matcher.graph.config.keyframes.min_overlap, matcher.graph.matching.inlier_iou) == (0.45, 0.3)
         core = mapper.core.mapper.config
         assert (core.matching.inlier_iou, core.relocalization.min_inliers, core.averaging.window) == (0.3, 3, 12)
         assert (detector.detector.config.stride, detector.detector.config.score_threshold) == (3, 0.4)

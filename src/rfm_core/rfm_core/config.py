@@ -1,13 +1,13 @@
 """Every setting of rfm in one tree: :class:`RfmConfig`.
 
 Each stage keeps its frozen dataclass next to its code (``DepthClustersConfig``,
-``MatchingConfig``, ``KeyframeConfig``, ``AveragingConfig``, ``TrackConfig``,
+``MatchingConfig``, ``ViewGraphConfig``, ``AveragingConfig``, ``TrackConfig``,
 ``RelocalizationConfig``, ``BundleConfig``), every field declared with its default,
 description, range and the paper's value (:mod:`rfm_core.settings`). This module adds the
 nodes' own settings and assembles the tree a node graph runs with:
 
 - ``detector``: :class:`DetectorNodeConfig` (inputs, gravity, and one section per backend);
-- ``matcher``: :class:`MatcherNodeConfig` (``matching.*``, ``keyframes.*``);
+- ``matcher``: :class:`MatcherNodeConfig` (``matching.*``, ``keyframes.*``, ``motion.*``, ...);
 - ``mapper``: :class:`MapperNodeConfig` (outputs, map file, and the mapper's
   ``averaging.*``, ``tracks.*``, ``matching.*``, ``relocalization.*``, ``bundle.*``).
 
@@ -27,7 +27,7 @@ from rfm_core.detection.depth_clusters import DepthClustersConfig
 from rfm_core.detection.ground_truth import GroundTruthConfig
 from rfm_core.mapping.mapper import MODES, MapperConfig
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.view_graph import KeyframeConfig
+from rfm_core.matching.view_graph import ViewGraphConfig
 from rfm_core.settings import Setting, markdown_table, same_setting, section, setting, settings_of
 
 __all__ = ['DetectorNodeConfig', 'MatcherNodeConfig', 'MapperNodeConfig', 'RfmConfig', 'NODES', 'MATCHERS',
@@ -95,12 +95,13 @@ class MatcherNodeConfig:
                                   'only are skipped where they follow the last frame processed closely: the '
                                   'stream is thinned evenly (s; 0: never skip)', lo=0.0, hi=60.0)
     shed_max_gap_s: float = setting(0.2, '... the longest gap thinning leaves between two frames (s; keep it '
-                                    'below keyframes.max_frame_gap_s)', lo=0.0, hi=60.0)
+                                    'below motion.max_frame_gap_s)', lo=0.0, hi=60.0)
     queue_depth: int = setting(300, 'rfm/detections messages held for the matcher; beyond it the oldest are lost',
                                lo=1, hi=100000, read_only=True)
     diagnostics_period_s: float = setting(1.0, 'Period of /diagnostics (s)', lo=0.1, hi=60.0, read_only=True)
     matching: MatchingConfig = section(MatchingConfig, 'object matching and verification (paper 3.2-3.4)')
-    keyframes: KeyframeConfig = section(KeyframeConfig, 'keyframes, candidates, motion prior, tracking')
+    graph: ViewGraphConfig = section(ViewGraphConfig, 'the view graph: keyframes, motion, tracking, revisits',
+                                     inline=True)
 
 
 @dataclass(frozen=True)

@@ -29,7 +29,7 @@ from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import MODES, Mapper, MapperConfig
 from rfm_core.mapping.relocalization import Relocalization
-from rfm_core.matching.view_graph import KeyframeConfig, ViewGraphBuilder
+from rfm_core.matching.view_graph import ViewGraphBuilder, ViewGraphConfig
 from rfm_core.observations import EdgeRecord, FrameObservations, FrameTrack
 
 __all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses', 'SequenceCheck']
@@ -456,10 +456,10 @@ class Session:
     """Detections in, map out, one :meth:`step` per frame: the matcher's view graph and the
     mapper's :class:`MapSession` in one process."""
 
-    def __init__(self, config: MapperConfig | None = None, keyframes: KeyframeConfig | None = None,
+    def __init__(self, config: MapperConfig | None = None, graph: ViewGraphConfig | None = None,
                  matcher=None, pose_lookup=None):
         config = config or MapperConfig()
-        self.graph = ViewGraphBuilder(config.matching, keyframes, matcher=matcher)
+        self.graph = ViewGraphBuilder(config.matching, graph, matcher=matcher)
         self.map = MapSession(config, matcher=self.graph.matcher, pose_lookup=pose_lookup)
         self.seconds = {'match': 0.0, 'map': 0.0}        # time spent per stage
 

@@ -44,7 +44,7 @@ class MatcherNode(Node):
                                    on_fallback=lambda msg: self.get_logger().warning(msg))
         except FileNotFoundError as exc:
             raise ValueError(str(exc)) from exc
-        self.graph = ViewGraphBuilder(cfg.matching, cfg.keyframes, matcher=matcher)
+        self.graph = ViewGraphBuilder(cfg.matching, cfg.graph, matcher=matcher)
         self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', qos(GRAPH))
         self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', qos(GRAPH))
         self.track_pub = self.create_publisher(TrackedFrame, 'rfm/tracked_frames', qos(STREAM))

@@ -21,7 +21,7 @@ from rfm_core.geometry import Pose4
 from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.mapper import Mapper, MapperConfig
 from rfm_core.matching.config import monocular
-from rfm_core.matching.view_graph import KeyframeConfig
+from rfm_core.matching.view_graph import ViewGraphConfig
 from rfm_core.session import Session
 from rfm_core.sim.capture import Capture, CaptureConfig
 
@@ -60,7 +60,7 @@ def detections_for(spec: str, noise_seed: int = 0):
 
 def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matcher=None,
                 posed: bool = False, bundle_adjustment: bool = False, noise_seed: int = 0, mapper_config: MapperConfig | None = None,
-                keyframe_config: KeyframeConfig | None = None, min_visibility: float = 0.2,
+                graph_config: ViewGraphConfig | None = None, min_visibility: float = 0.2,
                 capture: Capture | None = None, frames=None) -> PipelineResult:
     """Run detector -> view graph -> mapper over a capture and score it. ``capture`` and
     ``frames`` (its rendered SimFrames) may be passed in to reuse one rendering."""
@@ -71,7 +71,7 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
                    bundle_adjustment=bundle_adjustment or mcfg.bundle_adjustment,
                    matching=monocular(mcfg.matching) if detect.monocular else mcfg.matching)
     truth, frame_truth, aligned_truth, detect_s = {}, {}, {}, 0.0
-    session = Session(mcfg, keyframe_config, matcher=matcher,
+    session = Session(mcfg, graph_config, matcher=matcher,
                       pose_lookup=(lambda obs: aligned_truth[obs.stamp_ns]) if posed else None)
     mapper = session.mapper
     best_visibility = np.zeros(len(capture.room.objects))

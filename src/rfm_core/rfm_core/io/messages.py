@@ -28,8 +28,8 @@ __all__ = [
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
-    'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs', 'object_map_outputs',
-    'tick_outputs', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg', 'diagnostics_msg',
+    'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs',
+    'object_map_outputs', 'tick_outputs', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg', 'diagnostics_msg',
 ]
 
 MAX_DETECTIONS = 1000       #: detections read from one frame message (the detectors' max_detections bound)

@@ -3,8 +3,9 @@
 Each frame relocalized on its own (:func:`rfm_core.mapping.relocalization.relocalize`) is
 right or wrong alone: look-alike furniture (two equal chairs, a shifted row of cabinets)
 explains three or four detections as well as the truth does, and a frame that sees two or
-three of the map's objects cannot be told from a look-alike by the map alone. A camera moves continuously, so a stream of frames can do what one frame cannot, as a
-robot's localization does with its odometry:
+three of the map's objects cannot be told from a look-alike by the map alone. A camera moves
+continuously, so a stream of frames can do what one frame cannot, as a robot's localization
+does with its odometry:
 
 - **A track.** Once a pose is accepted, the next frame's pose is predicted: its yaw from the
   gyroscope's turns from the track's last frames (:func:`rfm_core.observations.imu_relative_yaw`;

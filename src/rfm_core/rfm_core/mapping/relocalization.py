@@ -120,11 +120,11 @@ class Relocalization:
 def relocalize(query: FrameObservations, index: MapIndex, matcher, config: RelocalizationConfig,
                matching: MatchingConfig, averaging: AveragingConfig, why: list | None = None,
                prior: MotionPrior | None = None) -> Relocalization | None:
-    """The query's pose in the map (``index``: :class:`MapIndex`, its tracks built only once a
-    keyframe verified a pose), or None (and the reason appended to ``why``). Against
-    keyframes first; a query no keyframe places (and no track predicts) is then placed by the
-    map's objects and its depth points (:func:`match_on_points`). ``prior`` (a localization track's prediction): only poses it admits, and
-    ``stream_min_explained`` detections explained suffice."""
+    """The query's pose in the map (``index``: :class:`MapIndex`, its tracks built only once a keyframe
+    verified a pose), or None (and the reason appended to ``why``). Against keyframes first; a
+    query no keyframe places (and no track predicts) is then placed by the map's objects and its
+    depth points (:func:`match_on_points`). ``prior`` (a localization track's prediction): only
+    poses it admits, and ``stream_min_explained`` detections explained suffice."""
     why = why if why is not None else []
     if len(query) < 2 or not index.poses:
         why.append(f'the query has {len(query)} detections; need >= 2' if index.poses else 'the map has no '
@@ -234,9 +234,9 @@ def refine_on_tracks(query: FrameObservations, pose: Pose4, verified, index: Map
     (``FrameObservations.boxes``: fitted ones where the detector also gives full boxes); the
     refit is kept only when the query's full boxes still verify against the tracks' boxes
     and lie on the map's boxes better than under ``pose`` (the sum of each detection's
-    largest IoU): partial boxes' centres move with the viewpoint, so in rooms of furniture
-    made of parts a refit on the tracks' centres can turn a right pose wrong. ``verified``: (keyframe id, relative pose, T_query_map) of the agreeing
-    keyframes."""
+    largest IoU): partial boxes' centres move with the viewpoint, so in rooms of furniture made
+    of parts a refit on the tracks' centres can turn a right pose wrong. ``verified``: (keyframe
+    id, relative pose, T_query_map) of the agreeing keyframes."""
     votes, by_id = {}, {}
     for k, rel, _ in verified:
         for iq, ik in rel.inliers:

@@ -3,7 +3,7 @@
 A frame waits in the matcher's queue while the matcher works on earlier ones. When the
 matcher is slower than the camera (a 30 Hz stream on a busy machine), the queue fills and
 the transport drops the oldest frames, a burst at a time: a gap longer than
-``keyframes.max_frame_gap_s`` breaks the stream (no motion prior across it; tracking starts
+``motion.max_frame_gap_s`` breaks the stream (no motion prior across it; tracking starts
 again from a new keyframe that nothing may link to the map). :class:`FrameShedder` thins
 the stream itself before that happens, evenly: once a frame has waited more than
 ``shed_after_s``, frames with depth points only (no detections: they only track the camera

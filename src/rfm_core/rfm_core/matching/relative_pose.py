@@ -37,7 +37,8 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 from rfm_core.matching.points import align_points
 
-__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'with_points', 'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
+__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'with_points', 'with_camera_heights', 'with_walls',
+           'with_surfaces', 'track_on_points']
 
 
 @dataclass

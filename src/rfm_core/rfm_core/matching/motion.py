@@ -1,0 +1,153 @@
+"""The motion of a stream (not in the paper): what the view graph knows of how the camera
+moves between frames.
+
+Whether frames come from a continuous stream (a camera moving through the room) or are
+separate views (photos seconds apart, an unordered collection) is decided from their timing,
+per pair of frames: frames no more than ``max_frame_gap_s`` apart belong to one stream
+segment. Within a segment a camera cannot turn or move arbitrarily fast (the motion prior:
+each tracked frame must be reachable from the previous one, each edge from its source
+keyframe), the gyroscope's rotation between two frames checks a relative pose's yaw, and the
+frames objects placed give the camera's velocity, which predicts where the next frame is.
+Across segments nothing is known of the motion.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.matching.graph import GraphStats, Keyframe, TrackState
+from rfm_core.matching.relative_pose import RelativePose
+from rfm_core.observations import FrameObservations, imu_relative_yaw
+from rfm_core.settings import constant, setting
+
+__all__ = ['MotionConfig', 'StreamMotion']
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    max_frame_gap_s: float = setting(0.5, 'Frames further apart than this are separate views (photos): no motion '
+                                     'prior between them; closer frames are one stream (s)', lo=0.01, hi=3600.0)
+    max_yaw_rate_deg_s: float = setting(90.0, 'Motion prior within a stream: fastest turn of the camera (deg/s)',
+                                        lo=1.0, hi=3600.0)
+    max_speed_m_s: float = setting(1.5, 'Motion prior within a stream: fastest motion of the camera (m/s)',
+                                   lo=0.01, hi=100.0)
+    motion_slack_deg: float = constant(10.0, 'Motion prior: turn allowed on top of rate x time (deg)',
+                                       lo=0.0, hi=180.0)
+    motion_slack_m: float = constant(0.3, 'Motion prior: motion allowed on top of speed x time (m)', lo=0.0, hi=10.0)
+    velocity_window_s: float = constant(1.0, 'Motion prediction: the camera keeps the velocity of the frames '
+                                        'objects placed over at most this long (s; 0: the position is held)',
+                                        lo=0.0, hi=10.0)
+    imu_yaw_tolerance_deg: float = constant(3.0, "Within a stream, a relative pose's yaw may differ from the "
+                                            "gyroscope's by this (deg) ...", lo=0.1, hi=180.0)
+    imu_yaw_drift_deg_s: float = setting(1.0, "... plus this per second between the frames (the gyroscope's bias; "
+                                         'raise it for an uncalibrated IMU, deg/s)', lo=0.0, hi=90.0)
+
+
+class StreamMotion:
+    """The stream's segments, the motion prior, the gyroscope's check and the camera's
+    velocity (see the module); rejections are counted in ``stats``."""
+
+    def __init__(self, config: MotionConfig, stats: GraphStats):
+        self.config, self.stats = config, stats
+        self.segment = -1                     # the current stream segment
+        self._last_stamp = None               # of the previous frame (any frame: the stream's timing)
+        self._placed: list = []               # (keyframe id, stamp, T_keyframe_frame.t) of frames objects placed
+        self._carried = (None, np.zeros(3))   # (motion-placed keyframe id, the velocity carried into it)
+
+    def continues(self, stamp_ns: int) -> bool:
+        """Whether a frame continues the stream of the previous one (no more than
+        ``max_frame_gap_s`` later); a new segment begins where it does not."""
+        last, self._last_stamp = self._last_stamp, stamp_ns
+        stream = last is not None and 0 < stamp_ns - last <= self.config.max_frame_gap_s * 1e9
+        if not stream:
+            self.segment += 1
+            self.stats.segments += 1
+        return stream
+
+    def observe(self, state: TrackState | None) -> None:
+        """A frame was localized (or a keyframe made): a sample of the motion when objects
+        placed it; None: the stream broke."""
+        if state is None:
+            self._placed = []
+        elif state.verified_ns is None:               # placed by objects: a sample of the motion
+            window = self.config.velocity_window_s * 1e9
+            self._placed = [p for p in self._placed
+                            if p[0] == state.keyframe_id and 0 <= state.stamp_ns - p[1] <= window]
+            self._placed.append((state.keyframe_id, state.stamp_ns, np.asarray(state.pose.t, float)))
+
+    def carry(self, keyframe_id: int, velocity: np.ndarray) -> None:
+        """A keyframe placed by the motion: the camera keeps ``velocity`` through it."""
+        self._carried = (keyframe_id, velocity)
+
+    def velocity(self, prev: TrackState | None) -> np.ndarray:
+        """The camera's velocity (m/s) in the reference keyframe's frame over the frames
+        objects placed on it within ``velocity_window_s`` (on a keyframe a motion edge
+        placed: the velocity carried into it); zero when unknown. ``prev``: the last frame
+        localized."""
+        if prev is not None and prev.verified_ns is not None:     # on a keyframe the motion placed
+            return self._carried[1] if self._carried[0] == prev.keyframe_id else np.zeros(3)
+        if prev is None or len(self._placed) < 2:
+            return np.zeros(3)
+        # (observe keeps only samples on prev's keyframe, prev's the last)
+        _, first_ns, first_t = self._placed[0]
+        _, last_ns, last_t = self._placed[-1]
+        dt = (last_ns - first_ns) / 1e9
+        if dt < 0.2:
+            return np.zeros(3)
+        v = (last_t - first_t) / dt
+        speed = float(np.linalg.norm(v))
+        return v if speed <= self.config.max_speed_m_s else v * (self.config.max_speed_m_s / speed)
+
+    def predicted_pose(self, prev: TrackState | None, reference: Keyframe, obs: FrameObservations) -> Pose4 | None:
+        """T_reference_frame as the previous tracked frame's position, moved on at the camera's
+        recent velocity, and the gyroscope's yaw predict it; None without a previous frame on
+        the reference or without a gyroscope."""
+        if prev is None or prev.keyframe_id != reference.keyframe_id:
+            return None
+        measured = self.imu_yaw(reference.observations, obs)
+        if measured is None:
+            return None
+        dt = (obs.stamp_ns - prev.stamp_ns) / 1e9
+        return Pose4(measured[0], np.asarray(prev.pose.t) + self.velocity(prev) * max(dt, 0.0))
+
+    def reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
+        """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
+        quarter-turn flips and look-alike matches that two objects cannot rule out."""
+        cfg = self.config
+        dt = abs(stamp_b - stamp_a) / 1e9
+        if (np.degrees(abs(motion.yaw)) > cfg.max_yaw_rate_deg_s * dt + cfg.motion_slack_deg
+                or np.linalg.norm(motion.t) > cfg.max_speed_m_s * dt + cfg.motion_slack_m):
+            self.stats.implausible += 1
+            return False
+        return True
+
+    def imu_yaw(self, a: FrameObservations, b: FrameObservations):
+        """(yaw of T_a_b as the gyroscope measured it, the deviation allowed in deg), or None
+        when the frames share no integration epoch."""
+        yaw = imu_relative_yaw(a, b)
+        if yaw is None:
+            return None
+        cfg = self.config
+        allowed = cfg.imu_yaw_tolerance_deg + cfg.imu_yaw_drift_deg_s * abs(b.stamp_ns - a.stamp_ns) / 1e9
+        return yaw, allowed
+
+    def imu_agrees(self, t_a_b: Pose4, a: FrameObservations, b: FrameObservations) -> bool:
+        """Whether a relative pose's yaw agrees with the rotation the gyroscope measured
+        between the two frames (True when they share no integration epoch)."""
+        measured = self.imu_yaw(a, b)
+        if measured is None:
+            return True
+        yaw, allowed = measured
+        if np.degrees(abs(wrap_angle(t_a_b.yaw - yaw))) > allowed:
+            self.stats.imu_rejected += 1
+            return False
+        return True
+
+    def plausible(self, rel: RelativePose | None, a: FrameObservations, b: FrameObservations) -> RelativePose | None:
+        """``rel`` (T_a_b) between two frames of one stream segment if the motion prior and
+        the gyroscope allow it."""
+        if rel is None or not self.reachable(rel.pose, a.stamp_ns, b.stamp_ns) or not self.imu_agrees(rel.pose, a, b):
+            return None
+        return rel
