@@ -14,7 +14,7 @@ help:
 	@echo "make fuzz   - 10,000 hostile messages and service calls into the three nodes (tests/fault)"
 	@echo "make soak   - 10 min of a camera walking round one room, replayed through the graph: growth and memory (bench/soak.py)"
 	@echo "make setup  - only create .venv and build the ROS workspace (idempotent)"
-	@echo "make bench  - run the micro-benchmarks in bench/"
+	@echo "make bench  - the benchmark suite in bench/ (bench/README.md; ~25 min)"
 	@echo "make clean  - remove .venv and ros_ws/build|install|log"
 
 setup:

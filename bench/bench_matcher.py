@@ -38,10 +38,8 @@ def main():
         graph = ViewGraphBuilder()
         for i in range(size):                       # pre-fill with keyframes of the room
             obs = stream[i % len(stream)]
-            kf = Keyframe(graph._next_id, obs, bag_of_objects(obs))
-            graph._next_id += 1
-            graph.keyframes.append(kf)
-        graph._desc_buffer = __import__('numpy').stack([k.descriptor for k in graph.keyframes])
+            graph.add_keyframe(Keyframe(graph.next_id, obs, bag_of_objects(obs)), [])
+            graph.next_id += 1
         times, pairs = [], []
         for obs in stream:
             before = graph.stats.pairs_tested

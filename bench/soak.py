@@ -1,5 +1,5 @@
 """Soak: a long capture walking around one room again and again, replayed through the node
-graph; does the map stop growing once the room is seen? (#19 item 4)
+graph; does the map stop growing once the room is seen?
 
     ros_ws/env.sh python bench/soak.py [--minutes 10] [--fps 5] [--seed 7000] [--work /tmp/soak]
                                        [--param NODE.NAME:=VALUE ...]

@@ -60,6 +60,18 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['received'] >= 0.9 * 40 and summary['points_only'] == 0, summary
     assert summary['matcher_frames']['processed'] >= 0.9 * 40 and summary['cpu_s_by_thread'], summary
+    if processes:
+        # rfm replay: the run's recorded detections through the in-process back end, scored again
+        scene = tmp_path / 'work' / 'scene_handheld'
+        scene.mkdir(parents=True)
+        (scene / 'bag').symlink_to(short_bag)
+        (scene / 'rgb_d__depth_clusters').symlink_to(out)
+        replay = subprocess.run([shutil.which('rfm'), 'replay', str(tmp_path / 'work'), '--json', 'r.json'],
+                                capture_output=True, text=True, timeout=240, cwd=tmp_path)
+        assert replay.returncode == 0, replay.stderr[-3000:]
+        row, = json.loads((tmp_path / 'r.json').read_text())
+        assert row['scene'] == 'scene_handheld' and row['detections'] >= 0.9 * 40 and row['wrong'] == 0, row
+        assert row['registered'] >= 0.9 and row['ATE_median'] < 0.06, row
 
 
 def test_rfm_run_parameters_are_typed_and_reach_every_node_that_has_them(tmp_path):

@@ -12,6 +12,7 @@
     rfm run --bag BAG | --live [--backend depth_clusters --no-processes --output DIR ...]
     rfm eval [--scenes 20 --jobs 2]
     rfm eval-reloc [--detector depth_clusters --scenes 10 --jobs 2 --offline]
+    rfm replay WORK [--reloc]
 
 `sim` needs no ROS; `play` and `record` start rclpy nodes.
 """
@@ -539,6 +540,48 @@ def cmd_eval_reloc(args) -> int:
     return 0
 
 
+def cmd_replay(args) -> int:
+    """A graph run's recorded detections through the in-process back end again
+    (rfm_core.evaluation.replay): two versions of the code compared on the same detections."""
+    from rfm_core.evaluation.replay import replay_localization, replay_mapping  # noqa: PLC0415
+
+    work = Path(args.work)
+    if not work.is_dir():
+        raise SystemExit(f'rfm replay: {work} is not a directory (an rfm eval or rfm eval-reloc --work folder)')
+    rows = []
+    if args.reloc:
+        rooms = [work / s for s in args.scenes] if args.scenes else sorted(
+            p for p in work.iterdir() if (p / 'query_run').exists())
+        for room in rooms:
+            r = replay_localization(room, args.verbose)
+            rows.append(r)
+            print(f"{r['scene']:26s} map {100 * r['map_registered']:3.0f}% registered  {r['found']:2d} of the "
+                  f"{r['seeing']:2d} frames that see two mapped objects  relocalized {r['relocalized']:2d}  wrong "
+                  f"{r['wrong']}  ARE {r['ARE_median']:5.2f} deg  ATE {100 * r['ATE_median']:5.1f} cm", flush=True)
+        seeing, found = sum(r['seeing'] for r in rows), sum(r['found'] for r in rows)
+        relocalized, wrong = sum(r['relocalized'] for r in rows), sum(r['wrong'] for r in rows)
+        print(f'{len(rows)} rooms: {100 * found / max(seeing, 1):.1f}% of the {seeing} frames that see two mapped '
+              f'objects; wrong {wrong} of {relocalized} ({100 * wrong / max(relocalized, 1):.1f}%)')
+    else:
+        scenes = [work / s for s in args.scenes] if args.scenes else sorted(
+            p for p in work.iterdir() if (p / args.run / 'outputs.mcap').exists() and (p / 'bag').exists())
+        for scene in scenes:
+            r = replay_mapping(scene, args.run)
+            rows.append(r)
+            print(f"{r['scene']:26s} localized {100 * r['registered']:5.1f}%  ARE {r['ARE_median']:5.2f} deg  "
+                  f"ATE {100 * r['ATE_median']:5.1f} cm  wrong {100 * r['wrong']:5.1f}%  on points "
+                  f"{r['point_tracked']:4d}  keyframes {r['keyframes']}", flush=True)
+        for capture in sorted({r['scene'].rsplit('_', 1)[-1] for r in rows}):
+            sel = [r for r in rows if r['scene'].endswith('_' + capture)]
+            print(f"{capture} ({len(sel)}): localized {100 * np.mean([r['registered'] for r in sel]):.1f}% (mean); "
+                  f"ARE {np.nanmedian([r['ARE_median'] for r in sel]):.2f} deg, ATE "
+                  f"{100 * np.nanmedian([r['ATE_median'] for r in sel]):.2f} cm, wrong "
+                  f"{100 * np.mean([r['wrong'] for r in sel]):.1f}% (medians, mean)")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
+    return 0
+
+
 def cmd_params(args) -> int:
     """The nodes' parameters (rfm_core.config) as tables; --readme rewrites a README's."""
     from rfm_core.config import NODES, node_settings, update_parameter_tables  # noqa: PLC0415
@@ -743,6 +786,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--query-frames', type=int, default=20, help='frames of the second capture (at 2 Hz)')
     p.add_argument('--jobs', type=int, default=1)
     p.set_defaults(func=cmd_eval_reloc)
+
+    p = sub.add_parser('replay', help="a graph run's recorded detections through the in-process back end again")
+    p.add_argument('work', help='an rfm eval --work folder (or rfm eval-reloc --work with --reloc)')
+    p.add_argument('--reloc', action='store_true', help="rfm eval-reloc's rooms: their query walks against their maps")
+    p.add_argument('--scenes', nargs='*', help='scene folders of WORK (default: all with a recorded run)')
+    p.add_argument('--run', default='rgb_d__depth_clusters', help="the run's folder in each scene")
+    p.add_argument('--verbose', action='store_true', help='--reloc: each missed and wrong frame')
+    p.add_argument('--json', help='also write the per-scene results to this JSON file')
+    p.set_defaults(func=cmd_replay)
 
     p = sub.add_parser('params', help="the nodes' parameters with defaults and descriptions (markdown)")
     p.add_argument('nodes', nargs='*', metavar='NODE',

@@ -75,7 +75,7 @@ def frames_seeing_mapped(truth: GroundTruth, map_boxes: np.ndarray, min_objects:
                          min_visibility: float = 0.2, iou: float = 0.25) -> set:
     """The stamps of the frames of ``truth`` that see ``min_objects`` mapped objects: objects
     of the room a box of the map (``map_boxes``, (N, 7) in the truth's frame) overlaps by
-    ``iou``, each at least ``min_visibility`` in view (#20's denominator for relocalization:
+    ``iou``, each at least ``min_visibility`` in view (the relocalization score's denominator:
     a frame that sees fewer gives an object-level relative pose nothing to verify)."""
     if not len(map_boxes) or not len(truth.boxes):
         return set()

@@ -456,11 +456,11 @@ class RelocalizationScores:
     row: dict                #: trajectory errors, frames, seeing_mapped, registered_seeing, map_registered
     estimated: dict          #: {stamp: 4x4 camera-to-world} of the query's frames with a pose
     truth: dict              #: {stamp: 4x4 camera-to-world} of every query frame
-    seeing: set              #: #20's denominator: stamps of the query frames that see two mapped objects
+    seeing: set              #: the denominator: stamps of the query frames that see two mapped objects
 
 
 def relocalization_scores(mapper, map_bag, query_bag, camera_poses: dict) -> RelocalizationScores:
-    """#20's scoring of a query walk's camera poses ({stamp: 4x4 camera-to-map}) against
+    """The scoring of a query walk's camera poses ({stamp: 4x4 camera-to-map}) against
     ``mapper``'s map: the map aligned to the world by its keyframes (the mapping walk's
     truth), the poses not re-aligned; wrong: > 5 deg or > 25 cm; the denominator: the query
     frames that see two objects the map holds."""

@@ -1,7 +1,7 @@
 """Relocalization against a map of a whole building: cost per query and accuracy as the map
-grows to thousands of objects (#20 item 2).
+grows to thousands of objects.
 
-    ros_ws/env.sh python bench/reloc_scale.py [--rooms 80 --queried 10 --detector ground_truth:rgbd]
+    ros_ws/env.sh python bench/bench_reloc.py [--rooms 80 --queried 10 --detector ground_truth:rgbd]
 
 Each room (realistic world, seeds from 8000: outside the tuning and evaluation seeds) is
 mapped in-process from a 30 s handheld walk at 2 Hz; the rooms' maps are placed side by side
@@ -63,7 +63,6 @@ def main() -> int:
     from rfm_core.geometry import Pose4  # noqa: PLC0415
     from rfm_core.mapping.localization import StreamLocalizer  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
-    from rfm_core.observations import EdgeRecord  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
 
@@ -139,8 +138,8 @@ def main() -> int:
                     times[-1].append(time.perf_counter() - t)
                     for o, reloc in placed:
                         found[(r, by_stamp[(r, o.stamp_ns)])] = world @ to_room @ reloc.camera_to_map(o)
-    print(f'| map | objects | query frames | relocalized | wrong | ARE median | ATE median | ms per query, '
-          f'median | p95 |')
+    print('| map | objects | query frames | relocalized | wrong | ARE median | ATE median | ms per query, '
+          'median | p95 |')
     print('|---|---|---|---|---|---|---|---|---|')
     for name, (times, found, truth) in results.items():
         err = trajectory_errors(found, truth, align=False, gross=(5.0, 0.25))

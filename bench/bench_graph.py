@@ -7,7 +7,7 @@ the CPU seconds of each node's process (with --no-processes: of each thread, the
 worker and each node's executor; in one process the nodes share one interpreter lock, so
 these say what the frames wait for).
 
-    ros_ws/env.sh python bench/graph_throughput.py --bag bags/demo --runs 5 \\
+    ros_ws/env.sh python bench/bench_graph.py --bag bags/demo --runs 5 \\
         --variant "default=" --variant "IMU per sample=detector.imu_poll_period_s:=0" [--no-processes]
 """
 import argparse

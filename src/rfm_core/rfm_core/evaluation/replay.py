@@ -1,0 +1,93 @@
+"""`rfm replay`: the detections a graph run recorded, through the in-process back end again.
+
+A graph run is not repeatable: which frames the detector finishes, and which go out with
+depth points only, changes from run to run, and single scenes swing by tens of points.
+Replaying one run's recorded ``rfm/detections`` (``outputs.mcap``) through
+:class:`rfm_core.session.Session` (the matcher's and the mapper's code, default settings, no
+timing) is: two versions of the back end compared on the same detections differ only by
+their code.
+
+- :func:`replay_mapping`: a scene of ``rfm eval --work WORK`` (its bag's ground truth scores
+  the frames localized, as ``rfm eval`` does, with the share off by > 5 deg or > 25 cm).
+- :func:`replay_localization`: a room of ``rfm eval-reloc --work WORK``: its saved map
+  loaded in localization mode, the query walk's recorded detections localized as a stream
+  and scored as ``rfm eval-reloc`` scores the graph. Localization against a frozen map is
+  deterministic: the same detections give the graph's result.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ['recorded_detections', 'replay_mapping', 'replay_localization', 'GROSS']
+
+#: a pose off by more than this is wrong (deg, m), after the alignment
+GROSS = (5.0, 0.25)
+
+
+def recorded_detections(run: Path) -> list:
+    """The FrameObservations of every ``rfm/detections`` message a run recorded, by stamp."""
+    from rfm_core.io.bag import topic_messages  # noqa: PLC0415
+    from rfm_core.io.messages import frame_detections_from_msg  # noqa: PLC0415
+
+    out = [frame_detections_from_msg(msg) for msg in topic_messages(Path(run) / 'outputs.mcap', '/rfm/detections')]
+    return sorted(out, key=lambda o: o.stamp_ns)
+
+
+def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = 'bag',
+                   matcher: str = 'learned') -> dict:
+    """One scene's recorded detections through a Session; the frames it localizes scored
+    against the bag's ground truth (4-DoF aligned)."""
+    from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
+    from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
+    from rfm_core.session import Session  # noqa: PLC0415
+
+    scene = Path(scene)
+    observations = recorded_detections(scene / run)
+    truth = read_ground_truth(scene / bag).camera_poses
+    session = Session(MapperConfig(), matcher=make_matcher(matcher))
+    for obs in observations:
+        session.step(obs)
+    session.finish()
+    errors = trajectory_errors(session.mapper.frame_poses(), truth, gross=GROSS)
+    return {'scene': scene.name, 'frames': len(truth), 'detections': len(observations),
+            'registered': errors['registered'], 'ARE_median': errors['ARE_median'],
+            'ATE_median': errors['ATE_median'], 'wrong': errors['wrong'],
+            'point_tracked': session.graph.stats.point_tracked, 'keyframes': len(session.mapper.keyframes)}
+
+
+def replay_localization(room: Path, verbose: bool = False) -> dict:
+    """One room of an ``rfm eval-reloc`` run: its query walk's recorded detections localized
+    against its saved map (see the module). ``verbose`` prints each missed frame of the
+    denominator (the query frames that see two mapped objects) with the reason, and each wrong pose."""
+    from rfm_core.evaluation.suite import relocalization_scores  # noqa: PLC0415
+    from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
+    from rfm_core.session import MapSession  # noqa: PLC0415
+
+    room = Path(room)
+    session = MapSession(MapperConfig(), matcher=make_matcher('learned'))
+    session.load(room / 'map_run' / 'map.rfm')
+    session.mode = 'localization'
+    poses, why = {}, {}
+    for obs in recorded_detections(room / 'query_run'):
+        for camera in session.localize(obs):
+            poses[camera.stamp_ns] = camera.matrix
+        why[obs.stamp_ns] = f'{len(obs)} detections: {session.message}'
+    scores = relocalization_scores(session.mapper, room / 'map_bag', room / 'query_bag', poses)
+    estimated, truth, seeing, row = scores.estimated, scores.truth, scores.seeing, scores.row
+    if verbose:
+        start = min(truth)
+        for stamp in sorted(seeing - set(estimated)):
+            print(f'    missed {(stamp - start) * 1e-9:5.1f} s: {why.get(stamp, "no detections recorded")}')
+        for stamp, m in sorted(estimated.items()):
+            d = np.linalg.inv(truth[stamp]) @ m
+            deg = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
+            if deg > GROSS[0] or np.linalg.norm(d[:3, 3]) > GROSS[1]:
+                print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {np.linalg.norm(d[:3, 3]):.2f} m')
+    return {'scene': room.name, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
+            'relocalized': len(estimated), 'wrong': int(round(row['wrong'] * len(estimated))) if estimated else 0,
+            'ARE_median': row['ARE_median'], 'ATE_median': row['ATE_median'], 'map_registered': row['map_registered']}
