@@ -161,12 +161,12 @@ class MapperCore:
         self.num_objects = 0                  # objects in the last object map built
         self._republish = False               # a map loaded or cleared: publish it all at the next tick
         self._log: list = []                  # lines for the next tick's log
+        self._sequences: dict = {}            # delivery checks of the matcher's numbered topics
         if config.load_map_on_start:
             answer = self.load()
             if not answer['success']:
                 raise ValueError(f"load_map_on_start: {answer['message']}")
             self._log.append(answer['message'])
-        self._sequences: dict = {}            # delivery checks of the matcher's numbered topics
 
     @property
     def mapper(self):

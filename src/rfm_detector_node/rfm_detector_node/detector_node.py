@@ -11,11 +11,11 @@ Publishes:
   /diagnostics (diagnostic_msgs/DiagnosticArray: counters, latency).
 
 Frames are processed by one worker thread. With depth, up to points_only_backlog frames may
-wait: a frame taken while the next one already waits is sent
-with its depth points and no detections (a few ms; the matcher tracks it on the points), the
-frame it catches up on is detected in full, and a frame arriving while the backlog is full
-pushes out the oldest waiting (counted as dropped). Without, a frame arriving while the worker
-is busy replaces the waiting one (newest wins). Nothing queues without bound.
+wait: a frame taken while the next one already waits is sent with its depth points and no
+detections (a few ms; the matcher tracks it on the points), the frame it catches up on is
+detected in full, and a frame arriving while the backlog is full pushes out the oldest
+waiting (counted as dropped). Without, a frame arriving while the worker is busy replaces
+the waiting one (newest wins). Nothing queues without bound.
 Thin rclpy adapter: frames through rfm_core.detection.frontend, detections out.
 """
 from __future__ import annotations
