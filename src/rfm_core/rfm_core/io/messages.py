@@ -29,7 +29,8 @@ __all__ = [
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
     'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs',
-    'object_map_outputs', 'tick_outputs', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg', 'diagnostics_msg',
+    'object_map_outputs', 'tick_outputs', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg',
+    'diagnostics_msg',
 ]
 
 MAX_DETECTIONS = 1000       #: detections read from one frame message (the detectors' max_detections bound)
@@ -492,7 +493,7 @@ def edge_msg(edge, stamp_ns: int, make=ROS):
 
 
 def edge_record_from_msg(msg):
-    """rfm_msgs/ViewGraphEdge -> :class:`rfm_core.mapping.mapper.EdgeRecord`; ValueError when
+    """rfm_msgs/ViewGraphEdge -> :class:`rfm_core.observations.EdgeRecord`; ValueError when
     malformed (a non-finite pose). A score outside [0, 1] is clipped, a non-finite one is 0."""
     t = vector3_to_numpy(msg.translation)
     if not (np.isfinite(msg.yaw) and np.all(np.isfinite(t))):
@@ -605,7 +606,8 @@ def relocalize_answer(query, relocalize, frame_id: str, make=ROS) -> dict:
     reloc, message = relocalize(obs)
     if reloc is None:
         return dict(success=False, message=message)
-    return dict(success=True, message=message, num_inliers=int(reloc.num_inliers), keyframe_id=int(reloc.keyframe_id),
+    return dict(success=True, message=message, num_inliers=int(reloc.num_inliers),
+                keyframe_id=int(reloc.keyframe_id),
                 pose=pose_stamped_msg(reloc.camera_to_map(obs), obs.stamp_ns, frame_id, make))
 
 
