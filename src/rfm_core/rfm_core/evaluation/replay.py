@@ -20,10 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ['recorded_detections', 'replay_mapping', 'replay_localization', 'GROSS']
-
-#: a pose off by more than this is wrong (deg, m), after the alignment
-GROSS = (5.0, 0.25)
+__all__ = ['recorded_detections', 'replay_mapping', 'replay_localization']
 
 
 def recorded_detections(run: Path) -> list:
@@ -40,7 +37,7 @@ def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = '
     """One scene's recorded detections through a Session; the frames it localizes scored
     against the bag's ground truth (4-DoF aligned)."""
     from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import GROSS, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import Session  # noqa: PLC0415
@@ -64,6 +61,7 @@ def replay_localization(room: Path, verbose: bool = False) -> dict:
     against its saved map (see the module). ``verbose`` prints each missed frame of the
     denominator (the query frames that see two mapped objects) with the reason, and each wrong pose."""
     from rfm_core.evaluation.suite import relocalization_scores  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import GROSS  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import MapSession  # noqa: PLC0415

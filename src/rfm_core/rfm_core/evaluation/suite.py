@@ -465,7 +465,7 @@ def relocalization_scores(mapper, map_bag, query_bag, camera_poses: dict) -> Rel
     truth), the poses not re-aligned; wrong: > 5 deg or > 25 cm; the denominator: the query
     frames that see two objects the map holds."""
     from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes, read_ground_truth  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import GROSS, map_to_truth, trajectory_errors  # noqa: PLC0415
 
     keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
     alignment = map_to_truth(keyframes, read_ground_truth(map_bag).camera_poses)
@@ -473,7 +473,7 @@ def relocalization_scores(mapper, map_bag, query_bag, camera_poses: dict) -> Rel
     query = read_ground_truth(query_bag)
     truth = query.camera_poses
     estimated = {stamp: world @ pose for stamp, pose in camera_poses.items() if stamp in truth}
-    errors = trajectory_errors(estimated, truth, align=False, gross=(5.0, 0.25))
+    errors = trajectory_errors(estimated, truth, align=False, gross=GROSS)
     seeing = frames_seeing_mapped(query, map_boxes(mapper.tracks(), alignment)) & set(truth)
     row = {**errors, 'frames': len(truth), 'seeing_mapped': len(seeing),
            'registered_seeing': len(seeing & set(estimated)) / len(seeing) if seeing else float('nan'),

@@ -15,7 +15,10 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 
-__all__ = ['align_se3', 'align_4dof', 'map_to_truth', 'trajectory_errors']
+__all__ = ['GROSS', 'align_se3', 'align_4dof', 'map_to_truth', 'trajectory_errors']
+
+#: a pose off by more than this is wrong (deg, m): the gross errors every evaluation counts
+GROSS = (5.0, 0.25)
 
 
 def align_se3(source: np.ndarray, target: np.ndarray):
