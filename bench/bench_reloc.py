@@ -59,7 +59,7 @@ def main() -> int:
 
     from rfm_core.evaluation.pipeline import detections_for, run_capture  # noqa: PLC0415
     from rfm_core.evaluation.suite import query_capture  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import GROSS, map_to_truth, trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
     from rfm_core.geometry import Pose4  # noqa: PLC0415
     from rfm_core.mapping.localization import StreamLocalizer  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
@@ -142,7 +142,7 @@ def main() -> int:
           'median | p95 |')
     print('|---|---|---|---|---|---|---|---|---|')
     for name, (times, found, truth) in results.items():
-        err = trajectory_errors(found, truth, align=False, gross=GROSS)
+        err = trajectory_errors(found, truth, align=False)
         count = objects if name.startswith('building') else statistics.median(len(m.tracks()) for _, m, _ in rooms)
         median = statistics.median(statistics.median(t) for t in times)
         p95 = statistics.median(sorted(t)[int(0.95 * (len(t) - 1))] for t in times)

@@ -84,7 +84,8 @@ def test_suite_tables_pool_the_map_object_kinds_over_scenes():
     from rfm_core.evaluation.suite import SETTINGS, format_tables, scene_metrics, summarize
 
     def run(kinds, objects):
-        loc = {'ARE_median': 1.0, 'ATE_median': 0.05, 'ARE_rmse': 1.0, 'ATE_rmse': 0.05, 'registered': 1.0}
+        loc = {'ARE_median': 1.0, 'ATE_median': 0.05, 'ARE_rmse': 1.0, 'ATE_rmse': 0.05, 'registered': 1.0,
+               'frames': 10, 'gross': objects // 10}
         mapping = {'objects': objects, 'ground_truth': 10, 'AP15': 0.6, 'AR15': 0.6, 'AP25': 0.5, 'AR25': 0.5,
                    'kinds': kinds}
         return {'accuracy': {'localization': loc, 'mapping': mapping},
@@ -96,6 +97,7 @@ def test_suite_tables_pool_the_map_object_kinds_over_scenes():
     assert m['share_real'] == 10 / 40 and m['share_phantom'] == 26 / 40 and m['share_duplicate'] == 2 / 40
     assert m['objects_per_object'] == 2.0                 # median of 1.0 and 3.0
     assert '| 25% | 5% | 5% | 65% |' in format_tables({name: m})
+    assert '| 4 of 20 (20.0%) |' in format_tables({name: m})      # wrong frames pooled: 1 + 3 of 10 + 10
 
 
 def test_the_offline_suite_counts_the_map_object_kinds_too():
@@ -111,3 +113,38 @@ def test_the_offline_suite_counts_the_map_object_kinds_too():
     m = summarize([scene], [setting])[setting.name]
     assert m['share_real'] > 0.5
     assert m['share_real'] + m['share_duplicate'] + m['share_poor_fit'] + m['share_phantom'] == pytest.approx(1.0)
+
+
+def _walk(n=60, seed=0):
+    """{i: 4x4 camera-to-world} of a gravity-aligned walk (yaw turning, camera looking ahead)."""
+    from rfm_core.geometry import Pose4
+    rng = np.random.default_rng(seed)
+    out = {}
+    for i in range(n):
+        a = 2 * np.pi * i / n
+        out[i] = Pose4(a + 0.3 * rng.normal(), (2 * np.cos(a), 2 * np.sin(a), 1.5)).matrix()
+    return out
+
+
+def test_a_wrongly_placed_part_is_counted_and_does_not_move_the_alignment():
+    """One wrong registration moves a block of frames 2.6 m: the robust alignment fits the rest,
+    so they keep their (exact) errors, and the block is counted as wrong; a least-squares fit
+    on all frames would spread the block's error over every frame."""
+    from rfm_core.evaluation.trajectory import GROSS, align_4dof, trajectory_errors
+    from rfm_core.geometry import Pose4
+
+    truth = _walk()
+    world_from_map = Pose4(1.1, (4.0, -2.0, 0.3)).matrix()
+    estimated = {i: np.linalg.inv(world_from_map) @ m for i, m in truth.items()}
+    for i in range(40, 52):                                  # 12 of 60 frames 2.6 m off
+        estimated[i] = Pose4(0.4, (2.6, 0.0, 0.0)).matrix() @ estimated[i]
+    e = trajectory_errors(estimated, truth)
+    assert e['gross'] == 12 and e['wrong'] == pytest.approx(12 / 60)
+    assert e['ATE_median'] < 1e-9 and e['ARE_median'] < 1e-6
+    keys = sorted(truth)
+    r, t = align_4dof(np.array([estimated[k] for k in keys]), np.array([truth[k] for k in keys]))
+    ls = np.linalg.norm(np.array([estimated[k][:3, 3] for k in keys[:40]]) @ r.T + t
+                        - np.array([truth[k][:3, 3] for k in keys[:40]]), axis=1)
+    assert np.median(ls) > 0.1                               # what the plain fit did to the right frames
+    posed = trajectory_errors({i: truth[i] @ Pose4(0.0, (0.3, 0, 0)).matrix() for i in range(5)}, truth, align=False)
+    assert posed['gross'] == 5 and posed['registered'] == 5 / 60 and GROSS == (5.0, 0.25)

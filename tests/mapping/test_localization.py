@@ -229,6 +229,38 @@ def _room_points(centres: np.ndarray, spacing: float = 0.15) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def test_a_pose_lifted_by_a_seat_taken_for_the_floor_is_put_back_on_the_maps_floor(saved):
+    """A keyframe that took a seat for the floor, and partial boxes cut at it, lift a
+    relocalized pose by the seat's height; the map's floor (what most keyframes around agree
+    on) and its merged depth points put it back: the query's pose is aligned on the map's
+    points from the height its own floor gives it, and kept for putting more of its points on
+    the map's surfaces. Without the query's floor the lifted pose stays."""
+    from rfm_core.mapping.relocalization import on_map_points  # noqa: PLC0415
+    mapper = Mapper()
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    centres = np.array([p.inverse().t for p in mapper.poses.values()])
+    room = _room_points(centres)
+    floor_z, seat = centres[:, 2].min() - 1.3, 0.35
+    for i, k in enumerate(sorted(mapper.poses)):        # every keyframe measured the floor; one in 8 a seat
+        pose = mapper.poses[k]
+        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32),
+                                      camera_height=pose.inverse().t[2] - floor_z - (seat if i % 8 == 3 else 0.0))
+    index = mapper.map_index()
+    assert index.floor_under(centres[0]) == pytest.approx(floor_z, abs=1e-6)
+    k = max(mapper.poses, key=lambda i: len(mapper.keyframes[i]))
+    truth = mapper.poses[k]                                                          # T_view_map
+    rng = np.random.default_rng(2)
+    cloud = truth.transform_points(room) + rng.normal(0, 0.005, room.shape)
+    query = replace(mapper.keyframes[k], cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32),
+                    camera_height=truth.inverse().t[2] - floor_z)
+    lifted = (Pose4(0.0, (0.0, 0.0, seat)) @ truth.inverse()).inverse()              # 35 cm up
+    placed = on_map_points(query, lifted, index, mapper.config.matching, 2)
+    assert _close(placed, truth, metres=0.02, degrees=0.3)
+    kept = on_map_points(replace(query, camera_height=float('nan')), lifted, index, mapper.config.matching, 2)
+    assert not _close(kept, truth, metres=0.1, degrees=3.0)
+
+
 def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
     """A frame of a live track without detections (the detector was behind and sent its
     depth points only) is aligned to the nearest map keyframe's points from the predicted

@@ -285,3 +285,23 @@ def test_capture_timing_heights_and_a_robots_level_camera():
     assert np.ptp(headings) > np.radians(20)                                        # it turns
     frame = next(robot.frames())
     assert frame.render.depth.shape == (240, 320) and len(frame.ground_truth) > 0
+
+
+def test_an_outward_walk_circles_near_the_centre_looking_out_at_the_walls():
+    """The relocalization protocol's other direction (and a second session's walk): near the
+    room's centre, looking away from it, where a handheld walk looks across the room."""
+    room = generate_room(3, 'plain')
+    out = make_trajectory(room, 'outward', 40, fps=2, seed=1)
+    across = make_trajectory(room, 'handheld', 40, fps=2, seed=1)
+    centre = room.size[:2] / 2
+    assert not any(room.contains_camera(p, margin=0.15) for p in out.positions)
+
+    def facing_out(traj):
+        away = traj.positions[:, :2] - centre
+        forward = traj.rotations[:, :2, 2]
+        return np.sum(away * forward, 1) / np.linalg.norm(away, axis=1) / np.linalg.norm(forward, axis=1)
+    assert np.median(facing_out(out)) > 0.8 and np.median(facing_out(across)) < 0.3
+    assert np.median(np.linalg.norm(out.positions[:, :2] - centre, axis=1)) < np.median(
+        np.linalg.norm(across.positions[:, :2] - centre, axis=1))
+    steps = np.linalg.norm(np.diff(out.positions, axis=0), axis=1)
+    assert np.all(steps < 0.25)                                     # a slow walk: 0.25 m/s at 2 Hz

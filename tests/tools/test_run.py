@@ -331,8 +331,10 @@ def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
 
     from rfm_core.evaluation.suite import relocalization_scene_graph  # noqa: PLC0415
     config = CaptureConfig(seed=41, frames=60, fps=5, capture='handheld')
-    result = relocalization_scene_graph((config, 'ground_truth:rgbd', 12, tmp_path,
-                                         int(os.environ.get('ROS_DOMAIN_ID', random.randint(100, 200))), ()))
+    [result] = relocalization_scene_graph((config, 'ground_truth:rgbd', 12, tmp_path,
+                                           int(os.environ.get('ROS_DOMAIN_ID', random.randint(100, 200))), (),
+                                           ('handheld',)))
+    assert result['query'] == 'handheld' and result['gross'] == round(result['wrong'] * 12 * result['registered'])
     assert 'error' not in result, result
     assert result['map_registered'] >= 0.9 and result['frames'] == 12, result
     assert result['registered'] >= 0.6 and result['wrong'] <= 0.1, result
@@ -340,4 +342,4 @@ def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
     assert 6 <= result['seeing_mapped'] <= 12 and result['registered_seeing'] >= 0.6, result
     assert result['ARE_median'] < 2.0 and result['ATE_median'] < 0.10, result
     assert 0 < result['latency_ms'] < 1000, result          # the mapper timed its queries (summary.json)
-    assert (tmp_path / f'{config.seed}_{config.room_style}_handheld' / 'query_run' / 'outputs.mcap').is_dir()
+    assert (tmp_path / f'{config.seed}_{config.room_style}_handheld' / 'query_handheld_run' / 'outputs.mcap').is_dir()

@@ -450,7 +450,7 @@ def cmd_eval(args) -> int:
         first = r['results'].get(settings[0].name, {})
         print(f'[rfm eval] {i}/{n} {r["scene"]}: {settings[0].name}: ARE {first.get("ARE_median", float("nan")):.2f} '
               f'ATE {100 * first.get("ATE_median", float("nan")):.1f} cm, {100 * first.get("registered", 0):.0f}% '
-              f'of frames localized, AP25 {first.get("AP25", float("nan")):.3f}'
+              f'of frames localized ({first.get("gross", 0)} wrong), AP25 {first.get("AP25", float("nan")):.3f}'
               f'{" (" + first["error"] + ")" if "error" in first else ""} ({time.perf_counter() - start:.0f} s)',
               flush=True)
 
@@ -480,64 +480,84 @@ def cmd_eval(args) -> int:
 
 def cmd_eval_reloc(args) -> int:
     """Relocalization against a saved map (paper appendix) over generated rooms: through the
-    node graph by default (rfm run maps one walk, rfm run in localization mode replays
-    another), in-process with --offline."""
+    node graph by default (rfm run maps one walk, rfm run in localization mode replays each
+    query walk), in-process with --offline. One table row per query walk."""
     import random  # noqa: PLC0415
     import tempfile  # noqa: PLC0415
 
     from rfm_core.evaluation.suite import (  # noqa: PLC0415
-        eval_configs, query_capture, relocalization_scene, relocalization_scene_graph, scene_name, write_bags)
+        eval_configs, query_capture, query_folders, relocalization_scene, relocalization_scene_graph, scene_name,
+        write_bags)
 
     # every room mapped from a walk around it (--frames / --fps seconds at the scene's rate)
     configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps, world=args.world, capture='handheld')
+    queries = tuple(dict.fromkeys(args.queries))
     temporary = None
     if args.offline:
-        scene_fn, work = relocalization_scene, [(c, args.detector, args.query_frames) for c in configs]
+        scene_fn, work = relocalization_scene, [(c, args.detector, args.query_frames, queries) for c in configs]
     else:
         temporary = tempfile.TemporaryDirectory(prefix='rfm-eval-reloc-') if args.work is None else None
         folder = temporary.name if temporary else args.work
         base = random.SystemRandom().randint(10, 80)
         # one ROS domain per scene: parallel scenes never see each other's nodes
         scene_fn = relocalization_scene_graph
-        work = [(c, args.detector, args.query_frames, folder, base + i, args.param or ())
+        work = [(c, args.detector, args.query_frames, folder, base + i, args.param or (), queries)
                 for i, c in enumerate(configs)]
         scenes = [Path(folder) / scene_name(c) for c in configs]
+        walks = {'outward' if kind == 'session' else kind for kind in queries}
         write_bags([(c, d / 'map_bag') for c, d in zip(configs, scenes)]
-                   + [(query_capture(c, args.query_frames), d / 'query_bag') for c, d in zip(configs, scenes)],
-                   args.jobs)
+                   + [(query_capture(c, args.query_frames, kind), query_folders(d, kind)[0])
+                      for c, d in zip(configs, scenes) for kind in sorted(walks)], args.jobs)
     rows = []
     try:
         with ProcessPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            for r in pool.map(scene_fn, work):
-                rows.append(r)
-                seeing = (f' ({100 * r["registered_seeing"]:.0f}% of the {r["seeing_mapped"]} frames that see two '
-                          f'mapped objects)' if r.get('seeing_mapped') else '')
-                print(f'[rfm eval-reloc] {r["scene"]}: relocalized {100 * r["registered"]:.0f}%{seeing}, '
-                      f'{r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong {100 * r["wrong"]:.0f}%, '
-                      f'{r.get("latency_ms", float("nan")):.0f} ms per query '
-                      f'(map: {100 * r["map_registered"]:.0f}% of keyframes registered)'
-                      + (f' [{r["error"]}]' if r.get('error') else ''), flush=True)
+            for scene_rows in pool.map(scene_fn, work):
+                for r in scene_rows:
+                    rows.append(r)
+                    seeing = (f' ({100 * r["registered_seeing"]:.0f}% of the {r["seeing_mapped"]} frames that see '
+                              f'two mapped objects)' if r.get('seeing_mapped') else '')
+                    moved = (f', the loaded keyframes moved {r["moved_cm_median"]:.1f} cm (max '
+                             f'{r["moved_cm_max"]:.1f})' if 'moved_cm_max' in r else '')
+                    print(f'[rfm eval-reloc] {r["scene"]} {r["query"]}: placed {100 * r["registered"]:.0f}%'
+                          f'{seeing}, {r["ARE_median"]:.2f} deg, {100 * r["ATE_median"]:.1f} cm, wrong '
+                          f'{r.get("gross", 0)}, {r.get("latency_ms", float("nan")):.0f} ms per query{moved} '
+                          f'(map: {100 * r["map_registered"]:.0f}% of keyframes registered)'
+                          + (f' [{r["error"]}]' if r.get('error') else ''), flush=True)
     finally:
         if temporary is not None:
             temporary.cleanup()
+    path = 'in-process' if args.offline else 'through the node graph'
+    print(f'\n{path}, {args.world} world, {args.detector}; the map from a walk around each room; an hour later '
+          'in localization mode: handheld (another walk around it), outward (from near its centre, looking out); '
+          'session: the outward walk mapped on the loaded map (mapping mode), its frames placed in the loaded '
+          "map's frame\n"
+          '| protocol | rooms | placed | of frames that see >= 2 mapped objects | ARE median (deg) '
+          '| ATE median (cm) | wrong (> 5 deg or > 25 cm) | ms per query (median) |\n'
+          '|---|---|---|---|---|---|---|---|')
+    for kind in queries:
+        print(reloc_table_row(kind, [r for r in rows if r['query'] == kind]))
+    sessions = [r for r in rows if r['query'] == 'session' and np.isfinite(r.get('moved_cm_max', np.nan))]
+    if sessions:
+        print(f"\nsecond session: the loaded map's keyframes moved {np.median([r['moved_cm_median'] for r in sessions]):.1f}"
+              f" cm (median of rooms' medians), at most {max(r['moved_cm_max'] for r in sessions):.1f} cm; "
+              f"{100 * np.mean([r['loaded_kept'] for r in sessions]):.0f}% of them kept in the saved map")
+    return 0
+
+
+def reloc_table_row(kind: str, rows: list) -> str:
+    """One query walk's row of ``rfm eval-reloc``'s table, pooled over its rooms."""
     reg = float(np.mean([r['registered'] for r in rows]))
     are = float(np.nanmedian([r['ARE_median'] for r in rows]))
     ate = float(np.nanmedian([r['ATE_median'] for r in rows]))
-    relocalized = np.array([r['registered'] * r['frames'] for r in rows])
-    wrong = float(np.nansum(np.array([r['wrong'] for r in rows]) * relocalized) / max(relocalized.sum(), 1))
+    relocalized = int(round(sum(r['registered'] * r['frames'] for r in rows)))
+    gross = int(sum(r.get('gross', 0) for r in rows))
     seeing = np.array([r.get('seeing_mapped', 0) for r in rows], float)
     found = np.nan_to_num(np.array([r.get('registered_seeing', np.nan) for r in rows], float)) * seeing
     seeing_share = f'{100 * found.sum() / seeing.sum():.1f}%' if seeing.sum() else '-'
     latency = np.array([r.get('latency_ms', np.nan) for r in rows], float)
     latency = float(np.median(latency[np.isfinite(latency)])) if np.isfinite(latency).any() else float('nan')
-    path = 'in-process' if args.offline else 'through the node graph'
-    print(f'\n{path}, {args.world} world:\n'
-          f'| input | rooms | relocalized | of frames that see >= 2 mapped objects | ARE median (deg) '
-          f'| ATE median (cm) | wrong (> 5 deg or > 25 cm) | ms per query (median) |\n'
-          f'|---|---|---|---|---|---|---|---|\n'
-          f'| {args.detector} | {len(rows)} | {100 * reg:.1f}% | {seeing_share} ({int(seeing.sum())} frames) '
-          f'| {are:.2f} | {100 * ate:.1f} | {100 * wrong:.1f}% | {latency:.0f} |')
-    return 0
+    return (f'| {kind} | {len(rows)} | {100 * reg:.1f}% | {seeing_share} ({int(seeing.sum())} frames) | {are:.2f} '
+            f'| {100 * ate:.1f} | {gross} of {relocalized} ({100 * gross / max(relocalized, 1):.1f}%) | {latency:.0f} |')
 
 
 def cmd_replay(args) -> int:
@@ -550,18 +570,24 @@ def cmd_replay(args) -> int:
         raise SystemExit(f'rfm replay: {work} is not a directory (an rfm eval or rfm eval-reloc --work folder)')
     rows = []
     if args.reloc:
-        rooms = [work / s for s in args.scenes] if args.scenes else sorted(
-            p for p in work.iterdir() if (p / 'query_run').exists())
-        for room in rooms:
-            r = replay_localization(room, args.verbose)
-            rows.append(r)
-            print(f"{r['scene']:26s} map {100 * r['map_registered']:3.0f}% registered  {r['found']:2d} of the "
-                  f"{r['seeing']:2d} frames that see two mapped objects  relocalized {r['relocalized']:2d}  wrong "
-                  f"{r['wrong']}  ARE {r['ARE_median']:5.2f} deg  ATE {100 * r['ATE_median']:5.1f} cm", flush=True)
-        seeing, found = sum(r['seeing'] for r in rows), sum(r['found'] for r in rows)
-        relocalized, wrong = sum(r['relocalized'] for r in rows), sum(r['wrong'] for r in rows)
-        print(f'{len(rows)} rooms: {100 * found / max(seeing, 1):.1f}% of the {seeing} frames that see two mapped '
-              f'objects; wrong {wrong} of {relocalized} ({100 * wrong / max(relocalized, 1):.1f}%)')
+        from rfm_core.evaluation.suite import QUERY_CAPTURES, query_folders  # noqa: PLC0415
+        rooms = [work / s for s in args.scenes] if args.scenes else sorted(p for p in work.iterdir() if p.is_dir())
+        for kind in QUERY_CAPTURES:
+            done = [room for room in rooms if query_folders(room, kind)[1].is_dir()]
+            for room in done:
+                r = replay_localization(room, kind, args.verbose)
+                rows.append(r)
+                print(f"{r['scene']:26s} {kind:8s} map {100 * r['map_registered']:3.0f}% registered  {r['found']:2d} "
+                      f"of the {r['seeing']:2d} frames that see two mapped objects  relocalized {r['relocalized']:2d}"
+                      f"  wrong {r['wrong']}  ARE {r['ARE_median']:5.2f} deg  ATE {100 * r['ATE_median']:5.1f} cm",
+                      flush=True)
+            sel = [r for r in rows if r['query'] == kind]
+            if sel:
+                seeing, found = sum(r['seeing'] for r in sel), sum(r['found'] for r in sel)
+                relocalized, wrong = sum(r['relocalized'] for r in sel), sum(r['wrong'] for r in sel)
+                print(f'{kind} walks, {len(sel)} rooms: {100 * found / max(seeing, 1):.1f}% of the {seeing} frames '
+                      f'that see two mapped objects; wrong {wrong} of {relocalized} '
+                      f'({100 * wrong / max(relocalized, 1):.1f}%)')
     else:
         scenes = [work / s for s in args.scenes] if args.scenes else sorted(
             p for p in work.iterdir() if (p / args.run / 'outputs.mcap').exists() and (p / 'bag').exists())
@@ -623,8 +649,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--seed', type=int, default=0)
     p.add_argument('--style', choices=('plain', 'textured'), default='plain',
                    help='plain-painted (default) or textured room')
-    p.add_argument('--capture', choices=('handheld', 'sparse', 'orbit', 'robot'), default='handheld',
-                   help='handheld walk, sparse photos, orbit, or robot (a low, level camera on a base)')
+    p.add_argument('--capture', choices=('handheld', 'sparse', 'orbit', 'robot', 'outward'), default='handheld',
+                   help='handheld walk, sparse photos, orbit, robot (a low, level camera on a base), or outward (a walk near the centre looking out)')
     _add_scene_options(p)
     p.set_defaults(func=cmd_sim)
 
@@ -783,7 +809,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--first-seed', type=int, default=5000)
     p.add_argument('--frames', type=int, default=150, help='frames of the mapping capture (a walk around the room)')
     p.add_argument('--fps', type=float, default=5.0, help='frame rate of the mapping capture (150 at 5 fps: 30 s)')
-    p.add_argument('--query-frames', type=int, default=20, help='frames of the second capture (at 2 Hz)')
+    p.add_argument('--query-frames', type=int, default=20, help='frames of each query walk (at 2 Hz)')
+    p.add_argument('--queries', nargs='+', choices=('handheld', 'outward', 'session'),
+                   default=['handheld', 'outward', 'session'],
+                   help='protocols: query walks in localization mode, handheld (another walk around the room, as '
+                        'the map was captured) and outward (from near its centre, looking out: the other side of '
+                        'the objects); session: the outward walk mapped as a second session on the loaded map')
     p.add_argument('--jobs', type=int, default=1)
     p.set_defaults(func=cmd_eval_reloc)
 

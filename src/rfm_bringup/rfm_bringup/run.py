@@ -508,7 +508,8 @@ def run_graph(args) -> int:
     if acc:
         loc, m = acc['localization'], acc['mapping']
         print(f'  vs ground truth: ARE {loc["ARE_median"]:.2f} deg, ATE {100 * loc["ATE_median"]:.1f} cm, '
-              f'{100 * loc["registered"]:.0f}% of frames localized, AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}, '
+              f'{100 * loc["registered"]:.0f}% of frames localized ({loc.get("gross", 0)} wrong: > 5 deg or > 25 cm), '
+              f'AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}, '
               f'{m["objects"]} objects for {m["ground_truth"]}')
     print(f'  report: {output / "report.md"}, picture: {output / "top_down.png"}')
     return 130 if interrupted and bag is not None else 0

@@ -16,7 +16,7 @@ import numpy as np
 
 from rfm_core.evaluation.mapping import evaluate_map
 from rfm_core.evaluation.report import GroundTruth, frames_seeing_mapped, map_boxes
-from rfm_core.evaluation.trajectory import GROSS, map_to_truth, trajectory_errors
+from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.localization import StreamLocalizer
 from rfm_core.mapping.mapper import Mapper, MapperConfig
@@ -136,6 +136,6 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
         for o, reloc in placed:
             relocalized[index_of[o.stamp_ns]] = world @ reloc.camera_to_map(o)
     seeing = frames_seeing_mapped(room, map_boxes(mapper.tracks(), map_to_world))
-    return {**trajectory_errors(relocalized, truth, align=False, gross=GROSS),
+    return {**trajectory_errors(relocalized, truth, align=False),
             'latency_ms': 1e3 * float(np.median(seconds)) if seconds else float('nan'), 'seeing_mapped': len(seeing),
             'registered_seeing': len(seeing & set(relocalized)) / len(seeing) if seeing else float('nan')}

@@ -37,7 +37,7 @@ def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = '
     """One scene's recorded detections through a Session; the frames it localizes scored
     against the bag's ground truth (4-DoF aligned)."""
     from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import GROSS, trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import Session  # noqa: PLC0415
@@ -49,18 +49,19 @@ def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = '
     for obs in observations:
         session.step(obs)
     session.finish()
-    errors = trajectory_errors(session.mapper.frame_poses(), truth, gross=GROSS)
+    errors = trajectory_errors(session.mapper.frame_poses(), truth)
     return {'scene': scene.name, 'frames': len(truth), 'detections': len(observations),
             'registered': errors['registered'], 'ARE_median': errors['ARE_median'],
             'ATE_median': errors['ATE_median'], 'wrong': errors['wrong'],
             'point_tracked': session.graph.stats.point_tracked, 'keyframes': len(session.mapper.keyframes)}
 
 
-def replay_localization(room: Path, verbose: bool = False) -> dict:
-    """One room of an ``rfm eval-reloc`` run: its query walk's recorded detections localized
-    against its saved map (see the module). ``verbose`` prints each missed frame of the
-    denominator (the query frames that see two mapped objects) with the reason, and each wrong pose."""
-    from rfm_core.evaluation.suite import relocalization_scores  # noqa: PLC0415
+def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = False) -> dict:
+    """One room of an ``rfm eval-reloc`` run: its ``kind`` query walk's recorded detections
+    localized against its saved map (see the module). ``verbose`` prints each missed frame of
+    the denominator (the query frames that see two mapped objects) with the reason, and each
+    wrong pose."""
+    from rfm_core.evaluation.suite import query_folders, relocalization_scores  # noqa: PLC0415
     from rfm_core.evaluation.trajectory import GROSS  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
@@ -71,11 +72,12 @@ def replay_localization(room: Path, verbose: bool = False) -> dict:
     session.load(room / 'map_run' / 'map.rfm')
     session.mode = 'localization'
     poses, why = {}, {}
-    for obs in recorded_detections(room / 'query_run'):
+    bag, run = query_folders(room, kind)
+    for obs in recorded_detections(run):
         for camera in session.localize(obs):
             poses[camera.stamp_ns] = camera.matrix
         why[obs.stamp_ns] = f'{len(obs)} detections: {session.message}'
-    scores = relocalization_scores(session.mapper, room / 'map_bag', room / 'query_bag', poses)
+    scores = relocalization_scores(session.mapper, room / 'map_bag', bag, poses)
     estimated, truth, seeing, row = scores.estimated, scores.truth, scores.seeing, scores.row
     if verbose:
         start = min(truth)
@@ -86,6 +88,6 @@ def replay_localization(room: Path, verbose: bool = False) -> dict:
             deg = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
             if deg > GROSS[0] or np.linalg.norm(d[:3, 3]) > GROSS[1]:
                 print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {np.linalg.norm(d[:3, 3]):.2f} m')
-    return {'scene': room.name, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
+    return {'scene': room.name, 'query': kind, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
             'relocalized': len(estimated), 'wrong': int(round(row['wrong'] * len(estimated))) if estimated else 0,
             'ARE_median': row['ARE_median'], 'ATE_median': row['ATE_median'], 'map_registered': row['map_registered']}

@@ -246,21 +246,25 @@ def write_report(path, summary: dict) -> Path:
     if acc:
         loc, m = acc['localization'], acc['mapping']
         lines += ['## Accuracy against the bag\'s ground truth', '',
-                  '| frames | ARE median (deg) | ATE median (cm) | ARE RMSE (deg) | ATE RMSE (cm) | localized |',
-                  '|---|---|---|---|---|---|',
+                  '| frames | ARE median (deg) | ATE median (cm) | ARE RMSE (deg) | ATE RMSE (cm) | localized '
+                  '| wrong (> 5 deg or > 25 cm) |',
+                  '|---|---|---|---|---|---|---|',
                   f'| all {loc["frames"]} of the input | {loc["ARE_median"]:.2f} | {100 * loc["ATE_median"]:.1f} | '
-                  f'{loc["ARE_rmse"]:.2f} | {100 * loc["ATE_rmse"]:.1f} | {100 * loc["registered"]:.0f}% |',
+                  f'{loc["ARE_rmse"]:.2f} | {100 * loc["ATE_rmse"]:.1f} | {100 * loc["registered"]:.0f}% | '
+                  f'{loc.get("gross", 0)} |',
                   f'| {loc.get("keyframes", 0)} keyframes | {loc["keyframe_ARE_median"]:.2f} | '
                   f'{100 * loc["keyframe_ATE_median"]:.1f} | {loc["keyframe_ARE_rmse"]:.2f} | '
-                  f'{100 * loc["keyframe_ATE_rmse"]:.1f} | {100 * loc["keyframe_registered"]:.0f}% |', '',
+                  f'{100 * loc["keyframe_ATE_rmse"]:.1f} | {100 * loc["keyframe_registered"]:.0f}% | '
+                  f'{loc.get("keyframe_gross", 0)} |', '',
                   '| AP15 | AR15 | AP25 | AR25 | map objects | ground-truth objects |', '|---|---|---|---|---|---|',
                   f'| {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | {m["objects"]} | '
                   f'{m["ground_truth"]} |', '',
                   *([('Map objects: {real} first boxes of real objects, {duplicate} duplicates, {poor_fit} poor '
                       'fits (IoU 0.1-0.25), {phantom} overlapping nothing real (IoU < 0.1).').format(**m['kinds']), '']
                     if m.get('kinds') else []),
-                  'Localization aligned by yaw + translation (gravity is shared); a frame counts as localized when '
-                  'it has a pose in `trajectory.tum`. Mapping: scene-level AP/AR at 3D IoU 0.15 / 0.25, objects '
+                  'Localization aligned by yaw + translation (gravity is shared), fitted on the frames most of '
+                  'the trajectory agrees with; a frame counts as localized when it has a pose in `trajectory.tum`, '
+                  'as wrong when it is off by more than 5 deg or 25 cm. Mapping: scene-level AP/AR at 3D IoU 0.15 / 0.25, objects '
                   'never seen >= 20% ignored.', '']
     lines += ['## Map from above', '', '![top-down view](top_down.png)', '',
               '## Files', '', '- `map.rfm`: the map (load it with `rfm/load_map`)',

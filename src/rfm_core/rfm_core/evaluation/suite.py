@@ -47,7 +47,9 @@ import numpy as np
 from rfm_core.evaluation.mapping import OBJECT_KINDS
 
 __all__ = ['SETTINGS', 'Setting', 'WORLDS', 'scene_kind', 'eval_configs', 'seed_config', 'scene_info', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
-           'run_graph_suite', 'summarize', 'format_tables']
+           'run_graph_suite', 'summarize', 'format_tables', 'QUERY_CAPTURES', 'RELOC_PROTOCOLS', 'query_capture',
+           'query_folders', 'relocalization_scene_graph', 'relocalization_scene', 'relocalization_scores',
+           'session_scores']
 
 
 @dataclass(frozen=True)
@@ -198,6 +200,7 @@ def scene_metrics(summary: dict) -> dict:
     out = {k: loc.get(k, nan) for k in ('ARE_median', 'ARE_rmse', 'ATE_median', 'ATE_rmse',
                                         'keyframe_ARE_median', 'keyframe_ATE_median')}
     out.update(registered=loc.get('registered', 0.0), keyframe_registered=loc.get('keyframe_registered', 0.0),
+               frames=loc.get('frames', summary.get('input_frames') or 0), gross=loc.get('gross', 0),
                keyframes=summary.get('keyframes', 0),
                processed=summary.get('frames', 0) / max(summary.get('input_frames') or 1, 1),
                realtime=summary.get('realtime', nan),
@@ -352,6 +355,9 @@ def summarize(results, settings=SETTINGS) -> dict:
             'ARE_median': float(np.nanmedian(col('ARE_median'))), 'ARE_rmse': float(np.nanmean(col('ARE_rmse'))),
             'ATE_median': float(np.nanmedian(col('ATE_median'))), 'ATE_rmse': float(np.nanmean(col('ATE_rmse'))),
             'registered': float(np.mean(col('registered'))),
+            # gross errors pooled over scenes: wrong frames of all localized ones
+            'gross': int(np.nansum(col('gross', 0))),
+            'localized': int(round(np.nansum(col('registered', 0) * col('frames', 0)))),
             'keyframe_registered': float(np.mean(col('keyframe_registered'))),
             'processed': float(np.mean(col('processed', 1.0))),
             **{k: float(np.nanmean(col(k))) for k in ('AP15', 'AR15', 'AP25', 'AR25')},
@@ -364,15 +370,20 @@ def summarize(results, settings=SETTINGS) -> dict:
     return out
 
 
+def wrong_share(m: dict) -> str:
+    """'3 of 412 (0.7%)': the frames off by more than the gross thresholds, of those localized."""
+    return f'{m["gross"]} of {m["localized"]} ({100 * m["gross"] / max(m["localized"], 1):.1f}%)'
+
+
 def format_tables(summary: dict) -> str:
     lines = ['Localization over every frame of the input (medians over scenes of per-scene medians; RMSE '
              'averaged over scenes)', '',
              '| setting | ARE median (deg) | ATE median (cm) | ARE RMSE (deg) | ATE RMSE (cm) | frames localized '
-             '| keyframes registered | frames processed |',
-             '|---|---|---|---|---|---|---|---|']
+             '| wrong (> 5 deg or > 25 cm) | keyframes registered | frames processed |',
+             '|---|---|---|---|---|---|---|---|---|']
     for name, m in summary.items():
         lines.append(f'| {name} | {m["ARE_median"]:.2f} | {100 * m["ATE_median"]:.1f} | {m["ARE_rmse"]:.2f} | '
-                     f'{100 * m["ATE_rmse"]:.1f} | {100 * m["registered"]:.1f}% | '
+                     f'{100 * m["ATE_rmse"]:.1f} | {100 * m["registered"]:.1f}% | {wrong_share(m)} | '
                      f'{100 * m["keyframe_registered"]:.1f}% | {100 * m["processed"]:.1f}% |')
     lines += ['', 'Mapping (scene-level AP/AR at 3D IoU 0.15 / 0.25, mean over scenes; objects mapped per object '
               'in the room, median over scenes; what the map objects are, pooled over scenes: the first box '
@@ -390,11 +401,30 @@ def format_tables(summary: dict) -> str:
     return '\n'.join(lines)
 
 
-def query_capture(config, frames: int):
-    """The relocalization protocol's second capture of a room: another handheld walk
-    (trajectory seed 1) at 2 Hz."""
+#: the relocalization protocol's query walks: ``handheld`` looks at the room the way the
+#: mapping walk did (another walk around it), ``outward`` from near its centre at the walls
+#: (the other side of the objects the map saw)
+QUERY_CAPTURES = ('handheld', 'outward')
+#: ``rfm eval-reloc``'s protocols: each query walk in localization mode, and ``session``: the
+#: outward walk mapped as a second session on the loaded map (mapping mode)
+RELOC_PROTOCOLS = QUERY_CAPTURES + ('session',)
+
+
+def query_capture(config, frames: int, kind: str = 'handheld'):
+    """The relocalization protocol's second capture of a room: another walk (trajectory seed
+    1) at 2 Hz, of ``kind`` (:data:`QUERY_CAPTURES`), an hour after the first."""
     from dataclasses import replace  # noqa: PLC0415
-    return replace(config, frames=frames, fps=2.0, capture='handheld', trajectory_seed=1)
+    if kind not in QUERY_CAPTURES:
+        raise ValueError(f'query capture must be one of {QUERY_CAPTURES}, got {kind!r}')
+    return replace(config, frames=frames, fps=2.0, capture=kind, trajectory_seed=1, start_s=3600.0)
+
+
+def query_folders(scene: Path, kind: str) -> tuple[Path, Path]:
+    """(bag, run output) of a room's ``kind`` protocol (:data:`RELOC_PROTOCOLS`) in an ``rfm
+    eval-reloc --work`` folder; the second session replays the outward walk's bag."""
+    if kind == 'session':
+        return Path(scene) / 'query_outward_bag', Path(scene) / 'session_run'
+    return Path(scene) / f'query_{kind}_bag', Path(scene) / f'query_{kind}_run'
 
 
 def camera_poses_of_run(output) -> dict:
@@ -407,46 +437,90 @@ def camera_poses_of_run(output) -> dict:
             for msg in topic_messages(Path(output) / 'outputs.mcap', '/rfm/camera_pose')}
 
 
-def relocalization_scene_graph(args) -> dict:
+def relocalization_scene_graph(args) -> list:
     """The appendix protocol through the node graph, as a user runs it: ``rfm run`` maps one
-    capture of a room; a second capture (:func:`query_capture`) is replayed by ``rfm run``
-    with that map loaded in localization mode (``mapper.load_map_on_start``,
-    ``mapper.mode:=localization``), and every ``rfm/camera_pose`` it publishes is scored
-    against the truth in the world frame (the map's alignment to the world from the mapping
-    run's keyframes: the query frames are not re-aligned). ``wrong``: > 5 deg or > 25 cm.
-    ``params``: extra ``--param`` values for both runs."""
-    config, detector, query_frames, work, domain, params = args
+    capture of a room; each query walk (:func:`query_capture` of every kind in ``queries``) is
+    replayed by ``rfm run`` with that map loaded in localization mode
+    (``mapper.load_map_on_start``, ``mapper.mode:=localization``), and every
+    ``rfm/camera_pose`` it publishes is scored against the truth in the world frame (the map's
+    alignment to the world from the mapping run's keyframes: the query frames are not
+    re-aligned). ``wrong``: > 5 deg or > 25 cm. ``params``: extra ``--param`` values for
+    every run. One row per query walk."""
+    config, detector, query_frames, work, domain, params, queries = args
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
 
     scene = Path(work) / scene_name(config)
-    bags = {'map': _written_bag(config, scene / 'map_bag'),
-            'query': _written_bag(query_capture(config, query_frames), scene / 'query_bag')}
+    map_bag = _written_bag(config, scene / 'map_bag')
     rfm, env = _rfm_in_domain(domain)
     backend, _, preset = detector.partition(':')
     detector_args = ['--backend', backend] + (['--preset', preset] if preset else [])
-    mapped, queried = scene / 'map_run', scene / 'query_run'
-    extra = {'map': [], 'query': ['--param', 'mapper.load_map_on_start:=true', f'mapper.map_path:={mapped / "map.rfm"}',
-                                  'mapper.mode:=localization']}
+    mapped = scene / 'map_run'
     nan = float('nan')
-    failed = {'scene': scene_name(config), 'registered': 0.0, 'wrong': nan, 'ARE_median': nan, 'ATE_median': nan,
-              'frames': query_frames, 'map_registered': 0.0, 'latency_ms': nan, 'seeing_mapped': 0,
-              'registered_seeing': nan}
-    for name, output in (('map', mapped), ('query', queried)):
-        cmd = [rfm, 'run', '--bag', str(bags[name]), '--output', str(output), '--force', '--quiet', *detector_args,
-               *extra[name]]
+
+    def failed(kind, error):
+        return {'scene': scene_name(config), 'query': kind, 'registered': 0.0, 'wrong': nan, 'gross': 0,
+                'ARE_median': nan, 'ATE_median': nan, 'frames': query_frames, 'map_registered': 0.0,
+                'latency_ms': nan, 'seeing_mapped': 0, 'registered_seeing': nan, 'error': error}
+
+    def run(bag, output, extra):
+        cmd = [rfm, 'run', '--bag', str(bag), '--output', str(output), '--force', '--quiet', *detector_args, *extra]
         if params:
             cmd += ['--param', *params]
         proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
         if proc.returncode != 0 or not (output / 'summary.json').is_file():
             tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
-            return {**failed, 'error': f'rfm run ({name}) exited {proc.returncode}: {" / ".join(tail)}'}
+            return f'rfm run exited {proc.returncode}: {" / ".join(tail)}'
+        return None
+
+    error = run(map_bag, mapped, [])
+    if error:
+        return [failed(kind, f'mapping: {error}') for kind in queries]
     mapper = Mapper()
     load_map(mapper, mapped / 'map.rfm')
-    scores = relocalization_scores(mapper, bags['map'], bags['query'], camera_poses_of_run(queried))
-    latency = json.loads((queried / 'summary.json').read_text()).get('relocalization') or {}
-    return {'scene': scene_name(config), **scores.row,
-            'latency_ms': latency.get('median_ms', nan) if latency.get('queries') else nan}
+    rows = []
+    for kind in queries:
+        bag, queried = query_folders(scene, kind)
+        bag = _written_bag(query_capture(config, query_frames, 'outward' if kind == 'session' else kind), bag)
+        if kind == 'session':                   # mapping on a copy of the map (its autosaves go there)
+            loaded = scene / 'session_map.rfm'
+            shutil.copyfile(mapped / 'map.rfm', loaded)
+            error = run(bag, queried, ['--param', 'mapper.load_map_on_start:=true', f'mapper.map_path:={loaded}'])
+        else:
+            error = run(bag, queried, ['--param', 'mapper.load_map_on_start:=true',
+                                       f'mapper.map_path:={mapped / "map.rfm"}', 'mapper.mode:=localization'])
+        if error:
+            rows.append(failed(kind, error))
+            continue
+        if kind == 'session':
+            rows.append({'scene': scene_name(config), 'query': kind, 'latency_ms': nan,
+                         **session_scores(mapper, queried / 'map.rfm', map_bag, bag)})
+            continue
+        scores = relocalization_scores(mapper, map_bag, bag, camera_poses_of_run(queried))
+        latency = json.loads((queried / 'summary.json').read_text()).get('relocalization') or {}
+        rows.append({'scene': scene_name(config), 'query': kind, **scores.row,
+                     'latency_ms': latency.get('median_ms', nan) if latency.get('queries') else nan})
+    return rows
+
+
+def session_scores(mapper, session_map, map_bag, session_bag) -> dict:
+    """A second session mapped on ``mapper``'s map, scored from the map it saved
+    (``session_map``): its frames' poses in the saved map (``trajectory.tum``'s) against the
+    truth in the world frame through the first map's alignment (not re-aligned: placed in the
+    loaded map's frame or wrong), as :func:`relocalization_scores`; ``moved_cm``: how far the
+    loaded map's keyframes moved (median and max of camera centres, cm)."""
+    from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
+    from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
+
+    after = Mapper()
+    load_map(after, session_map)
+    frames = after.frame_poses()
+    scores = relocalization_scores(mapper, map_bag, session_bag, frames)
+    before, now = mapper.camera_poses(), after.camera_poses()
+    moved = [100 * float(np.linalg.norm(now[k][:3, 3] - m[:3, 3])) for k, m in before.items() if k in now]
+    return {**scores.row, 'moved_cm_median': float(np.median(moved)) if moved else float('nan'),
+            'moved_cm_max': float(np.max(moved)) if moved else float('nan'),
+            'loaded_kept': len(moved) / max(len(before), 1)}
 
 
 @dataclass
@@ -465,7 +539,7 @@ def relocalization_scores(mapper, map_bag, query_bag, camera_poses: dict) -> Rel
     truth), the poses not re-aligned; wrong: > 5 deg or > 25 cm; the denominator: the query
     frames that see two objects the map holds."""
     from rfm_core.evaluation.report import frames_seeing_mapped, map_boxes, read_ground_truth  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import GROSS, map_to_truth, trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors  # noqa: PLC0415
 
     keyframes = {mapper.keyframes[k].stamp_ns: m for k, m in mapper.camera_poses().items()}
     alignment = map_to_truth(keyframes, read_ground_truth(map_bag).camera_poses)
@@ -473,7 +547,7 @@ def relocalization_scores(mapper, map_bag, query_bag, camera_poses: dict) -> Rel
     query = read_ground_truth(query_bag)
     truth = query.camera_poses
     estimated = {stamp: world @ pose for stamp, pose in camera_poses.items() if stamp in truth}
-    errors = trajectory_errors(estimated, truth, align=False, gross=GROSS)
+    errors = trajectory_errors(estimated, truth, align=False)
     seeing = frames_seeing_mapped(query, map_boxes(mapper.tracks(), alignment)) & set(truth)
     row = {**errors, 'frames': len(truth), 'seeing_mapped': len(seeing),
            'registered_seeing': len(seeing & set(estimated)) / len(seeing) if seeing else float('nan'),
@@ -481,11 +555,12 @@ def relocalization_scores(mapper, map_bag, query_bag, camera_poses: dict) -> Rel
     return RelocalizationScores(row, estimated, truth, seeing)
 
 
-def relocalization_scene(args) -> dict:
-    """Paper appendix: map one capture of a room, save the map, load it into a fresh
-    mapper, and relocalize every frame of a second capture (another trajectory) of the
-    same room. Returns per-scene relocalized share and median errors."""
-    config, detector, query_frames = args
+def relocalization_scene(args) -> list:
+    """Paper appendix, in-process: map one capture of a room, save the map, load it into a
+    fresh mapper, and relocalize every frame of each query walk (:func:`query_capture` of
+    every kind in ``queries``) of the same room. One row per query walk: relocalized share and
+    median errors."""
+    config, detector, query_frames, queries = args
     import tempfile  # noqa: PLC0415
 
     import torch  # noqa: PLC0415
@@ -499,12 +574,15 @@ def relocalization_scene(args) -> dict:
 
     torch.set_num_threads(1)
     mapped = run_capture(config, detector, matcher=make_matcher('learned'), noise_seed=3)
-    mapper = Mapper(matcher=make_matcher('learned'))
-    with tempfile.TemporaryDirectory() as tmp:
-        load_map(mapper, save_map(mapped.mapper, Path(tmp) / 'map.rfm'))
-    mapper.mode = 'localization'
-    world = map_to_truth(mapper.camera_poses(), mapped.truth)
-    second = Capture(query_capture(config, query_frames))
-    err = relocalize_capture(mapper, world, second, detector, noise_seed=11)
-    return {'scene': f'{config.seed}_{config.room_style}_{config.capture}', **err,
-            'map_registered': mapped.localization['registered']}
+    rows = []
+    for kind in queries:
+        mapper = Mapper(matcher=make_matcher('learned'))
+        with tempfile.TemporaryDirectory() as tmp:
+            load_map(mapper, save_map(mapped.mapper, Path(tmp) / 'map.rfm'))
+        mapper.mode = 'localization'
+        world = map_to_truth(mapper.camera_poses(), mapped.truth)
+        err = relocalize_capture(mapper, world, Capture(query_capture(config, query_frames, kind)), detector,
+                                 noise_seed=11)
+        rows.append({'scene': scene_name(config), 'query': kind, **err,
+                     'map_registered': mapped.localization['registered']})
+    return rows

@@ -84,15 +84,22 @@ def _robust(residual, scale):
     return 1.0 / (1.0 + (np.asarray(residual) / scale) ** 2)
 
 
-def largest_component(nodes: np.ndarray, src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+def largest_component(nodes: np.ndarray, src: np.ndarray, dst: np.ndarray,
+                      reference: np.ndarray | None = None) -> np.ndarray:
     """Mask over ``nodes`` (indices 0..n-1) of the largest connected component of the edges;
-    ties go to the component holding the lowest index."""
+    ties go to the component holding the lowest index. ``reference`` (a mask over the
+    nodes: a loaded map's keyframes): the component holding the most of them, where one
+    holds two or more, whatever its size (a second session does not take the map over)."""
     n = len(nodes)
     if n == 0:
         return np.zeros(0, bool)
     graph = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
     counts = np.bincount(labels)
+    if reference is not None and np.any(reference):
+        held = np.bincount(labels[reference], minlength=len(counts))
+        if held.max() >= 2:
+            counts = np.where(held == held.max(), counts, 0)
     best = np.flatnonzero(counts == counts.max())
     first = min(best, key=lambda lab: np.flatnonzero(labels == lab)[0])
     return labels == first
@@ -389,11 +396,14 @@ def cycle_inconsistent(src, dst, yaw, trans, usable, cfg: AveragingConfig) -> np
     return flagged
 
 
-def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None):
+def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, reference=None,
+               fixed=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
     mask, component mask, and the mask of the edges the cycle check dropped. ``yaw_only``
     edges (the gyroscope's) count in the yaw stage only: they neither place nor connect
-    keyframes."""
+    keyframes. ``reference``: see :func:`largest_component`. ``fixed`` (theta, centres):
+    the reference keyframes' poses (NaN elsewhere), held where they are: the rest grows from
+    and is solved around them."""
     active = np.ones(len(src), bool)
     full = ~yaw_only if yaw_only is not None else np.ones(len(src), bool)
     theta = np.full(n, np.nan)
@@ -407,23 +417,33 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     active &= ~cycle
 
     def component():
-        c = largest_component(np.arange(n), src[active & full], dst[active & full])
+        c = largest_component(np.arange(n), src[active & full], dst[active & full], reference)
         return c, next(k for k in order if c[k])
 
     def gyro(mask):
         u = mask & ~full
         return src[u], dst[u], yaw[u], weight[u]
 
+    held = np.zeros(n, bool) if fixed is None else np.isfinite(fixed[0])
+
+    def start(comp, root):
+        use = active & full & comp[src] & comp[dst]
+        hold = held & comp
+        if not np.any(hold):
+            return _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg,
+                              yaw_edges=gyro(active & comp[src] & comp[dst]))[:2]
+        return _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg,
+                          np.where(hold, fixed[0], np.nan), np.where(hold[:, None], fixed[1], np.nan), hold,
+                          yaw_edges=gyro(active & comp[src] & comp[dst]))[:2]
+
     comp, root = component()
-    use = active & full & comp[src] & comp[dst]
-    theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg,
-                                   yaw_edges=gyro(active & comp[src] & comp[dst]))
+    theta, centres = start(comp, root)
     for stage in ('yaw', 'translation'):
         for _ in range(max(cfg.rounds, 1)):
             use = active & comp[src] & comp[dst]
             if stage == 'translation':
                 use &= full
-            free = comp.copy()
+            free = comp & ~held
             free[root] = False
             if stage == 'yaw':
                 theta = _solve_yaw(np.where(comp, theta, 0.0), src[use], dst[use], yaw[use], weight[use],
@@ -440,9 +460,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
             active &= ~bad
             new_comp, new_root = component()
             if new_root != root:            # the anchor left the component: re-initialise it
-                use = active & full & new_comp[src] & new_comp[dst]
-                theta, centres, _ = _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use],
-                                               new_root, cfg, yaw_edges=gyro(active & new_comp[src] & new_comp[dst]))
+                theta, centres = start(new_comp, new_root)
             comp, root = new_comp, new_root
     theta = np.where(comp, theta, np.nan)
     centres = np.where(comp[:, None], centres, np.nan)
@@ -516,6 +534,7 @@ class IncrementalAverager:
         self._loop_votes = 0
         self.cycle_dropped = 0               # edges the last full solve's cycle check dropped
         self.stats = UpdateStats()
+        self.reference: set = set()          # a loaded map's keyframes: their component stays the map
 
     # ------------------------------------------------------------------ input
 
@@ -620,13 +639,17 @@ class IncrementalAverager:
     def _outgrown(self) -> bool:
         """Whether the keyframes outside the registered component (with edges among
         themselves) outnumber it: then another component may be the largest."""
-        if not len(self.edges):
+        if not len(self.edges) or self._holds_reference():
             return False
         src, dst = self._arrays()[:2]
         src, dst = src[~self.edges.yaw_only], dst[~self.edges.yaw_only]
         linked = np.zeros(len(self.ids), bool)
         linked[src] = linked[dst] = True
         return np.count_nonzero(linked & ~self._registered) > np.count_nonzero(self._registered)
+
+    def _holds_reference(self) -> bool:
+        """Whether the registered component holds keyframes of a loaded map (it stays the map)."""
+        return any(self._registered[self._index[k]] for k in self.reference if k in self._index)
 
     def _solve(self):
         """A full solve, in the previous gauge.
@@ -646,9 +669,14 @@ class IncrementalAverager:
         # anchor: the earliest registered keyframe (by id) keeps the map frame stable
         reg = self._registered[node]
         order = np.r_[np.flatnonzero(reg), np.flatnonzero(~reg)]
+        reference = np.array([k in self.reference for k in ids[node]], bool) if self.reference else None
+        fixed = None
+        if reference is not None:           # held where they are (registered: the loaded map's poses)
+            hold = reference & self._registered[node]
+            fixed = (np.where(hold, self._theta[node], np.nan), np.where(hold[:, None], self._centres[node], np.nan))
         theta, centres, active, comp, cycle = _solve_all(
             len(self.ids), rank[src][edge], rank[dst][edge], yaw[edge], trans[edge], weight[edge], self.config,
-            order, self.edges.yaw_only[edge])
+            order, self.edges.yaw_only[edge], reference, fixed)
         anchor = next((node[k] for k in order if comp[k]), None)
         back = np.empty_like(edge)
         back[edge] = np.arange(len(edge))                    # store index -> canonical position
@@ -695,6 +723,7 @@ class IncrementalAverager:
         anchor = np.flatnonzero(self._registered)
         if len(anchor):
             free[anchor[0]] = False
+        free[[self._index[k] for k in self.reference if k in self._index]] = False     # a loaded map holds
         use = active & registered[src] & registered[dst] & (free[src] | free[dst])
         if not np.any(use):
             self._theta, self._centres, self._registered = theta, centres, registered

@@ -33,6 +33,7 @@ CLOUD_MAX_POINTS = 300_000      #: a map with more is cut into tiles: ...
 CLOUD_TILE_M = 4.0              #: ... squares this wide, each the points of the keyframes whose camera is
 CLOUD_REACH_M = 8.0             #: ... within this of the square (what a camera in it sees)
 CLOUD_CACHE = 4                 #: tiles kept (the latest built)
+FLOOR_KEYFRAMES = 7             #: registered keyframes whose floors make the map's floor under a camera
 
 
 class MapCloud:
@@ -79,6 +80,7 @@ class MapIndex:
         self._cameras = None                    # every registered keyframe's camera (_camera_table)
         self._clouds: dict = {}                 # tile (None: the whole map) -> MapCloud
         self._lifted = None
+        self._floor_table = None                # the registered keyframes' floors (_floors)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -150,6 +152,29 @@ class MapIndex:
                 self._clouds.pop(next(iter(self._clouds)))
             self._clouds[key] = MapCloud([clouds[i] for i in chosen])
         return self._clouds[key]
+
+    def _floors(self):
+        """(k-d tree over the centres of the registered keyframes that measured the floor, the
+        floor's height in the map under each); None with fewer than :data:`FLOOR_KEYFRAMES`."""
+        if self._floor_table is None:
+            ids, centres = self._camera_table()[:2]
+            floors = centres[:, 2] - np.array([self.keyframes[i].camera_height for i in ids], float)
+            known = np.isfinite(floors)
+            self._floor_table = ((cKDTree(centres[known]), floors[known]) if known.sum() >= FLOOR_KEYFRAMES
+                                 else False)
+        return self._floor_table or None
+
+    def floor_under(self, centre) -> float:
+        """The floor's height in the map under a camera at ``centre``: the median over the
+        :data:`FLOOR_KEYFRAMES` registered keyframes nearest it of their camera's height in
+        the map less their measured height above the floor (NaN: too few measured one). One
+        keyframe's floor plane is sometimes another surface (a bed, a seat); the map's floor
+        is what most keyframes around agree on."""
+        table = self._floors()
+        if table is None:
+            return float('nan')
+        tree, floors = table
+        return float(np.median(floors[tree.query(np.asarray(centre, float), k=FLOOR_KEYFRAMES)[1]]))
 
     def nearest_keyframe(self, centre) -> int | None:
         """The registered keyframe whose camera is nearest ``centre``."""

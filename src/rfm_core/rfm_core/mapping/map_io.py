@@ -364,7 +364,8 @@ def _parse_map(path: Path, data: dict) -> dict:
 def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
     """Replace the mapper's map with the one in ``path`` (validated first: on error the
     mapper is untouched). The saved poses and edge decisions are restored as they were;
-    new keyframes continue from them. With ``use_config`` the mapper takes the file's
+    new keyframes continue from them, in its frame (:attr:`IncrementalAverager.reference`: a
+    second session's keyframes join it, never the other way round). With ``use_config`` the mapper takes the file's
     configuration (the one that built the map), when the file has one. Returns the file
     header."""
     content = read_map(path)
@@ -382,6 +383,8 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
         raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
     fresh.origins = content['origins']
     fresh.merged, fresh.carried = content['merged'], content['carried']
+    fresh.averager.reference = set(content['poses'])      # the loaded map stays the map (a second session joins it)
+    fresh._cull_due = set()                                # its keyframes are as they were saved
     fresh.revision = content['header'].get('revision', 0) + 1
     fresh.mode = mapper.mode
     mapper.__dict__.update(fresh.__dict__)

@@ -106,6 +106,7 @@ class Mapper:
         self._cull_due: set = set()          # keyframes new edges touched since the last culling pass
         self.carried: dict = {}              # (keyframe, detection) -> views of culled keyframes it stands for
         self.streamed: set = set()           # keyframes that frames of a stream were tracked against
+        self._reference_index = (None, None)  # (the loaded map's keyframes, their MapIndex): reference_index
 
     # ------------------------------------------------------------------ input
 
@@ -316,8 +317,15 @@ class Mapper:
         if self.mode != 'mapping' or not poses:
             return False
         added = False
-        for edge in self.recovery.edges(self.keyframes, poses, self._newest_stamp_ns, self.map_index, self._gyro_yaw,
-                                        self.config.relocalization, self.config.matching):
+        found = self.recovery.edges(self.keyframes, poses, self._newest_stamp_ns, self.map_index, self._gyro_yaw,
+                                    self.config.relocalization, self.config.matching)
+        if self.averager.reference:             # a loaded map: keyframes of this session join it
+            index = self.reference_index()
+            found += self.recovery.joining_edges(
+                self.keyframes, poses, self.edges, self._newest_stamp_ns,
+                lambda obs: relocalize(obs, index, self.matcher, self.config.relocalization, self.config.matching,
+                                       self.config.averaging), self.config.relocalization, self.averager.reference)
+        for edge in found:
             if self.add_edge(edge):
                 self.recovered.append(edge)
                 added = True
@@ -325,13 +333,14 @@ class Mapper:
 
     def _cull(self) -> bool:
         """Keyframe culling (:mod:`rfm_core.mapping.culling`): each redundant keyframe of a
-        stream that new edges touched since the last pass is merged into a neighbour
-        (:meth:`_merge`); True when one was."""
+        stream that new edges touched since the last pass (not a loaded map's) is merged into a
+        neighbour (:meth:`_merge`); True when one was."""
         cfg = self.config.culling
         poses = self.averager.poses
         if self.mode != 'mapping' or self.config.posed or len(poses) <= cfg.keep_newest + 1:
             return False
-        protected = protected_keyframes(self.keyframes, poses, self._newest_stamp_ns, cfg)
+        # a loaded map's keyframes stay as they were saved: a new session's are culled against them
+        protected = protected_keyframes(self.keyframes, poses, self._newest_stamp_ns, cfg) | self.averager.reference
         due = sorted((self._cull_due & set(poses) & self.streamed) - protected, reverse=True)
         self._cull_due &= protected
         if not due:
@@ -370,7 +379,10 @@ class Mapper:
             self.recovery.tried.pop(k, None)
             self.frames.merge(k, m.stamp_ns, m.into, self.keyframes[m.into].stamp_ns, m.pose)
         self.edges, self._pairs, self._averaged, self._edges_to = {}, {}, {}, {}
+        reference = self.averager.reference    # a loaded map's keyframes, and those they were culled into
         self.averager = IncrementalAverager(self.config.averaging)
+        self.averager.reference = {k for k in reference if k in self.keyframes} | {
+            m.into for k, m in culled.items() if k in reference}
         ids = sorted(self.keyframes)
         for i, k in enumerate(ids):
             self.averager.add_keyframe(k)
@@ -461,6 +473,20 @@ class Mapper:
         """The map changed: its tracks and index are rebuilt when next needed."""
         self._tracks = None
         self._index = None
+
+    def reference_index(self) -> MapIndex:
+        """The loaded map alone (:attr:`IncrementalAverager.reference`: its keyframes are held
+        where they were saved), indexed for relocalization; built once per reference."""
+        reference = frozenset(k for k in self.averager.reference if k in self.keyframes)
+        if self._reference_index[0] != reference:
+            poses = {k: p for k, p in self.poses.items() if k in reference}
+            keyframes = {k: self.keyframes[k] for k in poses}
+            matches = [(e.source, int(ia), e.target, int(ib)) for e in self.active_edges()
+                       if e.source in poses and e.target in poses for ia, ib in e.inliers]
+            tracks = build_tracks(keyframes, poses, matches, self.config.tracks,
+                                  {key: n for key, n in self.carried.items() if key[0] in poses})
+            self._reference_index = (reference, MapIndex(keyframes, poses, self._descriptors, tracks))
+        return self._reference_index[1]
 
     def map_index(self) -> MapIndex:
         """The current map indexed for relocalization (cached until the map changes)."""

@@ -11,12 +11,27 @@ accepted`) gives the edge that joins it. Not before something newer: the keyfram
 edges come just after it on another topic, and matching it first made the map depend on the
 messages' timing. A keyframe the gyroscope does not link to the map (another integration
 epoch: separate photos, no IMU) is not tried: box pairs alone propose wrong yaws.
+
+**Joining another session.** A keyframe of another session (a loaded map's keyframes have
+no gyroscope readings, and a new session's gyroscope is not the old one's) is placed
+instead as a relocalization query is (:func:`~rfm_core.mapping.relocalization.relocalize`:
+keyframes voting, the pose verified against the whole map), once; it joins only when
+another keyframe of its component was placed too and the two placements agree with the
+session's own relative pose between them (its edges composed; within ``distinct_m`` /
+``distinct_deg``), as a localization stream confirms a pose by a later frame: one
+look-alike placement is common, two that agree with the session's own edges are not. Each
+placement that agrees with another of its session's (also after the session joined) gets
+the edge from the map keyframe that placed it, so many placements average out the errors of
+the first two.
 """
 from __future__ import annotations
 
 from typing import Callable
 
-from rfm_core.mapping.relocalization import MapIndex, RelocalizationConfig, match_to_map
+import numpy as np
+
+from rfm_core.geometry import Pose4
+from rfm_core.mapping.relocalization import MapIndex, Relocalization, RelocalizationConfig, match_to_map
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import Edge
 from rfm_core.observations import EdgeRecord, FrameObservations
@@ -29,6 +44,8 @@ class TrackingRecovery:
 
     def __init__(self):
         self.tried: dict = {}                # keyframe id -> registered keyframes when it was last matched
+        self.placed: dict = {}               # another session's keyframe id -> its Relocalization (None: none)
+        self.joined: set = set()             # ... those whose placement became an edge
 
     @staticmethod
     def recoverable(obs: FrameObservations, config: RelocalizationConfig) -> bool:
@@ -62,3 +79,62 @@ class TrackingRecovery:
             if match is not None and match.accepted(config):
                 found.append(EdgeRecord.from_edge(Edge(match.keyframe_id, k, match.relative)))
         return found
+
+    def joining_edges(self, keyframes: dict, poses: dict, edges: dict, newest_stamp_ns: int,
+                      relocalize: Callable[[FrameObservations], Relocalization | None],
+                      config: RelocalizationConfig, reference: set) -> list:
+        """The edges that join keyframes of another session to the map, ``reference`` (the
+        loaded map's keyframes), see the module: ``edges`` the map's {(source, target):
+        EdgeRecord} (T_source_target), ``relocalize`` a keyframe's placement in the registered
+        map (or None). Every placement that agrees with another of its session's gets its
+        edge, also once the session has joined: each adds evidence, so the first two
+        placements' errors do not carry the whole session."""
+        for k, obs in keyframes.items():
+            if (k not in reference and k not in self.placed and self.recoverable(obs, config)
+                    and obs.stamp_ns < newest_stamp_ns):
+                found = relocalize(obs)
+                self.placed[k] = found if found is not None and found.num_inliers >= config.recovery_min_inliers \
+                    else None
+        placed = [k for k, found in self.placed.items() if found is not None and k in keyframes]
+        out = []
+        for a in placed:
+            if a in self.joined:
+                continue
+            chain = _session_frame(a, edges, reference)            # T_k_a of a's session
+            for b in placed:
+                if b == a or b not in chain:
+                    continue
+                predicted = chain[b] @ self.placed[a].pose         # T_b_map = T_b_a T_a_map
+                if (predicted @ self.placed[b].pose.inverse()).within(config.distinct_m, config.distinct_deg):
+                    self.joined.add(a)
+                    out.append(_edge_from(self.placed[a], a, poses))
+                    break
+        return out
+
+
+def _session_frame(a: int, edges: dict, reference: set) -> dict:
+    """{k: T_k_a} of the keyframes of ``a``'s session (outside ``reference``) that ``edges``
+    ({(source, target): EdgeRecord}, T_source_target) link to ``a``, composed along a
+    breadth-first tree."""
+    out, frontier = {a: Pose4(0.0, (0.0, 0.0, 0.0))}, [a]
+    links: dict = {}
+    for (s, t), edge in edges.items():
+        if s not in reference and t not in reference:
+            links.setdefault(s, []).append((t, edge.pose.inverse()))            # T_t_s
+            links.setdefault(t, []).append((s, edge.pose))                      # T_s_t
+    while frontier:
+        k = frontier.pop(0)
+        for j, t_j_k in links.get(k, ()):
+            if j not in out:
+                out[j] = t_j_k @ out[k]                                         # T_j_a = T_j_k T_k_a
+                frontier.append(j)
+    return out
+
+
+def _edge_from(found: Relocalization, k: int, poses: dict) -> EdgeRecord:
+    """The edge from the map keyframe that placed keyframe ``k`` to it: T_m_k = T_m_map T_k_map^-1,
+    its inliers as (map keyframe, k) detection pairs."""
+    m = found.keyframe_id
+    inliers = np.asarray(found.inliers, int).reshape(-1, 2)[:, ::-1]
+    return EdgeRecord(m, k, poses[m] @ found.pose.inverse(), inliers, np.ones(len(inliers)),
+                      np.zeros((0, 5)), 1.0)

@@ -196,8 +196,45 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
     # the floor, walls and depth points again on the final pose: the refit on the tracks' centres moves it
     final = replace(rel, pose=poses[k] @ pose.inverse())                         # T_k_query
     pose = _with_surfaces(final, keyframes[k], query, matching).pose.inverse() @ poses[k]
+    pose = on_map_points(query, pose, index, matching, need)
     return Relocalization(pose, k, len(rel.inliers), rel.inliers, len(candidates), support_, len(members), count,
                           runner_up)
+
+
+def on_map_points(query: FrameObservations, pose: Pose4, index: MapIndex, matching: MatchingConfig,
+                  explains: int) -> Pose4:
+    """``pose`` (T_query_map) refined on the query's depth points aligned to the map's (every
+    registered keyframe's, merged: :meth:`MapIndex.cloud_near`): from the pose, and from it
+    at the height the query's floor gives it above the map's (:meth:`MapIndex.floor_under`)
+    where that differs; the alignment that fixes every direction and puts the most points on
+    the map's surfaces is kept where it moves the pose by at most ``point_max_correction_m`` /
+    ``_deg`` and still explains ``explains`` of the query's detections in the map (what a pose
+    needs to be accepted). Partial
+    boxes of furniture made of parts place a view decimetres off (along the furniture, or up
+    where a part's box was cut at a seat taken for the floor); the room's surfaces do not."""
+    if not len(query.cloud):
+        return pose
+    t_map_view = pose.inverse()
+    starts = [t_map_view]
+    floor = index.floor_under(t_map_view.t)
+    if np.isfinite(floor) and np.isfinite(query.camera_height):
+        level = np.array(t_map_view.t, float)
+        level[2] = floor + query.camera_height
+        if abs(level[2] - t_map_view.t[2]) > matching.point_match_m:
+            starts.append(Pose4(t_map_view.yaw, level))
+    cloud = index.cloud_near(t_map_view.t)
+    best = None
+    for start in starts:
+        a = track_on_points(start, cloud, query, matching)
+        if (a is None or a.free or np.linalg.norm(a.pose.t - t_map_view.t) > matching.point_max_correction_m
+                or np.degrees(abs(a.pose.angle_to(t_map_view))) > matching.point_max_correction_deg):
+            continue
+        if best is None or a.overlap > best.overlap:
+            best = a
+    if best is None:
+        return pose
+    refined = best.pose.inverse()
+    return refined if explained(query, refined, index, matching) >= explains else pose
 
 
 def _needed(config: RelocalizationConfig, detections: int) -> int:

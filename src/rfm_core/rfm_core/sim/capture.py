@@ -58,7 +58,7 @@ class CaptureConfig:
 
     seed: int = 0
     room_style: str = 'plain'             #: plain | textured (rfm_core.sim.room.STYLES)
-    capture: str = 'handheld'             #: handheld | sparse | orbit
+    capture: str = 'handheld'             #: one of sim.trajectory.CAPTURE_STYLES
     frames: int = 100
     fps: float = 30.0                     #: frame rate of handheld / orbit captures
     width: int = 320
@@ -74,6 +74,7 @@ class CaptureConfig:
     sparse_gap_s: tuple = (1.0, 1.0)      #: seconds between sparse views (a range: irregular photos)
     furniture: str = 'boxes'              #: boxes | parts (tables on legs, open shelves, ...: sim.furniture)
     clutter: bool = False                 #: rugs, pictures, door frames, radiators, cables (no ground truth)
+    start_s: float = 0.0                  #: bag time of the first frame after START_NS (a later session)
 
     def __post_init__(self):
         if self.room_style not in STYLES:
@@ -104,7 +105,7 @@ class CaptureConfig:
             if d['noise'][key] == asdict(NoiseModel())[key]:
                 del d['noise'][key]
         for key, default in (('trajectory_seed', -1), ('furniture', 'boxes'), ('clutter', False),
-                             ('camera_height', ()), ('sparse_gap_s', (1.0, 1.0))):
+                             ('camera_height', ()), ('sparse_gap_s', (1.0, 1.0)), ('start_s', 0.0)):
             value = tuple(d[key]) if isinstance(d[key], list) else d[key]
             if value == default:              # defaults left out: older bags stay identical
                 del d[key]
@@ -174,7 +175,7 @@ class Capture:
         self._imu_seed = int(seeds[3].generate_state(1)[0])
 
     def stamp_ns(self, t: float) -> int:
-        return START_NS + int(round(t * 1e9))
+        return START_NS + int(round((self.config.start_s + t) * 1e9))
 
     def frames(self, indices=None) -> Iterator[SimFrame]:
         """Render every frame in order, or only those at ``indices`` (faster; their sensor

@@ -8,7 +8,10 @@ Styles (paper: CA-1M is handheld video, ScanNet++ DSLR captures are scattered):
   in random order: not a smooth path;
 - ``orbit``: a circle around the room's center, looking at the center;
 - ``robot``: a level camera low on a robot base (0.25-0.45 m) driving a smooth loop at
-  about 0.3 m/s, looking along its path with a slow look-around, no pitch or roll.
+  about 0.3 m/s, looking along its path with a slow look-around, no pitch or roll;
+- ``outward``: a handheld walk on a small loop near the room's centre, looking out at the
+  walls and the furniture along them (the other direction from ``handheld``'s look across
+  the room: a second session, or relocalization queries from the other side of the objects).
 
 Poses are camera-to-map: ``rotation`` maps the camera optical frame (x right, y down,
 z forward) to the map frame (z up). Everything is deterministic for a seed.
@@ -25,7 +28,7 @@ from rfm_core.sim.room import Room
 __all__ = ['CAPTURE_STYLES', 'Trajectory', 'ImuSamples', 'make_trajectory', 'imu_samples',
            'look_rotation']
 
-CAPTURE_STYLES = ('handheld', 'sparse', 'orbit', 'robot')
+CAPTURE_STYLES = ('handheld', 'sparse', 'orbit', 'robot', 'outward')
 GRAVITY = 9.80665
 
 
@@ -86,6 +89,17 @@ class _HandheldPath:
         if height is not None:                    # another height range (from a stream of its own)
             self.height = np.random.default_rng([self.noise_rng_seed, 1]).uniform(*height)
         self.level = level                        # a robot's camera: no pitch, roll or bobbing
+        self.outward = False
+
+    def look_out(self, room: Room) -> '_HandheldPath':
+        """This walk on a loop near the room's centre, looking out (``outward``)."""
+        orng = np.random.default_rng([self.noise_rng_seed, 2])
+        self.radii = orng.uniform(0.3, 0.7) * np.minimum(self.radii, 1.0)
+        self.perimeter = 2 * np.pi * self.radii.mean()
+        self.omega = 0.25 / self.radii.mean()       # a slow walk: 0.25 m/s
+        self.reach = np.array([room.size[0] / 2 - 0.3, room.size[1] / 2 - 0.3])
+        self.outward = True
+        return self
 
     def _wave(self, i, t, amplitude, freqs=(0.11, 0.23, 0.47)):
         return amplitude * sum(np.sin(2 * np.pi * f * t + p)
@@ -103,8 +117,10 @@ class _HandheldPath:
             forward = np.stack([np.cos(heading), np.sin(heading), np.zeros_like(heading)], -1)
             rotations = np.stack([look_rotation(f) for f in np.atleast_2d(forward)])
             return rotations, np.atleast_2d(position)
-        # Look across the room: towards a point ahead of and opposite to the walker.
-        ahead = a + self.direction * (np.pi * self.target_offset + self._wave(2, t, 0.6))
+        # Look across the room: towards a point ahead of and opposite to the walker; or out, at the
+        # walls beyond the walker.
+        ahead = a + (self.direction * (self._wave(2, t, 0.6) + 0.4 * (self.target_offset - 0.5)) if self.outward
+                     else self.direction * (np.pi * self.target_offset + self._wave(2, t, 0.6)))
         target_xy = self.center + self.reach * np.stack([np.cos(ahead), np.sin(ahead)], -1)
         target_z = 0.6 + self._wave(3, t, 0.3)
         forward = np.concatenate([target_xy, target_z[..., None]], -1) - position
@@ -184,6 +200,8 @@ def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
     for _attempt in range(30):
         path = _HandheldPath(room, rng, speed=0.3 if robot else 0.35,
                              height=(0.25, 0.45) if robot and height is None else height, level=robot)
+        if style == 'outward':
+            path.look_out(room)
         rotations, positions = path.pose(times)
         clearance = next((m for m in (0.6, 0.15) if not any(
             room.contains_camera(p, margin=m) for p in positions)), 0.0)
