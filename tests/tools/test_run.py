@@ -325,16 +325,22 @@ def test_camera_sized_messages_all_reach_the_detector(tmp_path):
 def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
     """The appendix protocol as a user runs it (`rfm eval-reloc`'s graph path): `rfm run`
     maps a walk around a room, then `rfm run` replays another walk through it with that map
-    loaded in localization mode; the camera poses it publishes are right in the world."""
+    loaded in localization mode; the camera poses it publishes are right in the world. A
+    third `rfm run` maps a walk looking out as a second session on the loaded map."""
     import os  # noqa: PLC0415
     import random  # noqa: PLC0415
 
     from rfm_core.evaluation.suite import relocalization_scene_graph  # noqa: PLC0415
     config = CaptureConfig(seed=41, frames=60, fps=5, capture='handheld')
-    [result] = relocalization_scene_graph((config, 'ground_truth:rgbd', 12, tmp_path,
-                                           int(os.environ.get('ROS_DOMAIN_ID', random.randint(100, 200))), (),
-                                           ('handheld',)))
+    result, session = relocalization_scene_graph((config, 'ground_truth:rgbd', 12, tmp_path,
+                                                  int(os.environ.get('ROS_DOMAIN_ID', random.randint(100, 200))),
+                                                  (), ('handheld', 'session')))
     assert result['query'] == 'handheld' and result['gross'] == round(result['wrong'] * 12 * result['registered'])
+    # the outward walk mapped as a second session on the loaded map: placed in its frame, the
+    # loaded keyframes held where they were saved
+    assert 'error' not in session and session['query'] == 'session', session
+    assert session['registered'] >= 0.5 and session['gross'] == 0 and session['ATE_median'] < 0.10, session
+    assert session['moved_cm_max'] < 0.5 and session['loaded_kept'] == 1.0, session
     assert 'error' not in result, result
     assert result['map_registered'] >= 0.9 and result['frames'] == 12, result
     assert result['registered'] >= 0.6 and result['wrong'] <= 0.1, result
