@@ -5,6 +5,7 @@ import subprocess
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 rclpy = pytest.importorskip('rclpy')
@@ -113,6 +114,47 @@ def test_play_remaps_filters_and_rate(small_bag):
     assert TOPICS['depth'] not in seen_topics and TOPICS['color'] not in seen_topics
     assert elapsed < 3 + 1.9 / 4 + 20         # 1.9 s of bag at 4x, plus start-up (slow when loaded)
     assert arrival[-1] - arrival[0] < 1.2     # 1.9 s of images at 4x: ~0.5 s (1.9 s at 1x)
+
+
+@pytest.mark.slow
+def test_paced_play_waits_for_each_image_to_be_answered(small_bag):
+    """`rfm play --pace` (`rfm run --paced`): each colour image is published only once the one
+    before it is answered (a FrameDetections with its stamp), so a slow consumer loses none
+    even at a rate far above what it takes. A consumer that answers 0.3 s after each image:
+    the 20 images, 0.1 s apart in the bag, come at least 0.3 s apart at 50x, and each after
+    the answer to the one before."""
+    from rfm_msgs.msg import FrameDetections
+    from sensor_msgs.msg import Image
+    rclpy.init()
+    node = Node('rfm_pace_test')
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    answers = node.create_publisher(FrameDetections, '/test/answers', reliable)
+    arrival, answered, pending = [], [], []
+
+    def on_image(msg):
+        arrival.append(time.monotonic())
+        pending.append((time.monotonic() + 0.3, msg.header.stamp))
+
+    def answer():
+        while pending and pending[0][0] <= time.monotonic():
+            _, stamp = pending.pop(0)
+            out = FrameDetections()
+            out.header.stamp = stamp
+            answers.publish(out)
+            answered.append(time.monotonic())
+    node.create_subscription(Image, TOPICS['color'], on_image, reliable)
+    node.create_timer(0.01, answer)
+    try:
+        play_bag(node, small_bag, '--rate', '50', '--topics', TOPICS['color'], '--wait-for', TOPICS['color'],
+                 '--pace', TOPICS['color'], '/test/answers', drain=1.0)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    assert len(arrival) == 20
+    gaps = np.diff(arrival)
+    assert gaps.min() >= 0.28, gaps                  # each waited for the answer before it (0.3 s)
+    assert all(a >= b - 0.02 for a, b in zip(arrival[1:], answered))      # ... after it, not before
+    assert arrival[-1] - arrival[0] < 19 * 0.3 + 3.0  # and no longer: 1.9 s of bag at 50x is 0.04 s
 
 
 def test_the_recorder_stops_a_topic_at_its_size_cap(tmp_path):

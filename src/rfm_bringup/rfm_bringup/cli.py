@@ -169,10 +169,15 @@ def cmd_play(args) -> int:
             raise SystemExit(f"rfm: --remap takes FROM:=TO, got '{item}'")
         old, new = item.split(':=', 1)
         remaps[old] = new
-    options = PlayOptions(rate=args.rate, start_offset=args.start_offset, loop=args.loop,
-                          topics=args.topics or [], remaps=remaps, clock=not args.no_clock, clock_hz=args.clock_hz,
-                          delay=args.delay, wait_for=args.wait_for or [],
-                          progress=None if not args.quiet else False)
+    pace, answer = args.pace or (None, None)
+    try:
+        options = PlayOptions(rate=args.rate, start_offset=args.start_offset, loop=args.loop,
+                              topics=args.topics or [], remaps=remaps, clock=not args.no_clock,
+                              clock_hz=args.clock_hz, delay=args.delay, wait_for=args.wait_for or [],
+                              progress=None if not args.quiet else False, pace_topic=pace or '',
+                              answer_topic=answer or '')
+    except ValueError as exc:
+        raise SystemExit(f'rfm play: {exc}') from None
     if not Path(args.bag).exists():
         raise SystemExit(f'rfm: no bag at {args.bag}')
     rclpy.init()
@@ -493,7 +498,10 @@ def cmd_eval_reloc(args) -> int:
     configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps, world=args.world, capture='handheld')
     queries = tuple(dict.fromkeys(args.queries))
     temporary = None
-    if args.offline:
+    if args.offline:                            # the second session is a graph protocol (rfm run on a loaded map)
+        queries = tuple(k for k in queries if k != 'session')
+        if not queries:
+            raise SystemExit('rfm eval-reloc: --offline runs the query walks only (handheld, outward)')
         scene_fn, work = relocalization_scene, [(c, args.detector, args.query_frames, queries) for c in configs]
     else:
         temporary = tempfile.TemporaryDirectory(prefix='rfm-eval-reloc-') if args.work is None else None
@@ -546,9 +554,11 @@ def cmd_eval_reloc(args) -> int:
 
 def reloc_table_row(kind: str, rows: list) -> str:
     """One query walk's row of ``rfm eval-reloc``'s table, pooled over its rooms."""
+    def median(key):                            # NaN (no warning) where no room placed a frame
+        values = np.array([r[key] for r in rows], float)
+        return float(np.median(values[np.isfinite(values)])) if np.isfinite(values).any() else float('nan')
     reg = float(np.mean([r['registered'] for r in rows]))
-    are = float(np.nanmedian([r['ARE_median'] for r in rows]))
-    ate = float(np.nanmedian([r['ATE_median'] for r in rows]))
+    are, ate = median('ARE_median'), median('ATE_median')
     relocalized = int(round(sum(r['registered'] * r['frames'] for r in rows)))
     gross = int(sum(r.get('gross', 0) for r in rows))
     seeing = np.array([r.get('seeing_mapped', 0) for r in rows], float)
@@ -677,6 +687,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help='before playing, wait (up to 30 s) until each of these bag topics has a subscriber')
     p.add_argument('--delay', type=float, default=0.0,
                    help='seconds to wait before playing (lets subscribers connect)')
+    p.add_argument('--pace', nargs=2, metavar=('TOPIC', 'ANSWER'),
+                   help='publish each TOPIC message (bag topic) only once the one before it is answered on ANSWER '
+                        '(an rfm_msgs/FrameDetections stamped as it, e.g. /rfm/detections), at most 3 s later; '
+                        '--rate is then an upper bound')
     p.add_argument('--quiet', action='store_true', help='no progress line')
     p.set_defaults(func=cmd_play)
 
@@ -853,7 +867,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--processes', action=argparse.BooleanOptionalAction, default=True,
                    help='the nodes as three processes over DDS (the default: no node waits for another\'s '
                         'interpreter lock); --no-processes: all in this process (one interpreter, less memory)')
-    p.add_argument('--rate', type=float, default=1.0, help='bag playback speed')
+    p.add_argument('--rate', type=float, help='bag playback speed (default 1; with --paced, 8: an upper bound)')
+    p.add_argument('--paced', action='store_true',
+                   help='as fast as the graph takes it: each colour image played once the detector answered the '
+                        'one before (a photo collection, or a bag on a slow machine: no view lost to a busy '
+                        'detector); --rate bounds it')
     p.add_argument('--remap', nargs='+', metavar='FROM:=TO',
                    help='detector input remaps (defaults: RealSense-style /camera/... and /imu/data)')
     p.add_argument('--param', nargs='+', metavar='NODE.NAME:=VALUE',

@@ -4,6 +4,12 @@ Like ``ros2 bag play`` (which the PyPI wheels lack): messages are published as t
 stored in the bag, with the QoS they were recorded with (latched topics stay
 transient-local), optionally faster or slower, from an offset, looped, filtered and
 remapped, while ``/clock`` carries the bag time so nodes can run with ``use_sim_time``.
+
+Paced (``pace_topic`` and ``answer_topic``): a message of ``pace_topic`` (a camera's colour
+images) is published only once the one before it is answered on ``answer_topic`` (a
+``header`` with its stamp or a later one: the detector's ``rfm/detections``), or
+``pace_timeout`` has passed; the bag's timeline waits with it. A photo collection then goes
+through as fast as the graph takes it (``rate`` the upper bound), none lost to a busy detector.
 """
 from __future__ import annotations
 
@@ -51,12 +57,18 @@ class PlayOptions:
     wait_for: list = field(default_factory=list)  #: bag topics that need a subscriber first
     wait_timeout: float = 30.0        #: ... waited for at most this long (s)
     progress: bool | None = None      #: status line on stderr (default: if a terminal)
+    pace_topic: str = ''              #: bag topic whose messages wait for the previous one's answer
+    answer_topic: str = ''            #: ... answered here (a message type in rfm_msgs with a header) ...
+    answer_type: str = 'rfm_msgs/msg/FrameDetections'
+    pace_timeout: float = 3.0         #: ... or after this long (s: a frame the detector refused)
 
     def __post_init__(self):
         if self.rate <= 0:
             raise ValueError('rate must be > 0')
         if self.start_offset < 0 or self.delay < 0:
             raise ValueError('start offset and delay must be >= 0')
+        if bool(self.pace_topic) != bool(self.answer_topic):
+            raise ValueError('pacing needs both a topic to pace and a topic that answers it')
 
 
 class BagPlayer(Node):
@@ -96,9 +108,28 @@ class BagPlayer(Node):
             self._clock_type = Clock
             self._clock_pub = self.create_publisher(
                 Clock, '/clock', QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE))
+        self._answered = -1                     # the newest stamp answered on answer_topic (ns)
+        if self.options.answer_topic:
+            self.create_subscription(ros_message_class(self.options.answer_type), self.options.answer_topic,
+                                     self._on_answer, QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE))
         self.get_logger().info(
             f'playing {path}: {len(self._topics)} topics, '
-            f'{(self.end_ns - self.start_ns) / 1e9:.1f} s at {self.options.rate}x')
+            f'{(self.end_ns - self.start_ns) / 1e9:.1f} s at {self.options.rate}x'
+            + (f', each {self.options.pace_topic} message after the last one\'s answer on '
+               f'{self.options.answer_topic}' if self.options.pace_topic else ''))
+
+    def _on_answer(self, msg) -> None:
+        stamp = msg.header.stamp
+        self._answered = max(self._answered, stamp.sec * 1_000_000_000 + stamp.nanosec)
+
+    def _await_answer(self, stamp_ns: int) -> float:
+        """Until the message stamped ``stamp_ns`` is answered, at most ``pace_timeout``; the
+        seconds waited."""
+        import rclpy  # noqa: PLC0415
+        start = time.monotonic()
+        while self._answered < stamp_ns and time.monotonic() - start < self.options.pace_timeout:
+            rclpy.spin_once(self, timeout_sec=0.005)
+        return time.monotonic() - start
 
     def _publish_clock(self, bag_ns: int) -> None:
         if self._clock_pub is not None:
@@ -132,12 +163,16 @@ class BagPlayer(Node):
             last_clock = 0.0
             last_progress = 0.0
             last_stamp = None
+            outstanding = None                  # the paced message waiting for its answer (its stamp)
             with self._reader_type([self.path]) as reader:
                 conns = [c for c in reader.connections if c.topic in self._topics]
                 if not conns:                  # nothing playable (an empty list reads every topic)
                     self.get_logger().warning(f'{self.path}: no topic to play')
                     break
                 for conn, stamp, raw in reader.messages(connections=conns, start=first):
+                    paced = conn.topic == opts.pace_topic
+                    if paced and outstanding is not None:
+                        wall0 += self._await_answer(outstanding)     # the bag's timeline waits too
                     target = wall0 + (stamp - first) / 1e9 / opts.rate
                     while True:
                         now = time.monotonic()
@@ -154,6 +189,8 @@ class BagPlayer(Node):
                     last_stamp = stamp
                     self._bag_publishers[conn.topic].publish(bytes(raw))
                     self.published[opts.remaps.get(conn.topic, conn.topic)] += 1
+                    if paced:
+                        outstanding = _header_stamp(raw, conn.msgtype, reader) or stamp
                     if show and now - last_progress > 0.5:
                         last_progress = now
                         done = (stamp - first) / duration
@@ -184,3 +221,12 @@ class BagPlayer(Node):
                 publisher.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
             except Exception:  # noqa: BLE001 - best effort (e.g. a best-effort publisher)
                 pass
+
+
+def _header_stamp(raw, msgtype: str, reader) -> int | None:
+    """The header stamp (ns) of a bag message (what an answer carries), None without one."""
+    try:
+        msg = reader.deserialize(raw, msgtype)
+        return int(msg.header.stamp.sec) * 1_000_000_000 + int(msg.header.stamp.nanosec)
+    except (AttributeError, ValueError, TypeError, KeyError):
+        return None

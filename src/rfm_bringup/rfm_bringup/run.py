@@ -36,6 +36,7 @@ BAG_REMAPS = {'rgb/image': CAMERA_TOPICS['color'], 'rgb/camera_info': CAMERA_TOP
 # A live run keeps the first LIVE_DETECTIONS_MB of rfm/detections (each carries the frame's depth
 # points, 12-30 kB: half a megabyte a second at 30 Hz); the rest of the outputs are small.
 LIVE_DETECTIONS_MB = 1000
+PACED_RATE = 8.0                #: rfm run --paced: the bag's speed at most (faster, the IMU between photos comes in bursts the transport drops)
 OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames',
                  '/rfm/keyframe_poses', '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map',
                  '/rfm/object_markers', '/rfm/status', '/rfm/detection_markers', '/tf', '/tf_static']
@@ -443,8 +444,11 @@ def run_graph(args) -> int:
             rfm = shutil.which('rfm') or sys.argv[0]
             # /clock only stamps status and diagnostics here (the nodes' timers that pace work run on
             # a steady clock): 10 Hz instead of 40 spares each node 30 wake-ups a second
-            cmd = [rfm, 'play', str(bag), '--delay', '0.5', '--quiet', '--rate', str(args.rate), '--clock-hz', '10',
+            rate = args.rate if args.rate is not None else (PACED_RATE if args.paced else 1.0)
+            cmd = [rfm, 'play', str(bag), '--delay', '0.5', '--quiet', '--rate', str(rate), '--clock-hz', '10',
                    '--wait-for', *_detector_inputs(args.backend, remaps)]
+            if args.paced:                      # each colour image once the detector answered the one before
+                cmd += ['--pace', _detector_inputs(args.backend, remaps)[0], '/rfm/detections']
             if args.posed:
                 cmd += ['--remap', '/ground_truth/camera_pose:=/rfm/external_pose']
             player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
