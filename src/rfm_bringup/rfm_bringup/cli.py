@@ -546,8 +546,9 @@ def cmd_eval_reloc(args) -> int:
         print(reloc_table_row(kind, [r for r in rows if r['query'] == kind]))
     sessions = [r for r in rows if r['query'] == 'session' and np.isfinite(r.get('moved_cm_max', np.nan))]
     if sessions:
-        print(f"\nsecond session: the loaded map's keyframes moved {np.median([r['moved_cm_median'] for r in sessions]):.1f}"
-              f" cm (median of rooms' medians), at most {max(r['moved_cm_max'] for r in sessions):.1f} cm; "
+        moved = np.median([r['moved_cm_median'] for r in sessions])
+        print(f"\nsecond session: the loaded map's keyframes moved {moved:.1f} cm (median of rooms' medians), "
+              f"at most {max(r['moved_cm_max'] for r in sessions):.1f} cm; "
               f"{100 * np.mean([r['loaded_kept'] for r in sessions]):.0f}% of them kept in the saved map")
     return 0
 
@@ -567,7 +568,8 @@ def reloc_table_row(kind: str, rows: list) -> str:
     latency = np.array([r.get('latency_ms', np.nan) for r in rows], float)
     latency = float(np.median(latency[np.isfinite(latency)])) if np.isfinite(latency).any() else float('nan')
     return (f'| {kind} | {len(rows)} | {100 * reg:.1f}% | {seeing_share} ({int(seeing.sum())} frames) | {are:.2f} '
-            f'| {100 * ate:.1f} | {gross} of {relocalized} ({100 * gross / max(relocalized, 1):.1f}%) | {latency:.0f} |')
+            f'| {100 * ate:.1f} | {gross} of {relocalized} ({100 * gross / max(relocalized, 1):.1f}%) '
+            f'| {latency:.0f} |')
 
 
 def cmd_replay(args) -> int:
@@ -660,7 +662,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--style', choices=('plain', 'textured'), default='plain',
                    help='plain-painted (default) or textured room')
     p.add_argument('--capture', choices=('handheld', 'sparse', 'orbit', 'robot', 'outward'), default='handheld',
-                   help='handheld walk, sparse photos, orbit, robot (a low, level camera on a base), or outward (a walk near the centre looking out)')
+                   help='handheld walk, sparse photos, orbit, robot (a low, level camera on a base), or outward '
+                        '(a walk near the centre looking out)')
     _add_scene_options(p)
     p.set_defaults(func=cmd_sim)
 

@@ -36,7 +36,8 @@ BAG_REMAPS = {'rgb/image': CAMERA_TOPICS['color'], 'rgb/camera_info': CAMERA_TOP
 # A live run keeps the first LIVE_DETECTIONS_MB of rfm/detections (each carries the frame's depth
 # points, 12-30 kB: half a megabyte a second at 30 Hz); the rest of the outputs are small.
 LIVE_DETECTIONS_MB = 1000
-PACED_RATE = 8.0                #: rfm run --paced: the bag's speed at most (faster, the IMU between photos comes in bursts the transport drops)
+#: rfm run --paced: the bag's speed at most (faster, the IMU between photos comes in bursts the transport drops)
+PACED_RATE = 8.0
 OUTPUT_TOPICS = ['/rfm/detections', '/rfm/keyframes', '/rfm/view_graph/edges', '/rfm/tracked_frames',
                  '/rfm/keyframe_poses', '/rfm/trajectory', '/rfm/camera_pose', '/rfm/object_map',
                  '/rfm/object_markers', '/rfm/status', '/rfm/detection_markers', '/tf', '/tf_static']

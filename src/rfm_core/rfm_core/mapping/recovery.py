@@ -96,11 +96,12 @@ class TrackingRecovery:
                 self.placed[k] = found if found is not None and found.num_inliers >= config.recovery_min_inliers \
                     else None
         placed = [k for k, found in self.placed.items() if found is not None and k in keyframes]
-        out = []
+        out, links = [], None
         for a in placed:
             if a in self.joined:
                 continue
-            chain = _session_frame(a, edges, reference)            # T_k_a of a's session
+            links = links if links is not None else _session_links(edges, reference)
+            chain = _session_frame(a, links)                        # T_k_a of a's session
             for b in placed:
                 if b == a or b not in chain:
                     continue
@@ -112,16 +113,21 @@ class TrackingRecovery:
         return out
 
 
-def _session_frame(a: int, edges: dict, reference: set) -> dict:
-    """{k: T_k_a} of the keyframes of ``a``'s session (outside ``reference``) that ``edges``
-    ({(source, target): EdgeRecord}, T_source_target) link to ``a``, composed along a
-    breadth-first tree."""
-    out, frontier = {a: Pose4(0.0, (0.0, 0.0, 0.0))}, [a]
+def _session_links(edges: dict, reference: set) -> dict:
+    """{k: [(j, T_j_k), ...]}: the edges ({(source, target): EdgeRecord}, T_source_target)
+    between keyframes outside ``reference`` (a new session's), both ways."""
     links: dict = {}
     for (s, t), edge in edges.items():
         if s not in reference and t not in reference:
             links.setdefault(s, []).append((t, edge.pose.inverse()))            # T_t_s
             links.setdefault(t, []).append((s, edge.pose))                      # T_s_t
+    return links
+
+
+def _session_frame(a: int, links: dict) -> dict:
+    """{k: T_k_a} of the keyframes ``links`` (:func:`_session_links`) join to ``a``, composed
+    along a breadth-first tree."""
+    out, frontier = {a: Pose4(0.0, (0.0, 0.0, 0.0))}, [a]
     while frontier:
         k = frontier.pop(0)
         for j, t_j_k in links.get(k, ()):
