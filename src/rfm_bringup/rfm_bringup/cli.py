@@ -555,6 +555,7 @@ def cmd_eval_reloc(args) -> int:
 
 def reloc_table_row(kind: str, rows: list) -> str:
     """One query walk's row of ``rfm eval-reloc``'s table, pooled over its rooms."""
+    from rfm_core.evaluation.suite import wrong_share  # noqa: PLC0415
     def median(key):                            # NaN (no warning) where no room placed a frame
         values = np.array([r[key] for r in rows], float)
         return float(np.median(values[np.isfinite(values)])) if np.isfinite(values).any() else float('nan')
@@ -568,8 +569,7 @@ def reloc_table_row(kind: str, rows: list) -> str:
     latency = np.array([r.get('latency_ms', np.nan) for r in rows], float)
     latency = float(np.median(latency[np.isfinite(latency)])) if np.isfinite(latency).any() else float('nan')
     return (f'| {kind} | {len(rows)} | {100 * reg:.1f}% | {seeing_share} ({int(seeing.sum())} frames) | {are:.2f} '
-            f'| {100 * ate:.1f} | {gross} of {relocalized} ({100 * gross / max(relocalized, 1):.1f}%) '
-            f'| {latency:.0f} |')
+            f'| {100 * ate:.1f} | {wrong_share({"gross": gross, "localized": relocalized})} | {latency:.0f} |')
 
 
 def cmd_replay(args) -> int:

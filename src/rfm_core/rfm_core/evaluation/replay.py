@@ -18,8 +18,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import numpy as np
-
 __all__ = ['recorded_detections', 'replay_mapping', 'replay_localization']
 
 
@@ -62,7 +60,7 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
     the denominator (the query frames that see two mapped objects) with the reason, and each
     wrong pose."""
     from rfm_core.evaluation.suite import query_folders, relocalization_scores  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import GROSS  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import GROSS, frame_errors  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import MapSession  # noqa: PLC0415
@@ -83,11 +81,9 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
         start = min(truth)
         for stamp in sorted(seeing - set(estimated)):
             print(f'    missed {(stamp - start) * 1e-9:5.1f} s: {why.get(stamp, "no detections recorded")}')
-        for stamp, m in sorted(estimated.items()):
-            d = np.linalg.inv(truth[stamp]) @ m
-            deg = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
-            if deg > GROSS[0] or np.linalg.norm(d[:3, 3]) > GROSS[1]:
-                print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {np.linalg.norm(d[:3, 3]):.2f} m')
+        for stamp, (metres, deg) in sorted(frame_errors(estimated, truth).items()):
+            if deg > GROSS[0] or metres > GROSS[1]:
+                print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {metres:.2f} m')
     return {'scene': room.name, 'query': kind, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
-            'relocalized': len(estimated), 'wrong': int(round(row['wrong'] * len(estimated))) if estimated else 0,
+            'relocalized': len(estimated), 'wrong': row['gross'],
             'ARE_median': row['ARE_median'], 'ATE_median': row['ATE_median'], 'map_registered': row['map_registered']}

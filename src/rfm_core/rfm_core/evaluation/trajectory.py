@@ -19,7 +19,8 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 
-__all__ = ['GROSS', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth', 'trajectory_errors']
+__all__ = ['GROSS', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth', 'trajectory_errors',
+           'frame_errors']
 
 #: a pose off by more than this is wrong (deg, m): the gross errors every evaluation counts
 GROSS = (5.0, 0.25)
@@ -136,3 +137,11 @@ def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') 
                ARE_median=float(np.median(are)), ARE_rmse=float(np.sqrt(np.mean(are ** 2))),
                wrong=float(np.mean(gross)), gross=int(gross.sum()))
     return out
+
+
+def frame_errors(estimated: dict, truth: dict) -> dict:
+    """{frame key: (ATE m, ARE deg)} of each frame in both, not aligned (poses already in the
+    truth's frame)."""
+    keys, est, gt = _matched(estimated, truth)
+    ate, are = _errors(est, gt, np.eye(3), np.zeros(3))
+    return {k: (float(a), float(r)) for k, a, r in zip(keys, ate, are)}

@@ -320,11 +320,11 @@ class Mapper:
         found = self.recovery.edges(self.keyframes, poses, self._newest_stamp_ns, self.map_index, self._gyro_yaw,
                                     self.config.relocalization, self.config.matching)
         if self.averager.reference:             # a loaded map: keyframes of this session join it
-            index = self.reference_index()
             found += self.recovery.joining_edges(
                 self.keyframes, poses, self.edges, self._newest_stamp_ns,
-                lambda obs: relocalize(obs, index, self.matcher, self.config.relocalization, self.config.matching,
-                                       self.config.averaging), self.config.relocalization, self.averager.reference)
+                lambda obs: relocalize(obs, self.reference_index(), self.matcher, self.config.relocalization,
+                                       self.config.matching, self.config.averaging),
+                self.config.relocalization, self.averager.reference)
         for edge in found:
             if self.add_edge(edge):
                 self.recovered.append(edge)
@@ -480,12 +480,8 @@ class Mapper:
         reference = frozenset(k for k in self.averager.reference if k in self.keyframes)
         if self._reference_index[0] != reference:
             poses = {k: p for k, p in self.poses.items() if k in reference}
-            keyframes = {k: self.keyframes[k] for k in poses}
-            matches = [(e.source, int(ia), e.target, int(ib)) for e in self.active_edges()
-                       if e.source in poses and e.target in poses for ia, ib in e.inliers]
-            tracks = build_tracks(keyframes, poses, matches, self.config.tracks,
-                                  {key: n for key, n in self.carried.items() if key[0] in poses})
-            self._reference_index = (reference, MapIndex(keyframes, poses, self._descriptors, tracks))
+            self._reference_index = (reference, MapIndex(self.keyframes, poses, self._descriptors,
+                                                         lambda: self._object_tracks(poses)))
         return self._reference_index[1]
 
     def map_index(self) -> MapIndex:
@@ -497,15 +493,17 @@ class Mapper:
     def tracks(self) -> list:
         """Object tracks of the current map (cached until the map changes)."""
         if self._tracks is None:
-            matches = []
-            for e in self.active_edges():
-                for ia, ib in e.inliers:
-                    matches.append((e.source, int(ia), e.target, int(ib)))
-            tracks = build_tracks(self.keyframes, self.poses, matches, self.config.tracks, self.carried)
+            tracks = self._object_tracks(self.poses)
             if self.config.bundle_adjustment:
                 tracks = refine_tracks(tracks, self.keyframes, self.poses, self.config.bundle)
             self._tracks = tracks
         return self._tracks
+
+    def _object_tracks(self, poses: dict) -> list:
+        """Object tracks (paper 3.6) of the keyframes registered in ``poses``, from the kept
+        edges' verified matches."""
+        matches = [(e.source, int(ia), e.target, int(ib)) for e in self.active_edges() for ia, ib in e.inliers]
+        return build_tracks(self.keyframes, poses, matches, self.config.tracks, self.carried)
 
     # ------------------------------------------------------------------ relocalization
 

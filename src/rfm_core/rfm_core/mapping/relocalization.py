@@ -209,9 +209,9 @@ def on_map_points(query: FrameObservations, pose: Pose4, index: MapIndex, matchi
     where that differs; the alignment that fixes every direction and puts the most points on
     the map's surfaces is kept where it moves the pose by at most ``point_max_correction_m`` /
     ``_deg`` and still explains ``explains`` of the query's detections in the map (what a pose
-    needs to be accepted). Partial
-    boxes of furniture made of parts place a view decimetres off (along the furniture, or up
-    where a part's box was cut at a seat taken for the floor); the room's surfaces do not."""
+    needs to be accepted). Partial boxes of furniture made of parts place a view decimetres off
+    (along the furniture, or up where a part's box was cut at a seat taken for the floor); the
+    room's surfaces do not."""
     if not len(query.cloud):
         return pose
     t_map_view = pose.inverse()
