@@ -236,3 +236,28 @@ def test_a_full_solve_does_not_depend_on_the_order_of_arrival():
         for k, pose in poses.items():
             assert pose.angle_to(solutions[0][0][k]) < 1e-9
             np.testing.assert_allclose(pose.t, solutions[0][0][k].t, atol=1e-7)
+
+
+@pytest.mark.parametrize('at', [4, 10])
+def test_a_full_solve_keeps_the_loop_that_a_wrong_edge_breaks(at):
+    """A ring of 16 keyframes closed by a loop edge. One pair is measured twice: right
+    (weight 2) and 0.4 m off (weight 3, heavier). Grown from the anchor, the heavier wrong
+    measurement places the pair and the right one and the loop closure look wrong (two edges
+    dropped); grown again from the dropped edges, the ring closes with the wrong measurement
+    alone dropped, at a lower robust cost, and that solution is kept."""
+    n = 16
+    truth = {k: Pose4.from_centre(2 * np.pi * k / n + np.pi / 2,
+                                  (2.0 * np.cos(2 * np.pi * k / n), 2.0 * np.sin(2 * np.pi * k / n), 0.0))
+             for k in range(n)}
+
+    def rel(s, t):
+        return truth[s] @ truth[t].inverse()
+    edges = [(k, k + 1, rel(k, k + 1), 2.0) for k in range(n - 1)]
+    wrong = (at, at + 1, rel(at, at + 1) @ Pose4(0.0, (0.0, 0.4, 0.0)), 3.0)
+    edges += [wrong, (n - 1, 0, rel(n - 1, 0), 2.0)]
+    result = average_poses(range(n), edges, AveragingConfig())
+    assert len(result.poses) == n
+    kept = list(result.inlier_edges)
+    assert not kept[n - 1] and all(kept[:n - 1]) and kept[n]                 # only the wrong one dropped
+    worst = max(np.linalg.norm((result.poses[k] @ result.poses[0].inverse()).t - rel(k, 0).t) for k in range(n))
+    assert worst < 1e-6

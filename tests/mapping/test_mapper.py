@@ -377,3 +377,44 @@ def test_consecutive_keyframes_of_one_gyroscope_epoch_get_its_yaw():
     assert len(gyro_edges(epochs=(1, 1, 1))) == 2 and gyro_edges(epochs=(0, 0, 0)) == []
     off = MapperConfig(averaging=AveragingConfig(gyro_yaw_weight=0.0))
     assert gyro_edges(off) == []
+
+
+def test_an_edge_the_depth_points_measured_outweighs_a_wrong_one_from_objects():
+    """A ring of 16 keyframes closed by a loop edge (two objects). One pair has an edge no
+    object verified (the keyframe was placed on its depth points: right) and one from three
+    objects 0.4 m off. Weighed as two objects (``averaging.points_edge_weight``), the depth
+    points' edge and the loop closure outweigh the wrong edge, which alone is dropped;
+    weighed as nothing, the wrong edge holds and the loop closure is dropped."""
+    from rfm_core.mapping.averaging import AveragingConfig
+    from rfm_core.mapping.mapper import MapperConfig
+    from rfm_core.observations import EdgeRecord
+
+    n, at = 16, 6
+    truth = {k: Pose4.from_centre(2 * np.pi * k / n + np.pi / 2,
+                                  (2.0 * np.cos(2 * np.pi * k / n), 2.0 * np.sin(2 * np.pi * k / n), 0.0))
+             for k in range(n)}
+
+    def edge(s, t, objects, off=0.0):
+        pose = truth[s] @ truth[t].inverse() @ Pose4(0.0, (0.0, off, 0.0))
+        inliers = np.array([[i, i] for i in range(objects)], int).reshape(-1, 2)
+        return EdgeRecord(s, t, pose, inliers, np.ones(objects), np.zeros((0, 5)), 1.0 if objects else 0.0)
+
+    def solve(points_weight):
+        m = Mapper(MapperConfig(averaging=AveragingConfig(points_edge_weight=points_weight)))
+        for k in range(n):
+            m.add_keyframe(k, _obs([[2, 0, 0, 0.5, 0.5, 0.5, 0]] * 3, [[1.0, 0.0]] * 3))
+        edges = [edge(k, k + 1, 2) for k in range(n - 1) if k != at]
+        edges += [edge(at, at + 1, 0), edge(at, at + 1, 3, off=0.4), edge(n - 1, 0, 2)]
+        for e in edges:
+            assert m.add_edge(e)
+        m.update(force_full=True)
+        dropped = [(e.source, e.target, len(e.inliers)) for e in m.measurements()
+                   if all(e is not a for a in m.active_edges())]
+        worst = max(np.linalg.norm((m.poses[k] @ m.poses[0].inverse()).t - (truth[k] @ truth[0].inverse()).t)
+                    for k in range(n))
+        return dropped, worst
+
+    dropped, worst = solve(AveragingConfig().points_edge_weight)
+    assert dropped == [(at, at + 1, 3)] and worst < 1e-6
+    dropped, worst = solve(0.0)
+    assert (n - 1, 0, 2) in dropped and worst > 0.1

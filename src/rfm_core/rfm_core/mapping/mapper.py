@@ -168,7 +168,12 @@ class Mapper:
         self._pairs.setdefault(key, []).append(edge)
         if not self.config.posed:
             self._averaged[len(self.averager.edges)] = edge
-            self.averager.add_edge(edge.source, edge.target, edge.pose, edge.weight)
+            self.averager.add_edge(edge.source, edge.target, edge.pose, self._weight(edge))
+
+    def _weight(self, edge: EdgeRecord) -> float:
+        """An edge's weight in pose averaging: its objects' (:attr:`EdgeRecord.weight`), or
+        ``averaging.points_edge_weight`` where no object verified it (the depth points did)."""
+        return edge.weight if len(edge.inliers) else self.config.averaging.points_edge_weight
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""

@@ -116,8 +116,8 @@ def reversed_pose(rel: RelativePose) -> RelativePose:
 
 
 def without_objects(pose: Pose4) -> RelativePose:
-    """A relative pose no object match supports (the motion's, or the depth points'): the least
-    weight in the averaging."""
+    """A relative pose no object match supports (the motion's, or the depth points'): it weighs
+    ``averaging.points_edge_weight`` in the averaging."""
     return RelativePose(pose, np.zeros((0, 2), int), np.zeros(0), np.zeros(0), mean_error=1.0, num_matches=0)
 
 

@@ -125,8 +125,8 @@ class NewKeyframe:
         camera's recent velocity, predict it, refined on the two frames' surfaces. Where the
         depth points fix every direction (``rel.on_points``) it is a measurement; otherwise at
         most ``max_motion_edge_s`` after the last frame that objects (or points) placed:
-        motion edges never chain longer. It has no object matches and the least weight in the
-        averaging: it only places a stretch that nothing else links."""
+        motion edges never chain longer. It has no object matches; the averaging weighs it as
+        ``averaging.points_edge_weight`` objects."""
         g = self.g
         predicted = g.predicted_pose(obs)
         if predicted is None:
