@@ -19,8 +19,9 @@ Each is run for ``rounds`` rounds, dropping edges that disagree by more than
 component of the surviving edges is registered. The gauge is the component's first
 keyframe (identity pose). A wrong edge the growth meets early can make the right ones look
 wrong (a loop closure dropped for it), so where no loaded map is held the solve is grown
-again from each of the heaviest edges it dropped, placed first; the solution that registers
-the most keyframes at the least robust cost over all edges (dropped ones included) wins.
+again from each of the heaviest edges it dropped, placed first; of the solutions that
+register the same keyframes, the one of least robust cost over all edges wins (residuals
+capped at the outlier thresholds: an edge dropped costs its weight's worth of an outlier).
 
 :class:`IncrementalAverager` keeps the solution live: a new keyframe is placed by the same
 vote from its edges and only a window of recent keyframes is re-solved (warm-started,
@@ -408,12 +409,16 @@ _RESTARTS = 2
 
 
 def _robust_cost(theta, centres, comp, src, dst, yaw, trans, weight, full, cfg: AveragingConfig) -> float:
-    """The robust (Cauchy) cost of a solution over every edge inside its component, the edges
-    it dropped included: how the solutions from different starts compare."""
+    """The robust (Cauchy) cost of a solution over every edge: each residual capped at the
+    outlier thresholds, so that an edge dropped, however far off, and an edge outside the
+    registered component cost their weight's worth of an outlier. How the solutions from
+    different starts compare: leaving keyframes out costs their edges."""
     inside = comp[src] & comp[dst]
     yr, tr = _residuals(np.where(comp, theta, 0.0), np.where(comp[:, None], centres, 0.0), src, dst, yaw, trans)
+    yr = np.where(inside, np.minimum(yr, cfg.max_yaw_residual_deg), cfg.max_yaw_residual_deg)
+    tr = np.where(inside, np.minimum(tr, cfg.max_translation_residual_m), cfg.max_translation_residual_m)
     cost = np.log1p((yr / cfg.yaw_scale_deg) ** 2) + np.where(full, np.log1p((tr / cfg.translation_scale_m) ** 2), 0.0)
-    return float(np.sum((weight * cost)[inside]))
+    return float(np.sum(weight * cost))
 
 
 def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, reference=None,
@@ -501,18 +506,18 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
 
     # grown from the anchor; where nothing is held, also from each of the heaviest edges that
     # solution dropped, placed first: a wrong edge met early in the growth can make the right
-    # ones look wrong. The solution that registers the most keyframes at the least robust cost
-    # over all edges wins.
+    # ones look wrong. Of the solutions that register the anchor's keyframes, the one of least
+    # robust cost over all edges wins (a restart does not join keyframes the anchor's solution
+    # left out: it would join them through an edge that solution found wrong).
     def scored(found):
-        return (-int(np.count_nonzero(found[3])),
-                _robust_cost(*found[:2], found[3], src, dst, yaw, trans, weight, full, cfg)), found
+        return _robust_cost(*found[:2], found[3], src, dst, yaw, trans, weight, full, cfg), found
 
     best = scored(rounds(active))
     if fixed is None:
         dropped = np.flatnonzero(active & full & ~best[1][2] & best[1][3][src] & best[1][3][dst])
         for seed in dropped[np.argsort(-weight[dropped], kind='stable')][:_RESTARTS]:
             found = scored(rounds(active, int(seed)))
-            if found[0] < best[0]:
+            if np.array_equal(found[1][3], best[1][3]) and found[0] < best[0]:
                 best = found
     theta, centres, active, comp = best[1]
     if fixed is None and np.any(comp):          # the gauge: the anchor at identity
