@@ -349,3 +349,9 @@ def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
     assert result['ARE_median'] < 2.0 and result['ATE_median'] < 0.10, result
     assert 0 < result['latency_ms'] < 1000, result          # the mapper timed its queries (summary.json)
     assert (tmp_path / f'{config.seed}_{config.room_style}_handheld' / 'query_handheld_run' / 'outputs.mcap').is_dir()
+    # rfm replay of an rfm eval-reloc folder: the rooms' mapping walks again, in-process
+    replay = subprocess.run([shutil.which('rfm'), 'replay', str(tmp_path), '--json', 'r.json'],
+                            capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    assert replay.returncode == 0, replay.stderr[-3000:]
+    row, = json.loads((tmp_path / 'r.json').read_text())
+    assert row['frames'] == config.frames and row['registered'] >= 0.9 and row['gross'] == 0, row

@@ -601,20 +601,27 @@ def cmd_replay(args) -> int:
                       f'that see two mapped objects; wrong {wrong} of {relocalized} '
                       f'({100 * wrong / max(relocalized, 1):.1f}%)')
     else:
+        def recorded(scene):          # an rfm eval scene's run, or an rfm eval-reloc room's mapping walk
+            return next(((run, bag) for run, bag in ((args.run, 'bag'), ('map_run', 'map_bag'))
+                         if (scene / run / 'outputs.mcap').exists() and (scene / bag).exists()), None)
         scenes = [work / s for s in args.scenes] if args.scenes else sorted(
-            p for p in work.iterdir() if (p / args.run / 'outputs.mcap').exists() and (p / 'bag').exists())
+            p for p in work.iterdir() if p.is_dir() and recorded(p))
         for scene in scenes:
-            r = replay_mapping(scene, args.run)
+            if recorded(scene) is None:
+                raise SystemExit(f'rfm replay: {scene} holds no recorded run ({args.run}/outputs.mcap and bag/, '
+                                 'or map_run/ and map_bag/)')
+            r = replay_mapping(scene, *recorded(scene))
             rows.append(r)
             print(f"{r['scene']:26s} localized {100 * r['registered']:5.1f}%  ARE {r['ARE_median']:5.2f} deg  "
-                  f"ATE {100 * r['ATE_median']:5.1f} cm  wrong {100 * r['wrong']:5.1f}%  on points "
+                  f"ATE {100 * r['ATE_median']:5.1f} cm  wrong {r['gross']} ({100 * r['wrong']:.1f}%)  on points "
                   f"{r['point_tracked']:4d}  keyframes {r['keyframes']}", flush=True)
         for capture in sorted({r['scene'].rsplit('_', 1)[-1] for r in rows}):
             sel = [r for r in rows if r['scene'].endswith('_' + capture)]
             print(f"{capture} ({len(sel)}): localized {100 * np.mean([r['registered'] for r in sel]):.1f}% (mean); "
                   f"ARE {np.nanmedian([r['ARE_median'] for r in sel]):.2f} deg, ATE "
                   f"{100 * np.nanmedian([r['ATE_median'] for r in sel]):.2f} cm, wrong "
-                  f"{100 * np.mean([r['wrong'] for r in sel]):.1f}% (medians, mean)")
+                  f"{100 * np.mean([r['wrong'] for r in sel]):.1f}% (medians, mean; {sum(r['gross'] for r in sel)} "
+                  'frames)')
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     return 0
@@ -836,7 +843,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval_reloc)
 
     p = sub.add_parser('replay', help="a graph run's recorded detections through the in-process back end again")
-    p.add_argument('work', help='an rfm eval --work folder (or rfm eval-reloc --work with --reloc)')
+    p.add_argument('work', help="an rfm eval --work folder, or an rfm eval-reloc --work folder (its rooms' mapping "
+                                'walks; with --reloc their query walks)')
     p.add_argument('--reloc', action='store_true', help="rfm eval-reloc's rooms: their query walks against their maps")
     p.add_argument('--scenes', nargs='*', help='scene folders of WORK (default: all with a recorded run)')
     p.add_argument('--run', default='rgb_d__depth_clusters', help="the run's folder in each scene")

@@ -7,8 +7,9 @@ Replaying one run's recorded ``rfm/detections`` (``outputs.mcap``) through
 timing) is: two versions of the back end compared on the same detections differ only by
 their code.
 
-- :func:`replay_mapping`: a scene of ``rfm eval --work WORK`` (its bag's ground truth scores
-  the frames localized, as ``rfm eval`` does, with the share off by > 5 deg or > 25 cm).
+- :func:`replay_mapping`: a scene of ``rfm eval --work WORK``, or the mapping walk of a room
+  of ``rfm eval-reloc --work WORK`` (its bag's ground truth scores the frames localized, as
+  ``rfm eval`` does, with the share off by > 5 deg or > 25 cm).
 - :func:`replay_localization`: a room of ``rfm eval-reloc --work WORK``: its saved map
   loaded in localization mode, the query walk's recorded detections localized as a stream
   and scored as ``rfm eval-reloc`` scores the graph. Localization against a frozen map is
@@ -50,7 +51,7 @@ def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = '
     errors = trajectory_errors(session.mapper.frame_poses(), truth)
     return {'scene': scene.name, 'frames': len(truth), 'detections': len(observations),
             'registered': errors['registered'], 'ARE_median': errors['ARE_median'],
-            'ATE_median': errors['ATE_median'], 'wrong': errors['wrong'],
+            'ATE_median': errors['ATE_median'], 'wrong': errors['wrong'], 'gross': errors['gross'],
             'point_tracked': session.graph.stats.point_tracked, 'keyframes': len(session.mapper.keyframes)}
 
 
