@@ -607,10 +607,11 @@ def cmd_replay(args) -> int:
         scenes = [work / s for s in args.scenes] if args.scenes else sorted(
             p for p in work.iterdir() if p.is_dir() and recorded(p))
         for scene in scenes:
-            if recorded(scene) is None:
+            folders = recorded(scene)
+            if folders is None:
                 raise SystemExit(f'rfm replay: {scene} holds no recorded run ({args.run}/outputs.mcap and bag/, '
                                  'or map_run/ and map_bag/)')
-            r = replay_mapping(scene, *recorded(scene))
+            r = replay_mapping(scene, *folders)
             rows.append(r)
             print(f"{r['scene']:26s} localized {100 * r['registered']:5.1f}%  ARE {r['ARE_median']:5.2f} deg  "
                   f"ATE {100 * r['ATE_median']:5.1f} cm  wrong {r['gross']} ({100 * r['wrong']:.1f}%)  on points "

@@ -20,7 +20,7 @@ component of the surviving edges is registered. The gauge is the component's fir
 keyframe (identity pose). A wrong edge the growth meets early can make the right ones look
 wrong (a loop closure dropped for it), so where no loaded map is held the solve is grown
 again from each of the heaviest edges it dropped, placed first; of the solutions that
-register the same keyframes, the one of least robust cost over all edges wins (residuals
+register the same keyframes, the one of least robust cost over their edges wins (residuals
 capped at the outlier thresholds: an edge dropped costs its weight's worth of an outlier).
 
 :class:`IncrementalAverager` keeps the solution live: a new keyframe is placed by the same
@@ -409,16 +409,16 @@ _RESTARTS = 2
 
 
 def _robust_cost(theta, centres, comp, src, dst, yaw, trans, weight, full, cfg: AveragingConfig) -> float:
-    """The robust (Cauchy) cost of a solution over every edge: each residual capped at the
-    outlier thresholds, so that an edge dropped, however far off, and an edge outside the
-    registered component cost their weight's worth of an outlier. How the solutions from
-    different starts compare: leaving keyframes out costs their edges."""
+    """The robust (Cauchy) cost of a solution over the edges inside its component, each
+    residual capped at the outlier thresholds (an edge dropped, however far off, costs its
+    weight's worth of an outlier): how solutions of the same component from different starts
+    compare."""
     inside = comp[src] & comp[dst]
     yr, tr = _residuals(np.where(comp, theta, 0.0), np.where(comp[:, None], centres, 0.0), src, dst, yaw, trans)
-    yr = np.where(inside, np.minimum(yr, cfg.max_yaw_residual_deg), cfg.max_yaw_residual_deg)
-    tr = np.where(inside, np.minimum(tr, cfg.max_translation_residual_m), cfg.max_translation_residual_m)
+    yr = np.minimum(yr, cfg.max_yaw_residual_deg)
+    tr = np.minimum(tr, cfg.max_translation_residual_m)
     cost = np.log1p((yr / cfg.yaw_scale_deg) ** 2) + np.where(full, np.log1p((tr / cfg.translation_scale_m) ** 2), 0.0)
-    return float(np.sum(weight * cost))
+    return float(np.sum((weight * cost)[inside]))
 
 
 def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, reference=None,
@@ -459,16 +459,14 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
         use = active & full & comp[src] & comp[dst]
         hold = held & comp
         if not np.any(hold):
-            placed = None
+            th0 = c0 = placed = None
             if seed is not None and root == src[seed]:      # the seed edge places its target first
                 placed = np.zeros(n, bool)
                 placed[[src[seed], dst[seed]]] = True
                 th0, c0 = np.full(n, np.nan), np.full((n, 3), np.nan)
                 th0[root], c0[root] = 0.0, 0.0
                 (th0[dst[seed]], c0[dst[seed]]), = _hypotheses(dst[seed], [seed], src, dst, yaw, trans, th0, c0)
-                return _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg, th0, c0,
-                                  placed, yaw_edges=gyro(active & comp[src] & comp[dst]))[:2]
-            return _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg,
+            return _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg, th0, c0, placed,
                               yaw_edges=gyro(active & comp[src] & comp[dst]))[:2]
         return _propagate(n, src[use], dst[use], yaw[use], trans[use], weight[use], root, cfg,
                           np.where(hold, fixed[0], np.nan), np.where(hold[:, None], fixed[1], np.nan), hold,
@@ -497,8 +495,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
                 if not np.any(bad):
                     break
                 active = active & ~bad
-                new_comp, new_root = component(active, seed if active[seed] else None) if seed is not None \
-                    else component(active)
+                new_comp, new_root = component(active, seed if seed is not None and active[seed] else None)
                 if new_root != root:            # the root left the component: re-initialise it
                     theta, centres = start(new_comp, new_root, active)
                 comp, root = new_comp, new_root
@@ -507,7 +504,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     # grown from the anchor; where nothing is held, also from each of the heaviest edges that
     # solution dropped, placed first: a wrong edge met early in the growth can make the right
     # ones look wrong. Of the solutions that register the anchor's keyframes, the one of least
-    # robust cost over all edges wins (a restart does not join keyframes the anchor's solution
+    # robust cost over their edges wins (a restart does not join keyframes the anchor's solution
     # left out: it would join them through an edge that solution found wrong).
     def scored(found):
         return _robust_cost(*found[:2], found[3], src, dst, yaw, trans, weight, full, cfg), found
