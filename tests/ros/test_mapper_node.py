@@ -53,7 +53,7 @@ def _graph_messages():
 
 class _Harness:
     def __init__(self, mapper):
-        from geometry_msgs.msg import PoseArray, PoseStamped
+        from geometry_msgs.msg import PoseArray, PoseWithCovarianceStamped
         from rfm_msgs.msg import Keyframe, ObjectMap, TrackedFrame, ViewGraphEdge
         self.mapper = mapper
         self.node = Node('mapper_test')
@@ -62,7 +62,7 @@ class _Harness:
                              durability=DurabilityPolicy.TRANSIENT_LOCAL)
         self.poses, self.maps, self.cameras = [], [], []
         self.node.create_subscription(PoseArray, 'rfm/keyframe_poses', self.poses.append, latched)
-        self.node.create_subscription(PoseStamped, 'rfm/camera_pose', self.cameras.append, reliable)
+        self.node.create_subscription(PoseWithCovarianceStamped, 'rfm/camera_pose', self.cameras.append, reliable)
         self.track_pub = self.node.create_publisher(TrackedFrame, 'rfm/tracked_frames', reliable)
         self.node.create_subscription(ObjectMap, 'rfm/object_map', self.maps.append, latched)
         self.kf_pub = self.node.create_publisher(Keyframe, 'rfm/keyframes', GRAPH_QOS)
@@ -158,11 +158,17 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         assert mapper.core.session.counts['frames'] == n_tracked == len(frames)
         frame_truth = {f.stamp_ns: f.pose_matrix for f, _ in frames}
         assert trajectory_errors(mapper.core.mapper.frame_poses(), frame_truth)['registered'] == 1.0
-        cams = {stamp_to_ns(c.header.stamp): pose_to_matrix(c.pose) for c in h.cameras}
+        cams = {stamp_to_ns(c.header.stamp): pose_to_matrix(c.pose.pose) for c in h.cameras}
         assert len(cams) >= 0.9 * len(frames)                       # in stamp order, never older
         assert [stamp_to_ns(c.header.stamp) for c in h.cameras] == sorted(cams)
         err = trajectory_errors(cams, frame_truth)
         assert err['ATE_median'] < 0.05 and err['ARE_median'] < 1.5, err
+        # each carries its covariance: symmetric, positive definite but for the map frame's anchor
+        # keyframe (exact in position and heading), a few cm and under a degree or two
+        covs = [np.asarray(c.pose.covariance).reshape(6, 6) for c in h.cameras]
+        assert all(np.allclose(c, c.T) and np.all(np.linalg.eigvalsh(c) > -1e-12) for c in covs)
+        sigma_t = np.array([np.sqrt(np.trace(c[:3, :3]) / 3) for c in covs])
+        assert np.all(sigma_t < 0.2) and np.median(sigma_t) > 0.002, np.percentile(sigma_t, [0, 50, 100])
         # autosave happened (every 5 keyframes): a valid map of the keyframes so far, posed as published
         saved = read_map(tmp_path / 'auto.rfm')
         n_saved = int(saved['header']['keyframes']) + len(saved['merged'])

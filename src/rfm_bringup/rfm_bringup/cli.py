@@ -572,6 +572,12 @@ def reloc_table_row(kind: str, rows: list) -> str:
             f'| {100 * ate:.1f} | {wrong_share({"gross": gross, "localized": relocalized})} | {latency:.0f} |')
 
 
+def _pooled(rows: list, key: str, count: str) -> float:
+    """The share ``key`` over all rows' ``count`` items (rows without any skipped)."""
+    total = sum(r[count] for r in rows if r[count] and np.isfinite(r[key]))
+    return sum(r[key] * r[count] for r in rows if r[count] and np.isfinite(r[key])) / max(total, 1)
+
+
 def cmd_replay(args) -> int:
     """A graph run's recorded detections through the in-process back end again
     (rfm_core.evaluation.replay): two versions of the code compared on the same detections."""
@@ -591,15 +597,16 @@ def cmd_replay(args) -> int:
                 rows.append(r)
                 print(f"{r['scene']:26s} {kind:8s} map {100 * r['map_registered']:3.0f}% registered  {r['found']:2d} "
                       f"of the {r['seeing']:2d} frames that see two mapped objects  relocalized {r['relocalized']:2d}"
-                      f"  wrong {r['wrong']}  ARE {r['ARE_median']:5.2f} deg  ATE {100 * r['ATE_median']:5.1f} cm",
-                      flush=True)
+                      f"  wrong {r['wrong']}  ARE {r['ARE_median']:5.2f} deg  ATE {100 * r['ATE_median']:5.1f} cm"
+                      f"  within 2 sigma {100 * r['within_2sigma']:3.0f}%", flush=True)
             sel = [r for r in rows if r['query'] == kind]
             if sel:
                 seeing, found = sum(r['seeing'] for r in sel), sum(r['found'] for r in sel)
                 relocalized, wrong = sum(r['relocalized'] for r in sel), sum(r['wrong'] for r in sel)
                 print(f'{kind} walks, {len(sel)} rooms: {100 * found / max(seeing, 1):.1f}% of the {seeing} frames '
                       f'that see two mapped objects; wrong {wrong} of {relocalized} '
-                      f'({100 * wrong / max(relocalized, 1):.1f}%)')
+                      f'({100 * wrong / max(relocalized, 1):.1f}%); within their 2-sigma bound '
+                      f'{100 * _pooled(sel, "within_2sigma", "covered"):.1f}%')
     else:
         def recorded(scene):          # an rfm eval scene's run, or an rfm eval-reloc room's mapping walk
             return next(((run, bag) for run, bag in ((args.run, 'bag'), ('map_run', 'map_bag'))
@@ -615,14 +622,18 @@ def cmd_replay(args) -> int:
             rows.append(r)
             print(f"{r['scene']:26s} localized {100 * r['registered']:5.1f}%  ARE {r['ARE_median']:5.2f} deg  "
                   f"ATE {100 * r['ATE_median']:5.1f} cm  wrong {r['gross']} ({100 * r['wrong']:.1f}%)  on points "
-                  f"{r['point_tracked']:4d}  keyframes {r['keyframes']}", flush=True)
+                  f"{r['point_tracked']:4d}  keyframes {r['keyframes']}  published {r['published']} (wrong "
+                  f"{r['published_gross']}, within 2 sigma {100 * r['within_2sigma']:3.0f}%, sigma "
+                  f"{100 * r['sigma_m']:.1f} cm {r['sigma_deg']:.2f} deg)", flush=True)
         for capture in sorted({r['scene'].rsplit('_', 1)[-1] for r in rows}):
             sel = [r for r in rows if r['scene'].endswith('_' + capture)]
             print(f"{capture} ({len(sel)}): localized {100 * np.mean([r['registered'] for r in sel]):.1f}% (mean); "
                   f"ARE {np.nanmedian([r['ARE_median'] for r in sel]):.2f} deg, ATE "
                   f"{100 * np.nanmedian([r['ATE_median'] for r in sel]):.2f} cm, wrong "
                   f"{100 * np.mean([r['wrong'] for r in sel]):.1f}% (medians, mean; {sum(r['gross'] for r in sel)} "
-                  'frames)')
+                  f"frames); as published: {sum(r['published_gross'] for r in sel)} of "
+                  f"{sum(r['published'] for r in sel)} wrong, "
+                  f"{100 * _pooled(sel, 'within_2sigma', 'published'):.1f}% within their 2-sigma bound")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     return 0

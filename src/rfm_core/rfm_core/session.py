@@ -66,6 +66,7 @@ class CameraPose(NamedTuple):
     stamp_ns: int
     frame_id: str
     matrix: np.ndarray              #: 4x4 camera-to-map
+    covariance: np.ndarray | None = None   #: (6, 6) x, y, z, rotations about x, y, z (Mapper.frame_covariance)
 
 
 class ExternalPoses:
@@ -304,10 +305,12 @@ class MapSession:
         else:
             poses = self.mapper.camera_poses()
             last = max(poses, default=None)
+            track = None if last is None else self.mapper.keyframe_track(last)
             pose = (CameraPose(self.mapper.keyframes[last].stamp_ns, self.mapper.keyframes[last].frame_id,
                                poses[last]) if last is not None else None)
         if pose is None or (self._last_camera is not None and pose.stamp_ns <= self._last_camera.stamp_ns):
             return None
+        pose = pose._replace(covariance=self.mapper.frame_covariance(track))
         self._last_camera = pose
         return pose
 
@@ -390,10 +393,11 @@ class MapSession:
         out = []
         for o, reloc in accepted:
             k = reloc.keyframe_id
-            self.mapper.frames.add(FrameTrack(o.stamp_ns, o.frame_id, o.gravity_cam, k,
-                                              self.mapper.keyframes[k].stamp_ns,
-                                              self.mapper.poses[k] @ reloc.pose.inverse(), reloc.num_inliers))
-            out.append(CameraPose(o.stamp_ns, o.frame_id, camera_to_map(reloc.pose, o.gravity_cam)))
+            track = FrameTrack(o.stamp_ns, o.frame_id, o.gravity_cam, k, self.mapper.keyframes[k].stamp_ns,
+                               self.mapper.poses[k] @ reloc.pose.inverse(), reloc.num_inliers)
+            self.mapper.frames.add(track)
+            out.append(CameraPose(o.stamp_ns, o.frame_id, camera_to_map(reloc.pose, o.gravity_cam),
+                                  self.mapper.frame_covariance(track)))
         if out:
             self._last_camera = out[-1]
         return out

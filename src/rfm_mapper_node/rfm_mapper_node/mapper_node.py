@@ -9,7 +9,7 @@ rfm/reset, rfm/set_mode. Messages in, rfm_core.mapper_core.MapperCore, messages 
 from __future__ import annotations
 
 import rclpy
-from geometry_msgs.msg import PoseArray, PoseStamped
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.clock import Clock, ClockType
 from rclpy.executors import ExternalShutdownException
@@ -53,7 +53,7 @@ class MapperNode(Node):
         self.pub = {topic: self.create_publisher(kind, topic, qos(profile)) for kind, topic, profile in (
             (PoseArray, 'rfm/keyframe_poses', LATCHED), (Path, 'rfm/trajectory', LATCHED),
             (ObjectMap, 'rfm/object_map', LATCHED), (MarkerArray, 'rfm/object_markers', LATCHED),
-            (PoseStamped, 'rfm/camera_pose', RELIABLE), (MapperStatus, 'rfm/status', RELIABLE))}
+            (PoseWithCovarianceStamped, 'rfm/camera_pose', RELIABLE), (MapperStatus, 'rfm/status', RELIABLE))}
         if cfg.publish_tf:
             self.pub['/tf'] = self.create_publisher(TFMessage, '/tf', qos(TF))
         for kind, name, answer in ((Relocalize, 'relocalize',

@@ -36,7 +36,7 @@ def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = '
     """One scene's recorded detections through a Session; the frames it localizes scored
     against the bag's ground truth (4-DoF aligned)."""
     from rfm_core.evaluation.report import read_ground_truth  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import trajectory_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import covariance_coverage, trajectory_errors  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import Session  # noqa: PLC0415
@@ -45,13 +45,21 @@ def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = '
     observations = recorded_detections(scene / run)
     truth = read_ground_truth(scene / bag).camera_poses
     session = Session(MapperConfig(), matcher=make_matcher(matcher))
+    live, covariances = {}, {}                  # the camera poses as published, with their covariances
     for obs in observations:
-        session.step(obs)
+        camera = session.step(obs).camera
+        if camera is not None:
+            live[camera.stamp_ns], covariances[camera.stamp_ns] = camera.matrix, camera.covariance
     session.finish()
     errors = trajectory_errors(session.mapper.frame_poses(), truth)
+    published = trajectory_errors(live, truth)
+    coverage = covariance_coverage(live, covariances, truth)
     return {'scene': scene.name, 'frames': len(truth), 'detections': len(observations),
             'registered': errors['registered'], 'ARE_median': errors['ARE_median'],
             'ATE_median': errors['ATE_median'], 'wrong': errors['wrong'], 'gross': errors['gross'],
+            'published': len(live), 'published_gross': published['gross'],
+            'within_2sigma': coverage['within_2sigma'], 'sigma_m': coverage['sigma_m'],
+            'sigma_deg': coverage['sigma_deg'],
             'point_tracked': session.graph.stats.point_tracked, 'keyframes': len(session.mapper.keyframes)}
 
 
@@ -61,7 +69,7 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
     the denominator (the query frames that see two mapped objects) with the reason, and each
     wrong pose."""
     from rfm_core.evaluation.suite import query_folders, relocalization_scores  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import GROSS, frame_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import GROSS, covariance_coverage, frame_errors  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import MapSession  # noqa: PLC0415
@@ -70,11 +78,11 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
     session = MapSession(MapperConfig(), matcher=make_matcher('learned'))
     session.load(room / 'map_run' / 'map.rfm')
     session.mode = 'localization'
-    poses, why = {}, {}
+    poses, covariances, why = {}, {}, {}
     bag, run = query_folders(room, kind)
     for obs in recorded_detections(run):
         for camera in session.localize(obs):
-            poses[camera.stamp_ns] = camera.matrix
+            poses[camera.stamp_ns], covariances[camera.stamp_ns] = camera.matrix, camera.covariance
         why[obs.stamp_ns] = f'{len(obs)} detections: {session.message}'
     scores = relocalization_scores(session.mapper, room / 'map_bag', bag, poses)
     estimated, truth, seeing, row = scores.estimated, scores.truth, scores.seeing, scores.row
@@ -85,6 +93,8 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
         for stamp, (metres, deg) in sorted(frame_errors(estimated, truth).items()):
             if deg > GROSS[0] or metres > GROSS[1]:
                 print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {metres:.2f} m')
+    coverage = covariance_coverage(poses, covariances, truth)          # poses in the map frame: aligned
     return {'scene': room.name, 'query': kind, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
-            'relocalized': len(estimated), 'wrong': row['gross'],
+            'relocalized': len(estimated), 'wrong': row['gross'], 'within_2sigma': coverage['within_2sigma'],
+            'covered': coverage['frames'],
             'ARE_median': row['ARE_median'], 'ATE_median': row['ATE_median'], 'map_registered': row['map_registered']}

@@ -433,7 +433,7 @@ def camera_poses_of_run(output) -> dict:
     from rfm_core.io.bag import topic_messages  # noqa: PLC0415
     from rfm_core.io.messages import pose_to_matrix, stamp_to_ns  # noqa: PLC0415
 
-    return {stamp_to_ns(msg.header.stamp): pose_to_matrix(msg.pose)
+    return {stamp_to_ns(msg.header.stamp): pose_to_matrix(getattr(msg.pose, 'pose', msg.pose))   # with covariance
             for msg in topic_messages(Path(output) / 'outputs.mcap', '/rfm/camera_pose')}
 
 

@@ -19,11 +19,15 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 
-__all__ = ['GROSS', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth', 'trajectory_errors',
+__all__ = ['GROSS', 'TWO_SIGMA', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth', 'trajectory_errors',
+           'covariance_coverage',
            'frame_errors']
 
 #: a pose off by more than this is wrong (deg, m): the gross errors every evaluation counts
 GROSS = (5.0, 0.25)
+#: the 4-DoF (x, y, z, heading) Mahalanobis distance^2 within which a Gaussian error lies as
+#: often as a 1-D one within two sigmas (95.45%: the chi-square quantile with 4 degrees of freedom)
+TWO_SIGMA = 9.72
 
 
 def align_se3(source: np.ndarray, target: np.ndarray):
@@ -145,3 +149,31 @@ def frame_errors(estimated: dict, truth: dict) -> dict:
     keys, est, gt = _matched(estimated, truth)
     ate, are = _errors(est, gt, np.eye(3), np.zeros(3))
     return {k: (float(a), float(r)) for k, a, r in zip(keys, ate, are)}
+
+
+def covariance_coverage(estimated: dict, covariances: dict, truth: dict, align: str | bool = '4dof') -> dict:
+    """How well the poses' covariances bound their errors. ``covariances``: {frame key: (6, 6)
+    PoseWithCovariance order} of the ``estimated`` frames. Each frame's error (position in the
+    map's axes, heading about its z) under the alignment :func:`trajectory_errors` applies,
+    against its 4-DoF block: ``within_2sigma`` the share of frames whose Mahalanobis distance^2
+    is at most :data:`TWO_SIGMA` (a calibrated covariance: about 0.95), ``sigma_m`` /
+    ``sigma_deg`` the median position (RMS over the axes) and heading standard deviations."""
+    keys = [k for k in truth if k in estimated and covariances.get(k) is not None]
+    out = {'frames': len(keys), 'within_2sigma': float('nan'), 'sigma_m': float('nan'), 'sigma_deg': float('nan')}
+    if not keys:
+        return out
+    est = np.array([estimated[k] for k in keys], float).reshape(-1, 4, 4)
+    gt = np.array([truth[k] for k in keys], float).reshape(-1, 4, 4)
+    r, t = (align_robust(est, gt) if align == '4dof' else align_se3(est[:, :3, 3], gt[:, :3, 3])) if align else \
+        (np.eye(3), np.zeros(3))
+    e_pos = np.einsum('ji,nj->ni', r, est[:, :3, 3] @ r.T + t - gt[:, :3, 3])          # in the map's axes
+    d = np.einsum('nij,nkj->nik', np.einsum('ij,njk->nik', r, est[:, :3, :3]), gt[:, :3, :3])   # R_est R_gt^T
+    e_yaw = np.arctan2(d[:, 1, 0] - d[:, 0, 1], d[:, 0, 0] + d[:, 1, 1])                # its turn about z
+    cov = np.array([np.asarray(covariances[k], float).reshape(6, 6)[np.ix_([0, 1, 2, 5], [0, 1, 2, 5])]
+                    for k in keys])
+    err = np.c_[e_pos, e_yaw]
+    d2 = np.einsum('ni,ni->n', err, np.linalg.solve(cov + 1e-12 * np.eye(4), err[..., None])[..., 0])
+    out.update(within_2sigma=float(np.mean(d2 <= TWO_SIGMA)),
+               sigma_m=float(np.median(np.sqrt(np.trace(cov[:, :3, :3], axis1=1, axis2=2) / 3))),
+               sigma_deg=float(np.degrees(np.median(np.sqrt(cov[:, 3, 3])))))
+    return out

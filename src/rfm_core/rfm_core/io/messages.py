@@ -29,7 +29,7 @@ __all__ = [
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
     'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs',
-    'object_map_outputs', 'tick_outputs', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg',
+    'object_map_outputs', 'tick_outputs', 'pose_with_covariance_msg', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg',
     'diagnostics_msg',
 ]
 
@@ -119,6 +119,14 @@ def pose_stamped_msg(matrix, stamp_ns: int, frame_id: str, make=ROS):
     """geometry_msgs/PoseStamped of a 4x4 pose."""
     return make('geometry_msgs/msg/PoseStamped', header=header(make, stamp_ns, frame_id),
                 pose=_pose(make, matrix))
+
+
+def pose_with_covariance_msg(matrix, covariance, stamp_ns: int, frame_id: str, make=ROS):
+    """geometry_msgs/PoseWithCovarianceStamped of a 4x4 pose and its (6, 6) covariance (x, y,
+    z, rotations about x, y, z); None: all zeros (not estimated)."""
+    cov = np.zeros(36) if covariance is None else np.asarray(covariance, float).reshape(36)
+    inner = make('geometry_msgs/msg/PoseWithCovariance', pose=_pose(make, matrix), covariance=[float(v) for v in cov])
+    return make('geometry_msgs/msg/PoseWithCovarianceStamped', header=header(make, stamp_ns, frame_id), pose=inner)
 
 
 def transform_stamped_msg(matrix, stamp_ns: int, parent: str, child: str, make=ROS):
@@ -563,15 +571,16 @@ def keyframe_pose_outputs(ids, poses: dict, stamps: dict, frame_id: str, make=RO
 
 
 def camera_pose_outputs(camera, frame_id: str, tf_child: str = '', make=ROS) -> list:
-    """rfm/camera_pose (geometry_msgs/PoseStamped) and /tf (``frame_id`` -> ``tf_child``, or
-    the frame's camera frame) of a localized frame (:class:`rfm_core.session.CameraPose`);
-    [] for None."""
+    """rfm/camera_pose (geometry_msgs/PoseWithCovarianceStamped) and /tf (``frame_id`` ->
+    ``tf_child``, or the frame's camera frame) of a localized frame
+    (:class:`rfm_core.session.CameraPose`); [] for None."""
     if camera is None:
         return []
     child = tf_child or camera.frame_id or 'camera'
     tf = make('tf2_msgs/msg/TFMessage', transforms=[
         transform_stamped_msg(camera.matrix, camera.stamp_ns, frame_id, child, make)])
-    return [('rfm/camera_pose', pose_stamped_msg(camera.matrix, camera.stamp_ns, frame_id, make)), ('/tf', tf)]
+    return [('rfm/camera_pose', pose_with_covariance_msg(camera.matrix, camera.covariance, camera.stamp_ns, frame_id,
+                                                         make)), ('/tf', tf)]
 
 
 def object_map_outputs(tracks, stamp_ns: int, revision: int, frame_id: str, make=ROS) -> list:

@@ -41,6 +41,7 @@ from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import spsolve
 
 from rfm_core.geometry import Pose4, circular_mean, wrap_angle
+from rfm_core.mapping.uncertainty import KeyframeCovariances
 from rfm_core.settings import constant, setting
 
 __all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager', 'agreement',
@@ -69,6 +70,12 @@ class AveragingConfig:
                                          'points, or by its motion refined on them), in verified objects: on tuning '
                                          'walks they are as accurate as edges of two objects or more', lo=0.0,
                                          hi=1000.0)
+    pose_sigma_deg: float = constant(1.8, 'Yaw error of a relative pose one verified object supports (deg): a '
+                                     'measurement of averaging weight w has this / sqrt(w). The poses\' covariances '
+                                     '(rfm/camera_pose); calibrated on tuning rooms', lo=1e-3, hi=90.0)
+    pose_sigma_m: float = constant(0.05, '... and error per axis of its translation (m)', lo=1e-4, hi=10.0)
+    tilt_sigma_deg: float = constant(1.0, "Error of the camera's roll and pitch (the gravity estimate's; deg)",
+                                     lo=1e-3, hi=90.0)
     cycle_min_loops: int = constant(2, 'Cycle check before each full solve: drop a measurement no triangle of '
                                     'keyframes through it agrees with and at least this many whose other two pairs '
                                     'close loops of their own contradict (0: no check)', lo=0, hi=100)
@@ -637,6 +644,16 @@ class IncrementalAverager:
             return None
         th, c = self._theta[k], self._centres[k]
         return Pose4.from_centre(float(th), c)
+
+    def covariances(self) -> KeyframeCovariances:
+        """The current solution's keyframe pose covariances (:mod:`rfm_core.mapping.uncertainty`;
+        called with a keyframe id), the first registered keyframe by id holding the map frame."""
+        e, cfg = self.edges, self.config
+        reg = np.flatnonzero(self._registered)
+        anchor = int(reg[np.argmin(np.asarray(self.ids)[reg])]) if len(reg) else -1
+        return KeyframeCovariances(self._theta, self._centres, e.src, e.dst, e.yaw, e.trans, e.weight, e.yaw_only,
+                                   e.active, anchor, np.radians(cfg.pose_sigma_deg), cfg.pose_sigma_m,
+                                   dict(self._index))
 
     def active_edges(self) -> list:
         """[(source id, target id)] of the edges the current solution keeps (yaw-only

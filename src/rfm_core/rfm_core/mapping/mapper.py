@@ -30,6 +30,7 @@ from rfm_core.mapping.relocalization import MapIndex, MotionPrior, Relocalizatio
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.recovery import TrackingRecovery
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
+from rfm_core.mapping.uncertainty import frame_covariance, ros_pose_covariance
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import bag_of_objects
@@ -95,6 +96,7 @@ class Mapper:
         self.revision = 0
         self._tracks = None
         self._index = None
+        self._covariances = None             # the solution's KeyframeCovariances, once asked for
         self._descriptors: dict = {}
         self.frames = FrameLog()             # every localized frame (tracked or relocalized)
         self.origins: dict = {}              # id -> (view-graph session, its keyframe id), where numbered
@@ -267,25 +269,69 @@ class Mapper:
         return _camera_to_map(track.pose.inverse() @ p, track.gravity_cam)
 
     def _provisional_pose(self, keyframe_id: int, budget: int = 16) -> Pose4 | None:
-        """T_k_map of a not yet averaged keyframe, chained through its best-supported edges
-        back to a registered keyframe (searching at most ``budget`` keyframes; None without
-        such a chain)."""
+        """T_k_map of a not yet averaged keyframe (:meth:`_provisional_chain`)."""
+        chain = self._provisional_chain(keyframe_id, budget)
+        return None if chain is None else chain[1].inverse() @ self.pose(chain[0])
+
+    def _provisional_chain(self, keyframe_id: int, budget: int = 16):
+        """A not yet averaged keyframe chained through its best-supported edges back to a
+        registered keyframe (searching at most ``budget`` keyframes): (that keyframe,
+        T_keyframe_k, the averaging weights of the chain's edges), or None without one."""
         seen = {keyframe_id}
-        # breadth-first back along incoming edges; each entry: (keyframe, T_keyframe_k)
-        frontier = [(keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)))]
+        # breadth-first back along incoming edges; each entry: (keyframe, T_keyframe_k, weights)
+        frontier = [(keyframe_id, Pose4(0.0, (0.0, 0.0, 0.0)), ())]
         while frontier and len(seen) <= budget:
-            k, t_k_target = frontier.pop(0)
+            k, t_k_target, weights = frontier.pop(0)
             incoming = sorted((self.edges[key] for key in self._edges_to.get(k, ())),
                               key=lambda e: -len(e.inliers))
             for e in incoming:
                 t_source_target = e.pose @ t_k_target               # T_source_k T_k_target
-                source_pose = self.pose(e.source)
-                if source_pose is not None:
-                    return t_source_target.inverse() @ source_pose
+                chained = weights + (self._weight(e),)
+                if self.pose(e.source) is not None:
+                    return e.source, t_source_target, chained
                 if e.source not in seen:
                     seen.add(e.source)
-                    frontier.append((e.source, t_source_target))
+                    frontier.append((e.source, t_source_target, chained))
         return None
+
+    def keyframe_track(self, keyframe_id: int) -> FrameTrack:
+        """A keyframe as a frame tracked against itself."""
+        obs = self.keyframes[keyframe_id]
+        return FrameTrack(obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe_id, obs.stamp_ns,
+                          Pose4(0.0, (0.0, 0.0, 0.0)), is_keyframe=True)
+
+    def frame_covariance(self, track: FrameTrack | None) -> np.ndarray | None:
+        """(6, 6) covariance of a tracked frame's camera pose (:meth:`frame_pose`) in the map, in
+        geometry_msgs/PoseWithCovariance's order (x, y, z, rotations about x, y, z; see
+        :mod:`rfm_core.mapping.uncertainty`); None without a pose (or in posed mode)."""
+        if self.config.posed or track is None:
+            return None
+        track = self._resolved_track(track)
+        kf = self.keyframes.get(track.keyframe_id)
+        if kf is None or kf.stamp_ns != track.keyframe_stamp_ns:
+            return None
+        cfg = self.config.averaging
+        if self._covariances is None:
+            try:
+                self._covariances = self.averager.covariances()
+            except (RuntimeError, ValueError):       # a singular system: the pose goes out without one
+                return None
+        covariances = self._covariances
+        k, rel = track.keyframe_id, track.pose
+        cov_rel = covariances.relative(0.0 if track.is_keyframe else (track.num_inliers or cfg.points_edge_weight))
+        if self.averager.pose(k) is None:
+            chain = self._provisional_chain(k)
+            if chain is None:
+                return None
+            k, t_source_k, weights = chain
+            rel = t_source_k @ rel
+            cov_rel = cov_rel + sum(covariances.relative(w) for w in weights)
+        cov_k = covariances(k)
+        if cov_k is None:
+            return None
+        theta = self.averager.pose(k).yaw
+        return ros_pose_covariance(frame_covariance(theta, cov_k, rel, cov_rel),
+                                   np.radians(cfg.tilt_sigma_deg)).reshape(6, 6)
 
     def frame_poses(self) -> dict:
         """{stamp_ns: 4x4 camera-to-map} of every logged frame whose keyframe is registered,
@@ -473,11 +519,13 @@ class Mapper:
         for i, e in self._averaged.items():
             mask[i] = id(e) in kept
         self.averager.restore(poses, mask)
+        self._covariances = None
 
     def _changed(self) -> None:
-        """The map changed: its tracks and index are rebuilt when next needed."""
+        """The map changed: its tracks, index and covariances are rebuilt when next needed."""
         self._tracks = None
         self._index = None
+        self._covariances = None
 
     def reference_index(self) -> MapIndex:
         """The loaded map alone (:attr:`IncrementalAverager.reference`: its keyframes are held
