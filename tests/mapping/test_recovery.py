@@ -144,3 +144,31 @@ def test_a_second_session_on_a_loaded_map_joins_it_in_its_frame(tmp_path):
     assert errors['registered'] >= 0.6 and errors['gross'] == 0 and errors['ATE_median'] < 0.06, errors
     alone, _ = run(join=False)
     assert not any(s in truth for s in alone.frame_poses())           # its own component: not in the map
+
+
+def test_photos_left_out_join_the_map_when_all_poses_are_solved_at_once():
+    """A photo collection (40 views from random places, no gyroscope between them): views that
+    matched no keyframe as they came are placed against the whole map once all poses are solved
+    at once (the global pass), where the map's keyframes verify them unambiguously. Tuning
+    seed 27; without the pass fewer than half the views are placed."""
+    from rfm_core.matching.factory import make_matcher
+
+    capture = Capture(CaptureConfig(seed=27, capture='sparse', frames=40, furniture='parts', room_style='textured'))
+    detect = detections_for('depth_clusters', noise_seed=2)
+    observations, truth = [], {}
+    for i, frame in enumerate(capture.frames()):
+        obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, i + 1        # each photo its own gyroscope epoch
+        observations.append(obs)
+        truth[obs.stamp_ns] = frame.pose_matrix
+    placed = {}
+    for global_pass in (False, True):
+        session = Session(MapperConfig(), matcher=make_matcher('learned'))
+        if not global_pass:                                # an ablation: the stage taken out
+            session.mapper._place_left_out = lambda: False
+        for obs in observations:
+            session.step(obs)
+        session.finish()
+        placed[global_pass] = trajectory_errors(session.mapper.frame_poses(), truth)
+    assert placed[False]['registered'] < 0.5, placed
+    assert placed[True]['registered'] >= 0.75 and placed[True]['gross'] == 0, placed

@@ -351,6 +351,8 @@ class Mapper:
             stats = self.averager.update(force_full)
             if self._recover():
                 stats = self.averager.update(force_full)
+            if force_full and self._place_left_out():
+                stats = self.averager.update(force_full)
             if self._cull() and stats.kind == 'none':
                 stats.kind = 'local'
             if stats.kind != 'none':
@@ -377,6 +379,20 @@ class Mapper:
                                        self.config.matching, self.config.averaging),
                 self.config.relocalization, self.averager.reference)
         for edge in found:
+            if self.add_edge(edge):
+                self.recovered.append(edge)
+                added = True
+        return added
+
+    def _place_left_out(self) -> bool:
+        """The global pass over all poses solved at once (:mod:`rfm_core.mapping.recovery`):
+        the keyframes outside the registered map placed against it; True when one joined. Not
+        on a loaded map (another session's keyframes join it by two placements that agree)."""
+        poses = self.averager.poses
+        if self.mode != 'mapping' or not poses or self.averager.reference:
+            return False
+        added = False
+        for edge in self.recovery.left_out_edges(self.keyframes, poses, self.relocalize, self.config.relocalization):
             if self.add_edge(edge):
                 self.recovered.append(edge)
                 added = True

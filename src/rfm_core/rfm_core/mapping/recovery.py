@@ -23,6 +23,20 @@ look-alike placement is common, two that agree with the session's own edges are 
 placement that agrees with another of its session's (also after the session joined) gets
 the edge from the map keyframe that placed it, so many placements average out the errors of
 the first two.
+
+**The views left out, again** (the paper's global pass over a finished capture, 3.5: pose
+averaging over the whole view graph, then the views left out registered again). When all
+poses are solved at once (the input idle, or the capture finished), every keyframe still
+outside the registered map is placed as a relocalization query is (keyframes voting, the
+pose verified against the whole map), whatever its gyroscope: a photo of a collection has
+no stream to be recovered into. A placement joins it (the edge from the map keyframe that
+placed it) when the map's keyframes verified it independently (two keyframes agree on it,
+or one verified ``recovery_min_inliers`` objects: one keyframe's two objects are often a
+look-alike, and the map's depth points alone joined a part 5 m off on a tuning walk) and it
+is unambiguous: no distinct pose explains as many of its detections
+(:attr:`~rfm_core.mapping.relocalization.Relocalization.runner_up`), as a map match is
+accepted. Each keyframe is tried again whenever the registered map has doubled since
+(docs/design-notes.md).
 """
 from __future__ import annotations
 
@@ -46,6 +60,7 @@ class TrackingRecovery:
         self.tried: dict = {}                # keyframe id -> registered keyframes when it was last matched
         self.placed: dict = {}               # another session's keyframe id -> its Relocalization (None: none)
         self.joined: set = set()             # ... those whose placement became an edge
+        self.left_out: dict = {}             # keyframe id -> registered keyframes when the global pass tried it
 
     @staticmethod
     def recoverable(obs: FrameObservations, config: RelocalizationConfig) -> bool:
@@ -111,6 +126,24 @@ class TrackingRecovery:
                     out.append(_edge_from(self.placed[a], a, poses))
                     break
         return out
+
+    def left_out_edges(self, keyframes: dict, poses: dict,
+                       relocalize: Callable[[FrameObservations], Relocalization | None],
+                       config: RelocalizationConfig) -> list:
+        """The global pass's edges (see the module): each keyframe of ``keyframes`` outside
+        ``poses`` (the registered ones' {id: Pose4}) with enough detections, not tried since
+        the map last doubled, placed by ``relocalize``; the unambiguous placements' edges."""
+        found = []
+        for k, obs in keyframes.items():
+            if (k in poses or not self.recoverable(obs, config)
+                    or len(poses) < 2 * self.left_out.get(k, len(poses) / 2)):
+                continue
+            self.left_out[k] = len(poses)
+            placed = relocalize(obs)
+            if (placed is not None and placed.explained > placed.runner_up
+                    and (placed.agreeing >= 2 or placed.num_inliers >= config.recovery_min_inliers)):
+                found.append(_edge_from(placed, k, poses))
+        return found
 
 
 def _session_links(edges: dict, reference: set) -> dict:
