@@ -60,6 +60,10 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['received'] >= 0.9 * 40 and summary['points_only'] == 0, summary
     assert summary['matcher_frames']['processed'] >= 0.9 * 40 and summary['cpu_s_by_thread'], summary
+    # the camera poses as published, each with its covariance, scored against the truth
+    live = summary['accuracy']['localization']
+    assert live['published'] >= 0.8 * 40 and live['published_gross'] == 0, live
+    assert live['within_2sigma'] >= 0.8, live
     if processes:
         # rfm replay: the run's recorded detections through the in-process back end, scored again
         scene = tmp_path / 'work' / 'scene_handheld'
@@ -72,6 +76,7 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
         row, = json.loads((tmp_path / 'r.json').read_text())
         assert row['scene'] == 'scene_handheld' and row['detections'] >= 0.9 * 40 and row['wrong'] == 0, row
         assert row['registered'] >= 0.9 and row['ATE_median'] < 0.06, row
+        assert row['published'] >= 0.8 * 40 and row['within_2sigma'] >= 0.8, row
 
 
 def test_rfm_run_parameters_are_typed_and_reach_every_node_that_has_them(tmp_path):

@@ -525,15 +525,16 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
     """Everything but the recording, from the saved map (which this also validates), with
     the configuration the mapper ran with (stored in the map file)."""
     from rfm_core.evaluation.report import (  # noqa: PLC0415
-        GroundTruth, evaluate_run, read_ground_truth, render_top_down, write_keyframes_tum, write_object_json,
-        write_report, write_tum)
+        GroundTruth, evaluate_run, published_camera_poses, read_ground_truth, render_top_down, write_keyframes_tum,
+        write_object_json, write_report, write_tum)
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
 
     mapper = Mapper(MapperConfig(posed=posed))
     load_map(mapper, output / 'map.rfm')
     truth = read_ground_truth(bag) if bag is not None else GroundTruth()
-    accuracy = evaluate_run(mapper, truth, posed=posed) if truth and len(truth.boxes) else None
+    published = published_camera_poses(output) if (output / 'outputs.mcap').exists() else None
+    accuracy = evaluate_run(mapper, truth, posed=posed, published=published) if truth and len(truth.boxes) else None
     write_tum(output / 'trajectory.tum', mapper)
     write_keyframes_tum(output / 'keyframes.tum', mapper)
     write_object_json(output / 'objects.json', mapper)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from rfm_core.evaluation.mapping import evaluate_map
-from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
+from rfm_core.evaluation.trajectory import covariance_coverage, map_to_truth, trajectory_errors
 from rfm_core.geometry import Pose4, bev_corners, iou_3d, quaternion_from_matrix
 from rfm_core.io.messages import track_colour
 
@@ -84,13 +84,39 @@ def frames_seeing_mapped(truth: GroundTruth, map_boxes: np.ndarray, min_objects:
             if sum(v >= min_visibility for k, v in seen.items() if k in mapped) >= min_objects}
 
 
-def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed: bool = False) -> dict:
+def published_camera_poses(output) -> tuple[dict, dict]:
+    """({stamp_ns: 4x4 camera-to-map}, {stamp_ns: (6, 6) covariance or None}) of every
+    ``rfm/camera_pose`` an ``rfm run`` recorded (its ``outputs.mcap`` bag folder), as the
+    mapper published them; a recording of PoseStamped messages has no covariances."""
+    from rfm_core.io.bag import topic_messages  # noqa: PLC0415
+    from rfm_core.io.messages import pose_to_matrix, stamp_to_ns  # noqa: PLC0415
+
+    poses, covariances = {}, {}
+    for msg in topic_messages(Path(output) / 'outputs.mcap', '/rfm/camera_pose'):
+        stamp, pose = stamp_to_ns(msg.header.stamp), msg.pose
+        poses[stamp] = pose_to_matrix(getattr(pose, 'pose', pose))
+        cov = np.asarray(getattr(pose, 'covariance', np.zeros(36)), float).reshape(6, 6)
+        covariances[stamp] = cov if np.any(cov) else None
+    return poses, covariances
+
+
+def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed: bool = False,
+                 published: tuple | None = None) -> dict:
     """Localization and mapping accuracy of a mapper against ground truth. Localization is
     over every frame of the input (``registered``: the share of the ground truth's frames
-    localized, as in the paper), with the keyframes' figures beside it (``keyframe_*``)."""
+    localized, as in the paper), with the keyframes' figures beside it (``keyframe_*``) and,
+    given ``published`` (:func:`published_camera_poses`), the camera poses as the mapper
+    published them: ``published``, ``published_gross`` (wrong ones) and ``within_2sigma``
+    (:func:`~rfm_core.evaluation.trajectory.covariance_coverage`)."""
     align_kind = False if posed else '4dof'
     frames = mapper.frame_poses()
     loc = trajectory_errors(frames, truth.camera_poses, align=align_kind)
+    if published is not None and published[0]:
+        live, covariances = published
+        loc['published'] = len(live)
+        loc['published_gross'] = trajectory_errors(live, truth.camera_poses, align=align_kind)['gross']
+        loc['within_2sigma'] = covariance_coverage(live, covariances, truth.camera_poses, align=align_kind)[
+            'within_2sigma']
     est = mapper.camera_poses()
     by_stamp = {mapper.keyframes[k].stamp_ns: m for k, m in est.items()}
     truth_kf = {mapper.keyframes[k].stamp_ns: truth.camera_poses[mapper.keyframes[k].stamp_ns]
@@ -209,6 +235,10 @@ def _reasons(counts: dict | None) -> str:
     return f' ({", ".join(parts)})' if parts else ''
 
 
+def _percent(share) -> str:
+    return 'none' if share is None or not np.isfinite(share) else f'{100 * share:.0f}%'
+
+
 def write_report(path, summary: dict) -> Path:
     """Markdown report of a run: what went in, what came out, timings, accuracy, picture."""
     s = summary
@@ -255,7 +285,12 @@ def write_report(path, summary: dict) -> Path:
                   f'| {loc.get("keyframes", 0)} keyframes | {loc["keyframe_ARE_median"]:.2f} | '
                   f'{100 * loc["keyframe_ATE_median"]:.1f} | {loc["keyframe_ARE_rmse"]:.2f} | '
                   f'{100 * loc["keyframe_ATE_rmse"]:.1f} | {100 * loc["keyframe_registered"]:.0f}% | '
-                  f'{loc.get("keyframe_gross", 0)} |', '',
+                  f'{loc.get("keyframe_gross", 0)} |',
+                  *([f'| {loc["published"]} as published on `rfm/camera_pose` (live) | | | | | | '
+                     f'{loc["published_gross"]} |', '',
+                     f'{_percent(loc.get("within_2sigma"))} of the poses as published lie within the 2-sigma bound '
+                     'of their covariance (4-DoF; a calibrated covariance: about 95%).']
+                    if loc.get('published') else []), '',
                   '| AP15 | AR15 | AP25 | AR25 | map objects | ground-truth objects |', '|---|---|---|---|---|---|',
                   f'| {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | {m["objects"]} | '
                   f'{m["ground_truth"]} |', '',

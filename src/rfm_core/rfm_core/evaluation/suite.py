@@ -201,6 +201,8 @@ def scene_metrics(summary: dict) -> dict:
                                         'keyframe_ARE_median', 'keyframe_ATE_median')}
     out.update(registered=loc.get('registered', 0.0), keyframe_registered=loc.get('keyframe_registered', 0.0),
                frames=loc.get('frames', summary.get('input_frames') or 0), gross=loc.get('gross', 0),
+               published=loc.get('published', 0), published_gross=loc.get('published_gross', 0),
+               within_2sigma=loc.get('within_2sigma', nan),
                keyframes=summary.get('keyframes', 0),
                processed=summary.get('frames', 0) / max(summary.get('input_frames') or 1, 1),
                realtime=summary.get('realtime', nan),
@@ -366,8 +368,17 @@ def summarize(results, settings=SETTINGS) -> dict:
             **{f'share_{k}': float(np.nansum(col(f'objects_{k}')) / max(np.nansum(col('objects')), 1))
                for k in OBJECT_KINDS},
             'keyframes': float(np.mean(col('keyframes'))),
+            # the camera poses as the mapper published them (live), pooled over scenes
+            'published': int(np.nansum(col('published', 0))), 'published_gross': int(np.nansum(col('published_gross', 0))),
+            'within_2sigma': _pooled(col('within_2sigma'), col('published', 0)),
         }
     return out
+
+
+def _pooled(share: np.ndarray, count: np.ndarray) -> float:
+    """A share pooled over scenes, each weighing its count (scenes without one left out)."""
+    ok = np.isfinite(share) & (count > 0)
+    return float(np.sum(share[ok] * count[ok]) / np.sum(count[ok])) if np.any(ok) else float('nan')
 
 
 def wrong_share(m: dict) -> str:
@@ -379,12 +390,15 @@ def format_tables(summary: dict) -> str:
     lines = ['Localization over every frame of the input (medians over scenes of per-scene medians; RMSE '
              'averaged over scenes)', '',
              '| setting | ARE median (deg) | ATE median (cm) | ARE RMSE (deg) | ATE RMSE (cm) | frames localized '
-             '| wrong (> 5 deg or > 25 cm) | keyframes registered | frames processed |',
-             '|---|---|---|---|---|---|---|---|---|']
+             '| wrong (> 5 deg or > 25 cm) | keyframes registered | frames processed | as published: wrong, within '
+             '2 sigma |',
+             '|---|---|---|---|---|---|---|---|---|---|']
     for name, m in summary.items():
+        live = (f'{m["published_gross"]} of {m["published"]}, {100 * m["within_2sigma"]:.1f}%'
+                if m.get('published') else '-')
         lines.append(f'| {name} | {m["ARE_median"]:.2f} | {100 * m["ATE_median"]:.1f} | {m["ARE_rmse"]:.2f} | '
                      f'{100 * m["ATE_rmse"]:.1f} | {100 * m["registered"]:.1f}% | {wrong_share(m)} | '
-                     f'{100 * m["keyframe_registered"]:.1f}% | {100 * m["processed"]:.1f}% |')
+                     f'{100 * m["keyframe_registered"]:.1f}% | {100 * m["processed"]:.1f}% | {live} |')
     lines += ['', 'Mapping (scene-level AP/AR at 3D IoU 0.15 / 0.25, mean over scenes; objects mapped per object '
               'in the room, median over scenes; what the map objects are, pooled over scenes: the first box '
               'of a real object (IoU >= 0.25), a duplicate, a poor fit (IoU 0.1-0.25), nothing real '
@@ -430,11 +444,9 @@ def query_folders(scene: Path, kind: str) -> tuple[Path, Path]:
 def camera_poses_of_run(output) -> dict:
     """{stamp_ns: 4x4 camera-to-map} of every ``rfm/camera_pose`` an ``rfm run`` recorded (its
     ``outputs.mcap`` bag folder)."""
-    from rfm_core.io.bag import topic_messages  # noqa: PLC0415
-    from rfm_core.io.messages import pose_to_matrix, stamp_to_ns  # noqa: PLC0415
+    from rfm_core.evaluation.report import published_camera_poses  # noqa: PLC0415
 
-    return {stamp_to_ns(msg.header.stamp): pose_to_matrix(getattr(msg.pose, 'pose', msg.pose))   # with covariance
-            for msg in topic_messages(Path(output) / 'outputs.mcap', '/rfm/camera_pose')}
+    return published_camera_poses(output)[0]
 
 
 def relocalization_scene_graph(args) -> list:
