@@ -261,3 +261,23 @@ def test_a_full_solve_keeps_the_loop_that_a_wrong_edge_breaks(at):
     assert not kept[n - 1] and all(kept[:n - 1]) and kept[n]                 # only the wrong one dropped
     worst = max(np.linalg.norm((result.poses[k] @ result.poses[0].inverse()).t - rel(k, 0).t) for k in range(n))
     assert worst < 1e-6
+
+
+def test_a_part_that_outgrows_the_registered_one_changes_the_map_frame_and_says_so():
+    """Two chains of keyframes that no edge joins: the first is the map until the second
+    outgrows it; then the map is the second's, in its own frame, and the change is counted
+    (poses given out before are in a frame that is gone). Joined parts keep the frame."""
+
+    step = Pose4(0.1, (0.5, 0.0, 0.0))
+    av = IncrementalAverager()
+    for k in range(2):
+        av.add_edge(k, k + 1, step, 3.0)
+    av.update()
+    assert set(av.poses) == {0, 1, 2} and av.frame_changes == 0
+    for k in range(10, 14):                         # a chain of five keyframes, joined to nothing
+        av.add_edge(k, k + 1, step, 3.0)
+    av.update()
+    assert set(av.poses) == set(range(10, 15)) and av.frame_changes == 1
+    av.add_edge(14, 15, step, 3.0)                  # the map grows on: the same frame
+    av.update(force_full=True)
+    assert 15 in av.poses and av.frame_changes == 1

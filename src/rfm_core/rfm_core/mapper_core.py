@@ -121,6 +121,7 @@ class MapStatus:
     num_edges_rejected: int
     num_objects: int
     num_components: int
+    num_frame_changes: int
     num_frames: int
     num_lost: int
     last_update_seconds: float
@@ -237,9 +238,14 @@ class MapperCore:
         publish when they changed, the object map when it is due."""
         mapper = self.mapper
         recovered, culled = len(mapper.recovered), len(mapper.merged)
+        frame_changes = mapper.averager.frame_changes
         changed = self.session.tick()
         out = Tick(log=self._log)
         self._log = []
+        if mapper.averager.frame_changes > frame_changes:
+            self.warn(f'the map frame changed: a part of the view graph that nothing joins to the part registered '
+                      f'so far outgrew it; the map is now its {len(mapper.poses)} keyframes, and camera poses '
+                      'published before are in the old frame')
         for edge in mapper.recovered[recovered:]:
             out.log.append(f'tracking recovered: keyframe {edge.target} matched the map through keyframe '
                            f'{edge.source} ({len(edge.inliers)} objects verified)')
@@ -279,7 +285,8 @@ class MapperCore:
         mp, latency = self.mapper, self.session.relocalize_latency()
         active = len(mp.active_edges())
         return MapStatus(mp.mode, len(mp.keyframes), len(mp.merged), len(mp.poses), active,
-                         len(mp.measurements()) - active, self.num_objects, mp.num_components(), len(mp.frames),
+                         len(mp.measurements()) - active, self.num_objects, mp.num_components(),
+                         mp.averager.frame_changes, len(mp.frames),
                          self.num_lost, float(mp.last_update_seconds), latency['queries'], latency['relocalized'],
                          latency['median_ms'] / 1e3, latency['p95_ms'] / 1e3, self.session.message)
 

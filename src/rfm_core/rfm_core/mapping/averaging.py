@@ -74,6 +74,9 @@ class AveragingConfig:
                                      'measurement of averaging weight w has this / sqrt(w). The poses\' covariances '
                                      '(rfm/camera_pose); calibrated on tuning rooms', lo=1e-3, hi=90.0)
     pose_sigma_m: float = constant(0.05, '... and error per axis of its translation (m)', lo=1e-4, hi=10.0)
+    pose_sigma_prior_dof: float = constant(10.0, "... pooled, as observations of exactly that noise, with the "
+                                           "solution's residuals where they say the measurements are noisier",
+                                           lo=1.0, hi=1e6)
     tilt_sigma_deg: float = constant(1.0, "Error of the camera's roll and pitch (the gravity estimate's; deg)",
                                      lo=1e-3, hi=90.0)
     cycle_min_loops: int = constant(2, 'Cycle check before each full solve: drop a measurement no triangle of '
@@ -598,6 +601,7 @@ class IncrementalAverager:
         self._needs_full = False
         self._loop_votes = 0
         self.cycle_dropped = 0               # edges the last full solve's cycle check dropped
+        self.frame_changes = 0               # full solves whose registered part shares no keyframe with the last's
         self.stats = UpdateStats()
         self.reference: set = set()          # a loaded map's keyframes: their component stays the map
 
@@ -653,7 +657,7 @@ class IncrementalAverager:
         anchor = int(reg[np.argmin(np.asarray(self.ids)[reg])]) if len(reg) else -1
         return KeyframeCovariances(self._theta, self._centres, e.src, e.dst, e.yaw, e.trans, e.weight, e.yaw_only,
                                    e.active, anchor, np.radians(cfg.pose_sigma_deg), cfg.pose_sigma_m,
-                                   dict(self._index))
+                                   cfg.pose_sigma_prior_dof, dict(self._index))
 
     def active_edges(self) -> list:
         """[(source id, target id)] of the edges the current solution keeps (yaw-only
@@ -762,6 +766,10 @@ class IncrementalAverager:
             # keep the previous gauge: express the new solution relative to the anchor's old pose
             if self._registered[anchor]:
                 theta, centres = _regauge(theta, centres, anchor, self._theta[anchor], self._centres[anchor])
+        elif np.any(self._registered) and np.any(comp):
+            # another part of the graph outgrew the registered one and nothing joins them: the
+            # map frame is now that part's, and poses given out before are in a frame that is gone
+            self.frame_changes += 1
         return theta, centres, active, comp
 
     def _full(self):

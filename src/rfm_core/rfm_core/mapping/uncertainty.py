@@ -16,9 +16,12 @@ the solution, with the anchor keyframe holding the map frame:
 A keyframe's covariance over (theta, centre) is then [[S_kk, (G_k S_k)^T], [G_k S_k,
 H_c^-1_kk I + G_k S G_k^T]] with S = H_yaw^-1, G = dc/dtheta. A frame's adds its pose
 relative to its keyframe (weighed by the objects that placed it, or as a depth-point edge),
-composed to first order. The map frame's roll and pitch are the gravity estimate's
-(``tilt_sigma_deg``). The covariance says how far a pose may be off when its measurements
-are right; a wrong relative pose that nothing contradicted is not in it.
+composed to first order. Where the solution's residuals say the measurements are noisier
+than stated (their chi-square over the redundancy, pooled with ``pose_sigma_prior_dof``
+observations of the stated noise), each stage grows by that factor, never shrinks. The map
+frame's roll and pitch are the gravity estimate's (``tilt_sigma_deg``). The covariance says
+how far a pose may be off when its measurements are right; a wrong relative pose that
+nothing contradicted is not in it.
 """
 from __future__ import annotations
 
@@ -33,16 +36,12 @@ __all__ = ['KeyframeCovariances', 'relative_covariance', 'frame_covariance', 'ro
 _EPS = 1e-12
 
 
-#: pseudo-observations of the measurements' stated noise that the residuals' estimate of it is pooled with
-PRIOR_DOF = 10.0
-
-
-def _variance_factor(chi2: float, redundancy: int) -> float:
+def _variance_factor(chi2: float, redundancy: int, prior_dof: float) -> float:
     """How much noisier the measurements are than stated, estimated from the solution's
     normalized residuals (``chi2`` over ``redundancy`` degrees of freedom) pooled with
-    :data:`PRIOR_DOF` observations of exactly the stated noise; never below 1 (the stated
-    noise is the floor)."""
-    return max(1.0, (PRIOR_DOF + chi2) / (PRIOR_DOF + max(redundancy, 0)))
+    ``prior_dof`` observations of exactly the stated noise; never below 1 (the stated noise
+    is the floor)."""
+    return max(1.0, (prior_dof + chi2) / (prior_dof + max(redundancy, 0)))
 
 
 def relative_covariance(weight: float, sigma_yaw: float, sigma_t: float) -> np.ndarray:
@@ -59,15 +58,15 @@ class KeyframeCovariances:
 
     ``theta`` (n,), ``centres`` (n, 3): the solution (NaN outside it); edges ``src``, ``dst``,
     ``trans`` (T_src_dst's translation), ``weight``, ``yaw_only``; only ``used`` edges count;
-    ``anchor``: the index that holds the map frame; ``positions``: {keyframe id: index} (called
-    with an id), or None (called with an index).
+    ``anchor``: the index that holds the map frame; ``prior_dof``: see :func:`_variance_factor`;
+    ``positions``: {keyframe id: index} (called with an id), or None (called with an index).
 
     Where the solution's residuals say the measurements are noisier than stated, each stage's
     covariance grows by that factor (:attr:`yaw_factor`, :attr:`translation_factor`), and so
     should the frames' relative poses (:meth:`relative`)."""
 
     def __init__(self, theta, centres, src, dst, yaw, trans, weight, yaw_only, used, anchor: int,
-                 sigma_yaw: float, sigma_t: float, positions: dict | None = None):
+                 sigma_yaw: float, sigma_t: float, prior_dof: float = 10.0, positions: dict | None = None):
         self.positions = positions
         self.sigma_yaw, self.sigma_t = sigma_yaw, sigma_t
         self.yaw_factor = self.translation_factor = 1.0
@@ -88,14 +87,15 @@ class KeyframeCovariances:
         use = np.asarray(used, bool) & reg[src] & reg[dst]
         s, d, w = src[use], dst[use], weight[use]
         r_yaw = np.arctan2(np.sin(theta[s] - theta[d] - yaw[use]), np.cos(theta[s] - theta[d] - yaw[use]))
-        self.yaw_factor = _variance_factor(np.sum(w * r_yaw ** 2) / sigma_yaw ** 2, len(s) - m)
+        self.yaw_factor = _variance_factor(np.sum(w * r_yaw ** 2) / sigma_yaw ** 2, len(s) - m, prior_dof)
         self._lu_yaw = self._factor(self._laplacian(s, d, w / (self.yaw_factor * sigma_yaw ** 2)))
         full = ~np.asarray(yaw_only, bool)[use]
         s, d, w, t = s[full], d[full], w[full], trans[use][full]
         c, si = np.cos(theta[s]), np.sin(theta[s])
         offsets = np.stack([c * t[:, 0] + si * t[:, 1], -si * t[:, 0] + c * t[:, 1], t[:, 2]], 1)   # Rz(theta_s)^T t
         r_t = centres[d] - centres[s] - offsets
-        self.translation_factor = _variance_factor(np.sum(w * np.sum(r_t ** 2, 1)) / sigma_t ** 2, 3 * (len(s) - m))
+        self.translation_factor = _variance_factor(np.sum(w * np.sum(r_t ** 2, 1)) / sigma_t ** 2,
+                                                   3 * (len(s) - m), prior_dof)
         info = w / (self.translation_factor * sigma_t ** 2)
         self._lu_c = self._factor(self._laplacian(s, d, info))
         # B (m, 3, m): how the right-hand side of the centres' normal equations moves with theta_s
