@@ -574,8 +574,9 @@ def reloc_table_row(kind: str, rows: list) -> str:
 
 def _pooled(rows: list, key: str, count: str) -> float:
     """The share ``key`` over all rows' ``count`` items (rows without any skipped)."""
-    total = sum(r[count] for r in rows if r[count] and np.isfinite(r[key]))
-    return sum(r[key] * r[count] for r in rows if r[count] and np.isfinite(r[key])) / max(total, 1)
+    from rfm_core.evaluation.suite import pooled_share  # noqa: PLC0415
+
+    return pooled_share([r[key] for r in rows], [r[count] for r in rows])
 
 
 def cmd_replay(args) -> int:

@@ -370,13 +370,14 @@ def summarize(results, settings=SETTINGS) -> dict:
             'keyframes': float(np.mean(col('keyframes'))),
             # the camera poses as the mapper published them (live), pooled over scenes
             'published': int(np.nansum(col('published', 0))), 'published_gross': int(np.nansum(col('published_gross', 0))),
-            'within_2sigma': _pooled(col('within_2sigma'), col('published', 0)),
+            'within_2sigma': pooled_share(col('within_2sigma'), col('published', 0)),
         }
     return out
 
 
-def _pooled(share: np.ndarray, count: np.ndarray) -> float:
+def pooled_share(share, count) -> float:
     """A share pooled over scenes, each weighing its count (scenes without one left out)."""
+    share, count = np.asarray(share, float), np.asarray(count, float)
     ok = np.isfinite(share) & (count > 0)
     return float(np.sum(share[ok] * count[ok]) / np.sum(count[ok])) if np.any(ok) else float('nan')
 
