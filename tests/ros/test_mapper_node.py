@@ -212,6 +212,8 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         reloc = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=query))
         assert reloc.success, reloc.message
         assert reloc.num_inliers >= 3
+        cov = np.asarray(reloc.covariance).reshape(6, 6)                # how far off it may be, with it
+        assert np.allclose(cov, cov.T) and 0.0 < np.sqrt(np.trace(cov[:3, :3]) / 3) < 0.2, cov
         for det in query.detections:                                    # NaN embeddings killed the mapper (#19)
             det.embedding = [float('nan')] * len(det.embedding)
         poisoned = h.call(Relocalize, 'rfm/relocalize', Relocalize.Request(query=query))

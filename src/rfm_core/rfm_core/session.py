@@ -360,6 +360,7 @@ class MapSession:
             self.counts['relocalize_failed'] += 1
             return None, ('; then '.join(why) if why else 'no pose found') + took
         self.counts['relocalized'] += 1
+        reloc.covariance = self.mapper.frame_covariance(self.mapper.relocalized_track(obs, reloc))
         if not reloc.num_inliers:           # no keyframe verified it: the map's objects and depth points did
             return reloc, (f'relocalized on the map\'s depth points from its objects (nearest keyframe '
                            f'{reloc.keyframe_id}): {reloc.explained} detections explained by the map{took}')
@@ -392,9 +393,7 @@ class MapSession:
         self.message = '' if accepted else (why[-1] if why else 'no pose found')
         out = []
         for o, reloc in accepted:
-            k = reloc.keyframe_id
-            track = FrameTrack(o.stamp_ns, o.frame_id, o.gravity_cam, k, self.mapper.keyframes[k].stamp_ns,
-                               self.mapper.poses[k] @ reloc.pose.inverse(), reloc.num_inliers)
+            track = self.mapper.relocalized_track(o, reloc)
             self.mapper.frames.add(track)
             out.append(CameraPose(o.stamp_ns, o.frame_id, camera_to_map(reloc.pose, o.gravity_cam),
                                   self.mapper.frame_covariance(track)))

@@ -607,7 +607,7 @@ def mapper_status_msg(status, stamp_ns: int, frame_id: str, make=ROS):
 def relocalize_answer(query, relocalize, frame_id: str, make=ROS) -> dict:
     """rfm_msgs/Relocalize's response fields for a query message: decoded (a malformed one is
     refused with the reason), ``relocalize(obs)`` -> (Relocalization or None, message), the
-    pose as a PoseStamped in ``frame_id``."""
+    pose as a PoseStamped in ``frame_id`` and its covariance (zeros: not estimated)."""
     try:
         obs = frame_detections_from_msg(query)
     except ValueError as exc:
@@ -615,9 +615,11 @@ def relocalize_answer(query, relocalize, frame_id: str, make=ROS) -> dict:
     reloc, message = relocalize(obs)
     if reloc is None:
         return dict(success=False, message=message)
+    covariance = np.zeros(36) if reloc.covariance is None else np.asarray(reloc.covariance, float).reshape(36)
     return dict(success=True, message=message, num_inliers=int(reloc.num_inliers),
                 keyframe_id=int(reloc.keyframe_id),
-                pose=pose_stamped_msg(reloc.camera_to_map(obs), obs.stamp_ns, frame_id, make))
+                pose=pose_stamped_msg(reloc.camera_to_map(obs), obs.stamp_ns, frame_id, make),
+                covariance=[float(v) for v in covariance])
 
 
 def detection_markers_msg(obs: FrameObservations, make=ROS):

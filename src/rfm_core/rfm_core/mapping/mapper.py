@@ -294,6 +294,12 @@ class Mapper:
                     frontier.append((e.source, t_source_target, chained))
         return None
 
+    def relocalized_track(self, obs: FrameObservations, reloc: Relocalization) -> FrameTrack:
+        """A relocalized frame as a frame tracked against the keyframe that placed it."""
+        k = reloc.keyframe_id
+        return FrameTrack(obs.stamp_ns, obs.frame_id, obs.gravity_cam, k, self.keyframes[k].stamp_ns,
+                          self.poses[k] @ reloc.pose.inverse(), reloc.num_inliers)
+
     def keyframe_track(self, keyframe_id: int) -> FrameTrack:
         """A keyframe as a frame tracked against itself."""
         obs = self.keyframes[keyframe_id]

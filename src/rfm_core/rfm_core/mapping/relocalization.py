@@ -111,6 +111,7 @@ class Relocalization:
     agreeing: int = 1                        #: keyframes agreeing on the pose
     explained: int = 0                       #: query detections the pose places on the map's objects
     runner_up: int = 0                       #: the same for the best distinct alternative pose (0: none)
+    covariance: np.ndarray | None = None     #: (6, 6) of the camera pose (Mapper.frame_covariance), once asked
 
     def camera_to_map(self, query: FrameObservations) -> np.ndarray:
         """4x4 pose of the query's camera optical frame in the map frame."""
