@@ -369,7 +369,8 @@ def summarize(results, settings=SETTINGS) -> dict:
                for k in OBJECT_KINDS},
             'keyframes': float(np.mean(col('keyframes'))),
             # the camera poses as the mapper published them (live), pooled over scenes
-            'published': int(np.nansum(col('published', 0))), 'published_gross': int(np.nansum(col('published_gross', 0))),
+            'published': int(np.nansum(col('published', 0))),
+            'published_gross': int(np.nansum(col('published_gross', 0))),
             'within_2sigma': pooled_share(col('within_2sigma'), col('published', 0)),
         }
     return out

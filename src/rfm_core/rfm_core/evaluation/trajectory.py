@@ -117,6 +117,15 @@ def map_to_truth(estimated: dict, truth: dict) -> Pose4:
     return Pose4(float(np.arctan2(r[1, 0], r[0, 0])), t)
 
 
+def _alignment(est: np.ndarray, gt: np.ndarray, align: str | bool) -> tuple:
+    """(R, t) laying ``est`` on ``gt`` as ``align`` says (see :func:`trajectory_errors`)."""
+    if align == 'se3':
+        return align_se3(est[:, :3, 3], gt[:, :3, 3])
+    if align:
+        return align_robust(est, gt)
+    return np.eye(3), np.zeros(3)
+
+
 def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') -> dict:
     """``estimated`` / ``truth``: {frame key: 4x4 camera-to-map}. Errors over the frames
     present in both; ``registered`` = share of ``truth`` frames that were estimated;
@@ -129,12 +138,7 @@ def trajectory_errors(estimated: dict, truth: dict, align: str | bool = '4dof') 
         out.update(ATE_median=float('nan'), ATE_rmse=float('nan'), ARE_median=float('nan'),
                    ARE_rmse=float('nan'))
         return out
-    if align == 'se3':
-        r, t = align_se3(est[:, :3, 3], gt[:, :3, 3])
-    elif align:
-        r, t = align_robust(est, gt)
-    else:
-        r, t = np.eye(3), np.zeros(3)
+    r, t = _alignment(est, gt, align)
     ate, are = _errors(est, gt, r, t)
     gross = (are > GROSS[0]) | (ate > GROSS[1])
     out.update(ATE_median=float(np.median(ate)), ATE_rmse=float(np.sqrt(np.mean(ate ** 2))),
@@ -164,8 +168,7 @@ def covariance_coverage(estimated: dict, covariances: dict, truth: dict, align: 
         return out
     est = np.array([estimated[k] for k in keys], float).reshape(-1, 4, 4)
     gt = np.array([truth[k] for k in keys], float).reshape(-1, 4, 4)
-    r, t = (align_robust(est, gt) if align == '4dof' else align_se3(est[:, :3, 3], gt[:, :3, 3])) if align else \
-        (np.eye(3), np.zeros(3))
+    r, t = _alignment(est, gt, align)
     e_pos = np.einsum('ji,nj->ni', r, est[:, :3, 3] @ r.T + t - gt[:, :3, 3])          # in the map's axes
     d = np.einsum('nij,nkj->nik', np.einsum('ij,njk->nik', r, est[:, :3, :3]), gt[:, :3, :3])   # R_est R_gt^T
     e_yaw = np.arctan2(d[:, 1, 0] - d[:, 0, 1], d[:, 0, 0] + d[:, 1, 1])                # its turn about z

@@ -29,8 +29,8 @@ __all__ = [
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
     'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
     'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs',
-    'object_map_outputs', 'tick_outputs', 'pose_with_covariance_msg', 'mapper_status_msg', 'relocalize_answer', 'detection_markers_msg',
-    'diagnostics_msg',
+    'object_map_outputs', 'tick_outputs', 'pose_with_covariance_msg', 'mapper_status_msg', 'relocalize_answer',
+    'detection_markers_msg', 'diagnostics_msg',
 ]
 
 MAX_DETECTIONS = 1000       #: detections read from one frame message (the detectors' max_detections bound)
@@ -121,11 +121,15 @@ def pose_stamped_msg(matrix, stamp_ns: int, frame_id: str, make=ROS):
                 pose=_pose(make, matrix))
 
 
+def _covariance36(covariance) -> list:
+    """A (6, 6) pose covariance as a message's 36 floats; None: zeros (not estimated)."""
+    return [float(v) for v in (np.zeros(36) if covariance is None else np.asarray(covariance, float).reshape(36))]
+
+
 def pose_with_covariance_msg(matrix, covariance, stamp_ns: int, frame_id: str, make=ROS):
     """geometry_msgs/PoseWithCovarianceStamped of a 4x4 pose and its (6, 6) covariance (x, y,
     z, rotations about x, y, z); None: all zeros (not estimated)."""
-    cov = np.zeros(36) if covariance is None else np.asarray(covariance, float).reshape(36)
-    inner = make('geometry_msgs/msg/PoseWithCovariance', pose=_pose(make, matrix), covariance=[float(v) for v in cov])
+    inner = make('geometry_msgs/msg/PoseWithCovariance', pose=_pose(make, matrix), covariance=_covariance36(covariance))
     return make('geometry_msgs/msg/PoseWithCovarianceStamped', header=header(make, stamp_ns, frame_id), pose=inner)
 
 
@@ -615,11 +619,10 @@ def relocalize_answer(query, relocalize, frame_id: str, make=ROS) -> dict:
     reloc, message = relocalize(obs)
     if reloc is None:
         return dict(success=False, message=message)
-    covariance = np.zeros(36) if reloc.covariance is None else np.asarray(reloc.covariance, float).reshape(36)
     return dict(success=True, message=message, num_inliers=int(reloc.num_inliers),
                 keyframe_id=int(reloc.keyframe_id),
                 pose=pose_stamped_msg(reloc.camera_to_map(obs), obs.stamp_ns, frame_id, make),
-                covariance=[float(v) for v in covariance])
+                covariance=_covariance36(reloc.covariance))
 
 
 def detection_markers_msg(obs: FrameObservations, make=ROS):

@@ -655,9 +655,12 @@ class IncrementalAverager:
         e, cfg = self.edges, self.config
         reg = np.flatnonzero(self._registered)
         anchor = int(reg[np.argmin(np.asarray(self.ids)[reg])]) if len(reg) else -1
-        return KeyframeCovariances(self._theta, self._centres, e.src, e.dst, e.yaw, e.trans, e.weight, e.yaw_only,
-                                   e.active, anchor, np.radians(cfg.pose_sigma_deg), cfg.pose_sigma_m,
-                                   cfg.pose_sigma_prior_dof, dict(self._index))
+        theta, centres = self._theta, self._centres
+        residual_yaw = wrap_angle(theta[e.src] - theta[e.dst] - e.yaw)
+        residual_t = centres[e.dst] - centres[e.src] - _centre_offsets(theta[e.src], e.trans)
+        return KeyframeCovariances(theta, centres, e.src, e.dst, e.trans, e.weight, e.yaw_only, e.active,
+                                   residual_yaw, residual_t, anchor, np.radians(cfg.pose_sigma_deg),
+                                   cfg.pose_sigma_m, cfg.pose_sigma_prior_dof, dict(self._index))
 
     def active_edges(self) -> list:
         """[(source id, target id)] of the edges the current solution keeps (yaw-only

@@ -375,7 +375,6 @@ class Mapper:
         poses = self.averager.poses
         if self.mode != 'mapping' or not poses:
             return False
-        added = False
         found = self.recovery.edges(self.keyframes, poses, self._newest_stamp_ns, self.map_index, self._gyro_yaw,
                                     self.config.relocalization, self.config.matching)
         if self.averager.reference:             # a loaded map: keyframes of this session join it
@@ -384,7 +383,12 @@ class Mapper:
                 lambda obs: relocalize(obs, self.reference_index(), self.matcher, self.config.relocalization,
                                        self.config.matching, self.config.averaging),
                 self.config.relocalization, self.averager.reference)
-        for edge in found:
+        return self._join(found)
+
+    def _join(self, edges: list) -> bool:
+        """Add the edges that join keyframes to the map (kept in :attr:`recovered`); True when one was new."""
+        added = False
+        for edge in edges:
             if self.add_edge(edge):
                 self.recovered.append(edge)
                 added = True
@@ -397,12 +401,8 @@ class Mapper:
         poses = self.averager.poses
         if self.mode != 'mapping' or not poses or self.averager.reference:
             return False
-        added = False
-        for edge in self.recovery.left_out_edges(self.keyframes, poses, self.relocalize, self.config.relocalization):
-            if self.add_edge(edge):
-                self.recovered.append(edge)
-                added = True
-        return added
+        return self._join(self.recovery.left_out_edges(self.keyframes, poses, self.relocalize,
+                                                       self.config.relocalization))
 
     def _cull(self) -> bool:
         """Keyframe culling (:mod:`rfm_core.mapping.culling`): each redundant keyframe of a

@@ -57,7 +57,8 @@ class KeyframeCovariances:
     demand for one solution of the averaging.
 
     ``theta`` (n,), ``centres`` (n, 3): the solution (NaN outside it); edges ``src``, ``dst``,
-    ``trans`` (T_src_dst's translation), ``weight``, ``yaw_only``; only ``used`` edges count;
+    ``trans`` (T_src_dst's translation), ``weight``, ``yaw_only``, and their residuals under the
+    solution ``residual_yaw`` (rad, wrapped) and ``residual_t`` (E, 3); only ``used`` edges count;
     ``anchor``: the index that holds the map frame; ``prior_dof``: see :func:`_variance_factor`;
     ``positions``: {keyframe id: index} (called with an id), or None (called with an index).
 
@@ -65,8 +66,9 @@ class KeyframeCovariances:
     covariance grows by that factor (:attr:`yaw_factor`, :attr:`translation_factor`), and so
     should the frames' relative poses (:meth:`relative`)."""
 
-    def __init__(self, theta, centres, src, dst, yaw, trans, weight, yaw_only, used, anchor: int,
-                 sigma_yaw: float, sigma_t: float, prior_dof: float = 10.0, positions: dict | None = None):
+    def __init__(self, theta, centres, src, dst, trans, weight, yaw_only, used, residual_yaw, residual_t,
+                 anchor: int, sigma_yaw: float, sigma_t: float, prior_dof: float = 10.0,
+                 positions: dict | None = None):
         self.positions = positions
         self.sigma_yaw, self.sigma_t = sigma_yaw, sigma_t
         self.yaw_factor = self.translation_factor = 1.0
@@ -86,19 +88,17 @@ class KeyframeCovariances:
             return
         use = np.asarray(used, bool) & reg[src] & reg[dst]
         s, d, w = src[use], dst[use], weight[use]
-        r_yaw = np.arctan2(np.sin(theta[s] - theta[d] - yaw[use]), np.cos(theta[s] - theta[d] - yaw[use]))
-        self.yaw_factor = _variance_factor(np.sum(w * r_yaw ** 2) / sigma_yaw ** 2, len(s) - m, prior_dof)
+        self.yaw_factor = _variance_factor(np.sum(w * residual_yaw[use] ** 2) / sigma_yaw ** 2, len(s) - m,
+                                           prior_dof)
         self._lu_yaw = self._factor(self._laplacian(s, d, w / (self.yaw_factor * sigma_yaw ** 2)))
         full = ~np.asarray(yaw_only, bool)[use]
-        s, d, w, t = s[full], d[full], w[full], trans[use][full]
-        c, si = np.cos(theta[s]), np.sin(theta[s])
-        offsets = np.stack([c * t[:, 0] + si * t[:, 1], -si * t[:, 0] + c * t[:, 1], t[:, 2]], 1)   # Rz(theta_s)^T t
-        r_t = centres[d] - centres[s] - offsets
+        s, d, w, t, r_t = s[full], d[full], w[full], trans[use][full], residual_t[use][full]
         self.translation_factor = _variance_factor(np.sum(w * np.sum(r_t ** 2, 1)) / sigma_t ** 2,
                                                    3 * (len(s) - m), prior_dof)
         info = w / (self.translation_factor * sigma_t ** 2)
         self._lu_c = self._factor(self._laplacian(s, d, info))
         # B (m, 3, m): how the right-hand side of the centres' normal equations moves with theta_s
+        c, si = np.cos(theta[s]), np.sin(theta[s])
         dmeas = np.stack([-si * t[:, 0] + c * t[:, 1], -c * t[:, 0] - si * t[:, 1], np.zeros(len(s))], 1)
         a_s, a_d = self.index[s], self.index[d]
         rows, cols, vals = [], [], []
