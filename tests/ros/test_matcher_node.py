@@ -22,7 +22,7 @@ pytestmark = pytest.mark.ros
 @pytest.mark.slow
 def test_keyframes_and_edges_agree_with_ground_truth():
     from rfm_matcher_node.matcher_node import MatcherNode
-    from rfm_msgs.msg import FrameDetections, Keyframe, ViewGraphEdge
+    from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 
     frames = list(Capture(CaptureConfig(seed=33, frames=24, fps=3)).frames())
     det = make_detector('ground_truth', preset='rgbd', seed=5)
@@ -30,9 +30,10 @@ def test_keyframes_and_edges_agree_with_ground_truth():
     matcher = MatcherNode()
     test = Node('matcher_test')
     reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
-    keyframes, edges = [], []
+    keyframes, edges, tracked = [], [], []
     test.create_subscription(Keyframe, 'rfm/keyframes', keyframes.append, reliable)
     test.create_subscription(ViewGraphEdge, 'rfm/view_graph/edges', edges.append, reliable)
+    test.create_subscription(TrackedFrame, 'rfm/tracked_frames', tracked.append, reliable)
     pub = test.create_publisher(FrameDetections, 'rfm/detections', QoSProfile(depth=50))
     executor = MultiThreadedExecutor()
     executor.add_node(matcher)
@@ -79,3 +80,19 @@ def test_keyframes_and_edges_agree_with_ground_truth():
         t_err.append(np.linalg.norm(est.t - truth.t))
         assert len(e.inliers) >= 2 and 0 < e.score <= 1
     assert np.median(yaw_err) < 2.0 and np.median(t_err) < 0.12
+    # every tracked frame states how far off its pose may be; the keyframes are exact
+    within, frames = 0, 0
+    for t in tracked:
+        cov = np.asarray(t.covariance).reshape(4, 4)
+        if t.is_keyframe:
+            assert not np.any(cov)
+            continue
+        assert np.allclose(cov, cov.T) and np.all(np.linalg.eigvalsh(cov) > 0)
+        est = Pose4(t.yaw, (t.translation.x, t.translation.y, t.translation.z))
+        truth = (kf_frame[t.keyframe_id].aligned_from_map()
+                 @ by_stamp[t.header.stamp.sec * 10**9 + t.header.stamp.nanosec].aligned_from_map().inverse())
+        err = np.r_[est.t - truth.t, est.angle_to(truth)]
+        within += err @ np.linalg.solve(cov, err) <= 9.49        # chi-square, 4 dof, 95%
+        frames += 1
+    assert frames >= 5
+    assert within >= 0.8 * frames, f'{within} of {frames} tracked frames within their 2-sigma bound'

@@ -29,6 +29,8 @@ from rfm_core.io.messages import (diagnostics_msg, edge_msg, frame_detections_fr
                                   stamp_to_ns, tracked_frame_to_msg)
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.qos import GRAPH, RELIABLE, STREAM, qos
+from rfm_core.mapping.averaging import AveragingConfig
+from rfm_core.mapping.uncertainty import tracked_covariance
 from rfm_core.matching.factory import make_matcher
 from rfm_core.matching.load import FrameShedder
 from rfm_core.matching.view_graph import ViewGraphBuilder
@@ -45,6 +47,7 @@ class MatcherNode(Node):
         except FileNotFoundError as exc:
             raise ValueError(str(exc)) from exc
         self.graph = ViewGraphBuilder(cfg.matching, cfg.graph, matcher=matcher)
+        self.averaging = AveragingConfig()      # the noise constants of the covariances tracked frames state
         self.keyframe_pub = self.create_publisher(Keyframe, 'rfm/keyframes', qos(GRAPH))
         self.edge_pub = self.create_publisher(ViewGraphEdge, 'rfm/view_graph/edges', qos(GRAPH))
         self.track_pub = self.create_publisher(TrackedFrame, 'rfm/tracked_frames', qos(STREAM))
@@ -98,7 +101,8 @@ class MatcherNode(Node):
         for edge in edges:                        # the keyframe's, or those a revisiting frame measured
             self.edge_pub.publish(self._numbered(edge_msg(edge, obs.stamp_ns)))
         if track is not None:            # after its keyframe, so the mapper knows the keyframe
-            self.track_pub.publish(self._numbered(tracked_frame_to_msg(track)))
+            self.track_pub.publish(self._numbered(tracked_frame_to_msg(
+                track, covariance=tracked_covariance(track.num_inliers, track.is_keyframe, self.averaging))))
 
     def _publish_diagnostics(self) -> None:
         counts = self.shedder.counts

@@ -468,13 +468,16 @@ def _quaternion(make, rotation):
     return make('geometry_msgs/msg/Quaternion', x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
 
 
-def tracked_frame_to_msg(track: FrameTrack, make=ROS):
-    """FrameTrack -> rfm_msgs/TrackedFrame."""
+def tracked_frame_to_msg(track: FrameTrack, make=ROS, covariance=None):
+    """FrameTrack -> rfm_msgs/TrackedFrame; ``covariance``: (16,) over (x, y, z, yaw) of its
+    pose (:func:`rfm_core.mapping.uncertainty.tracked_covariance`), None: zeros (not stated)."""
+    covariance = np.zeros(16) if covariance is None else np.asarray(covariance, float).reshape(16)
     return make('rfm_msgs/msg/TrackedFrame', header=header(make, track.stamp_ns, track.frame_id),
                 keyframe_id=int(track.keyframe_id), keyframe_stamp=ns_to_stamp(track.keyframe_stamp_ns, make),
                 yaw=float(track.pose.yaw), translation=_vector3(make, track.pose.t),
                 gravity=_vector3(make, track.gravity_cam), num_inliers=int(track.num_inliers),
-                is_keyframe=bool(track.is_keyframe), continuous=bool(track.continuous))
+                is_keyframe=bool(track.is_keyframe), continuous=bool(track.continuous),
+                covariance=[float(v) for v in covariance])
 
 
 def tracked_frame_from_msg(msg) -> FrameTrack:

@@ -30,7 +30,7 @@ from rfm_core.mapping.relocalization import MapIndex, MotionPrior, Relocalizatio
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.recovery import TrackingRecovery
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
-from rfm_core.mapping.uncertainty import frame_covariance, ros_pose_covariance
+from rfm_core.mapping.uncertainty import frame_covariance, ros_pose_covariance, track_weight
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import bag_of_objects
@@ -324,7 +324,7 @@ class Mapper:
                 return None
         covariances = self._covariances
         k, rel = track.keyframe_id, track.pose
-        cov_rel = covariances.relative(0.0 if track.is_keyframe else (track.num_inliers or cfg.points_edge_weight))
+        cov_rel = covariances.relative(track_weight(track.num_inliers, track.is_keyframe, cfg.points_edge_weight))
         if self.averager.pose(k) is None:
             chain = self._provisional_chain(k)
             if chain is None:

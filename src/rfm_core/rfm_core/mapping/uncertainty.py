@@ -31,7 +31,8 @@ from scipy.sparse.linalg import splu
 
 from rfm_core.geometry import Pose4
 
-__all__ = ['KeyframeCovariances', 'relative_covariance', 'frame_covariance', 'ros_pose_covariance']
+__all__ = ['KeyframeCovariances', 'relative_covariance', 'track_weight', 'tracked_covariance', 'frame_covariance',
+           'ros_pose_covariance']
 
 _EPS = 1e-12
 
@@ -50,6 +51,23 @@ def relative_covariance(weight: float, sigma_yaw: float, sigma_t: float) -> np.n
     if weight <= 0:
         return np.zeros((4, 4))
     return np.diag([sigma_yaw ** 2, sigma_t ** 2, sigma_t ** 2, sigma_t ** 2]) / weight
+
+
+def track_weight(num_inliers: int, is_keyframe: bool, points_edge_weight: float) -> float:
+    """The averaging weight of a frame's pose relative to its keyframe: the objects that
+    verified it, a depth-point edge's where none did, 0 (exact) for the keyframe itself."""
+    return 0.0 if is_keyframe else float(num_inliers or points_edge_weight)
+
+
+def tracked_covariance(num_inliers: int, is_keyframe: bool, averaging) -> np.ndarray:
+    """(16,) row-major covariance over (x, y, z, yaw) of a tracked frame's pose relative to
+    its keyframe (rfm_msgs/TrackedFrame ``covariance``), as its measurement states it (the
+    averaging's noise constants, ``averaging``: an AveragingConfig); the mapper grows it by
+    the map's variance factors where the residuals say so."""
+    cov = relative_covariance(track_weight(num_inliers, is_keyframe, averaging.points_edge_weight),
+                              np.radians(averaging.pose_sigma_deg), averaging.pose_sigma_m)
+    order = [1, 2, 3, 0]                        # (yaw, x, y, z) -> (x, y, z, yaw)
+    return cov[np.ix_(order, order)].reshape(16)
 
 
 class KeyframeCovariances:
