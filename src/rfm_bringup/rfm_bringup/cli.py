@@ -194,6 +194,38 @@ def cmd_play(args) -> int:
     return 0
 
 
+def cmd_convert(args) -> int:
+    """A TUM RGB-D or generic RGB-D dataset folder as a bag for rfm run --bag."""
+    from rfm_core.io.datasets import read_folder, write_bag  # noqa: PLC0415
+
+    out = Path(args.output) if args.output else Path('bags') / Path(args.folder).resolve().name
+    try:
+        folder = read_folder(args.folder, intrinsics=args.intrinsics, accel_axes=args.accel_axes,
+                             max_difference_s=args.max_difference)
+    except (FileNotFoundError, ValueError) as exc:
+        raise SystemExit(f'rfm convert: {exc}') from None
+    _prepare(out, args.force)
+
+    def progress(done, total):
+        if sys.stderr.isatty() or done == total:
+            sys.stderr.write(f'\r[rfm convert] {done}/{total} frames')
+            sys.stderr.flush()
+    try:
+        summary = write_bag(folder, out, progress=None if args.quiet else progress)
+    except (FileNotFoundError, ValueError) as exc:
+        raise SystemExit(f'rfm convert: {exc}') from None
+    if not args.quiet:
+        sys.stderr.write('\n')
+    imu = (f'{summary["imu"]} IMU samples ({"accelerometer and gyroscope" if summary["gyroscope"] else "accelerometer only"})'
+           if summary['imu'] else 'no IMU (run with --param detector.gravity_source:=parameter)')
+    levelled = f'levelled by {summary["levelled_deg"]:.1f} deg' if summary['imu'] else 'as given: no IMU to level it'
+    truth = f'{summary["ground_truth"]} ground-truth poses ({levelled})' if summary['ground_truth'] else 'no ground truth'
+    print(f'wrote {out}: {summary["frames"]} frames {summary["width"]}x{summary["height"]} ({summary["layout"]} '
+          f'layout; {summary["skipped"]} colour images without depth within {args.max_difference} s), {imu}, '
+          f'{truth}. Next: rfm run --bag {out}')
+    return 0
+
+
 def cmd_record(args) -> int:
     import rclpy  # noqa: PLC0415
     from rclpy.executors import ExternalShutdownException  # noqa: PLC0415
@@ -904,6 +936,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help='after the bag ends, stop once nothing changed for this long (s)')
     p.add_argument('--quiet', action='store_true', help='no progress line')
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser('convert', help='an RGB-D dataset folder (TUM RGB-D, or the generic layout) as a bag '
+                                       'for rfm run --bag')
+    p.add_argument('folder', help='a TUM RGB-D sequence folder (rgb.txt, depth.txt, ...) or a generic one '
+                                  '(the same files and camera.yaml; README, "Running on your own data")')
+    p.add_argument('--output', help='bag directory to create (default bags/<folder name>)')
+    p.add_argument('--force', action='store_true', help='replace an existing output')
+    p.add_argument('--intrinsics', type=float, nargs=4, metavar=('FX', 'FY', 'CX', 'CY'),
+                   help="the colour camera's intrinsics (default: camera.yaml's, or TUM's for its camera)")
+    p.add_argument('--accel-axes', help="per optical axis (x right, y down, z forward), the IMU file's axis that "
+                                        "measures it, e.g. 'x,y,z' (the default) or '-y,x,z'")
+    p.add_argument('--max-difference', type=float, default=0.02,
+                   help='pair a colour image with the depth image nearest in time within this (s)')
+    p.add_argument('--quiet', action='store_true', help='no progress line')
+    p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser('record', help='record topics to an MCAP bag until Ctrl-C')
     p.add_argument('output', help='bag directory to create')

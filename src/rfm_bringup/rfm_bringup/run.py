@@ -513,9 +513,9 @@ def run_graph(args) -> int:
     if acc:
         loc, m = acc['localization'], acc['mapping']
         print(f'  vs ground truth: ARE {loc["ARE_median"]:.2f} deg, ATE {100 * loc["ATE_median"]:.1f} cm, '
-              f'{100 * loc["registered"]:.0f}% of frames localized ({loc.get("gross", 0)} wrong: > 5 deg or > 25 cm), '
-              f'AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}, '
-              f'{m["objects"]} objects for {m["ground_truth"]}')
+              f'{100 * loc["registered"]:.0f}% of frames localized ({loc.get("gross", 0)} wrong: > 5 deg or > 25 cm)'
+              + (f', AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}, {m["objects"]} objects for {m["ground_truth"]}'
+                 if m else ''))
     print(f'  report: {output / "report.md"}, picture: {output / "top_down.png"}')
     return 130 if interrupted and bag is not None else 0
 
@@ -534,15 +534,15 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
     load_map(mapper, output / 'map.rfm')
     truth = read_ground_truth(bag) if bag is not None else GroundTruth()
     published = published_camera_poses(output) if (output / 'outputs.mcap').exists() else None
-    accuracy = evaluate_run(mapper, truth, posed=posed, published=published) if truth and len(truth.boxes) else None
+    accuracy = evaluate_run(mapper, truth, posed=posed, published=published) if truth else None
     write_tum(output / 'trajectory.tum', mapper)
     write_keyframes_tum(output / 'keyframes.tum', mapper)
     write_object_json(output / 'objects.json', mapper)
     bag_s, input_frames = _bag_extent(bag, remaps or BAG_REMAPS) if bag is not None else (wall_s, None)
     title = (f'{bag.name if bag is not None else "live"}: ARE {accuracy["localization"]["ARE_median"]:.1f} deg, '
              f'ATE {100 * accuracy["localization"]["ATE_median"]:.1f} cm, '
-             f'{100 * accuracy["localization"]["registered"]:.0f}% of frames localized, '
-             f'AP25 {accuracy["mapping"]["AP25"]:.2f}' if accuracy else '')
+             f'{100 * accuracy["localization"]["registered"]:.0f}% of frames localized'
+             + (f', AP25 {accuracy["mapping"]["AP25"]:.2f}' if accuracy["mapping"] else '') if accuracy else '')
     render_top_down(output / 'top_down.png', mapper, truth if truth else None,
                     accuracy['alignment'] if accuracy else None, title=title)
     summary = {'input': str(bag) if bag else 'live camera', 'date': datetime.datetime.now().isoformat(timespec='seconds'),

@@ -102,7 +102,8 @@ def published_camera_poses(output) -> tuple[dict, dict]:
 
 def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed: bool = False,
                  published: tuple | None = None) -> dict:
-    """Localization and mapping accuracy of a mapper against ground truth. Localization is
+    """Localization and mapping accuracy of a mapper against ground truth (``mapping`` None
+    where the ground truth has camera poses only, no objects). Localization is
     over every frame of the input (``registered``: the share of the ground truth's frames
     localized, as in the paper), with the keyframes' figures beside it (``keyframe_*``) and,
     given ``published`` (:func:`published_camera_poses`), the camera poses as the mapper
@@ -128,7 +129,7 @@ def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed:
     tracks = mapper.tracks()
     boxes = map_boxes(tracks, align)
     ignore = np.array([truth.best_visibility.get(int(i), 0.0) < min_visibility for i in truth.ids], bool)
-    mapping = evaluate_map(boxes, [tr.score for tr in tracks], truth.boxes, ignore)
+    mapping = evaluate_map(boxes, [tr.score for tr in tracks], truth.boxes, ignore) if len(truth.boxes) else None
     return {'localization': loc, 'mapping': mapping, 'alignment': align}
 
 
@@ -291,12 +292,13 @@ def write_report(path, summary: dict) -> Path:
                      f'{_percent(loc.get("within_2sigma"))} of the poses as published lie within the 2-sigma bound '
                      'of their covariance (4-DoF; a calibrated covariance: about 95%).']
                     if loc.get('published') else []), '',
-                  '| AP15 | AR15 | AP25 | AR25 | map objects | ground-truth objects |', '|---|---|---|---|---|---|',
-                  f'| {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | {m["objects"]} | '
-                  f'{m["ground_truth"]} |', '',
+                  *(['| AP15 | AR15 | AP25 | AR25 | map objects | ground-truth objects |', '|---|---|---|---|---|---|',
+                     f'| {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | {m["objects"]} | '
+                     f'{m["ground_truth"]} |', ''] if m else
+                    ['The ground truth has no objects: the map is not scored.', '']),
                   *([('Map objects: {real} first boxes of real objects, {duplicate} duplicates, {poor_fit} poor '
                       'fits (IoU 0.1-0.25), {phantom} overlapping nothing real (IoU < 0.1).').format(**m['kinds']), '']
-                    if m.get('kinds') else []),
+                    if m and m.get('kinds') else []),
                   'Localization aligned by yaw + translation (gravity is shared), fitted on the frames most of '
                   'the trajectory agrees with; a frame counts as localized when it has a pose in `trajectory.tum`, '
                   'as wrong when it is off by more than 5 deg or 25 cm. Mapping: scene-level AP/AR at 3D IoU 0.15 / 0.25, objects '

@@ -161,14 +161,18 @@ def camera_info_msg(intrinsics: CameraIntrinsics, stamp_ns: int, frame_id: str, 
 
 def imu_msg(linear_acceleration, angular_velocity, stamp_ns: int, frame_id: str,
             accel_sigma: float = 0.02, gyro_sigma: float = 0.002, make=ROS):
-    """sensor_msgs/Imu without orientation (covariance[0] = -1, as drivers without a filter do)."""
+    """sensor_msgs/Imu without orientation (covariance[0] = -1, as drivers without a filter do);
+    ``angular_velocity`` None: an accelerometer alone (its covariance[0] = -1 too, REP 145)."""
     orientation_cov = np.zeros(9)
     orientation_cov[0] = -1.0
+    gyro_cov = np.eye(3).reshape(-1) * gyro_sigma ** 2
+    if angular_velocity is None:
+        angular_velocity, gyro_cov = np.zeros(3), orientation_cov.copy()
     return make('sensor_msgs/msg/Imu', header=header(make, stamp_ns, frame_id),
                 orientation=make('geometry_msgs/msg/Quaternion', x=0.0, y=0.0, z=0.0, w=1.0),
                 orientation_covariance=orientation_cov,
                 angular_velocity=_vector3(make, angular_velocity),
-                angular_velocity_covariance=np.eye(3).reshape(-1) * gyro_sigma ** 2,
+                angular_velocity_covariance=gyro_cov,
                 linear_acceleration=_vector3(make, linear_acceleration),
                 linear_acceleration_covariance=np.eye(3).reshape(-1) * accel_sigma ** 2)
 
