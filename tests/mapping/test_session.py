@@ -8,7 +8,7 @@ from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import Mapper
 from rfm_core.observations import EdgeRecord
 from rfm_core.matching.view_graph import ViewGraphBuilder
-from rfm_core.session import MAX_KEYFRAME_ID, MapSession, SequenceCheck
+from rfm_core.session import MAX_KEYFRAME_ID, MapSession, SequenceCheck, Session
 
 
 @pytest.fixture(scope='module')
@@ -113,6 +113,21 @@ def test_a_tracked_frame_that_arrives_before_its_keyframe_waits_for_it(observati
     assert not session.pending_frames and session.counts['frames'] > logged
     session.update(force_full=True)
     assert len(session.mapper.frame_poses()) == session.counts['frames'] == 12
+
+
+def test_a_keyframe_alone_is_not_given_out_as_the_map_frame(observations):
+    """The first view is the whole map and nothing measured places it: its pose is the map
+    frame by definition, and a part of the view graph that grows without it takes the map
+    frame over (a photo collection's first view, often). Its pose is not given out; frames
+    tracked against it and keyframes linked to it are."""
+    session = Session()
+    cameras = [session.step(obs).camera for obs in observations[:12]]
+    assert session.mapper.alone(session.mapper.keyframe_track(0)) is False     # linked by now
+    assert cameras[0] is None and all(c is not None for c in cameras[1:])
+    first = Session()
+    first.step(observations[0])
+    assert first.mapper.alone(first.mapper.keyframe_track(0))
+    assert first.mapper.frame_pose(first.mapper.keyframe_track(0)) is not None      # it has a pose, kept back
 
 
 def test_gaps_in_the_matchers_numbering_are_counted():

@@ -297,7 +297,8 @@ class MapSession:
 
     def _latest_camera(self) -> CameraPose | None:
         """The newest localized frame's pose if newer than the last handed out (the camera
-        pose stream never goes back in time); without tracked frames, the newest keyframe's."""
+        pose stream never goes back in time); without tracked frames, the newest keyframe's.
+        Not a keyframe alone (:meth:`Mapper.alone`): nothing measured puts the map's frame there."""
         track = self._latest_track
         if track is not None:
             cam = self.mapper.frame_pose(track)
@@ -308,7 +309,8 @@ class MapSession:
             track = None if last is None else self.mapper.keyframe_track(last)
             pose = (CameraPose(self.mapper.keyframes[last].stamp_ns, self.mapper.keyframes[last].frame_id,
                                poses[last]) if last is not None else None)
-        if pose is None or (self._last_camera is not None and pose.stamp_ns <= self._last_camera.stamp_ns):
+        if (pose is None or (self._last_camera is not None and pose.stamp_ns <= self._last_camera.stamp_ns)
+                or self.mapper.alone(track)):
             return None
         pose = pose._replace(covariance=self.mapper.frame_covariance(track))
         self._last_camera = pose

@@ -306,6 +306,17 @@ class Mapper:
         return FrameTrack(obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe_id, obs.stamp_ns,
                           Pose4(0.0, (0.0, 0.0, 0.0)), is_keyframe=True)
 
+    def alone(self, track: FrameTrack | None) -> bool:
+        """Whether ``track`` is a keyframe that is the whole registered map with no edge to any
+        other keyframe: its pose is the map's frame by definition, not by a measurement, and a
+        part of the view graph that grows without it takes the map frame over (a photo
+        collection's first view, often). Its pose is not given out."""
+        if track is None or not track.is_keyframe or self.config.posed:
+            return False
+        k = self._resolved_track(track).keyframe_id
+        return (len(self.averager.poses) == 1 and self.averager.pose(k) is not None
+                and not any(k in key for key in self.edges))
+
     def frame_covariance(self, track: FrameTrack | None) -> np.ndarray | None:
         """(6, 6) covariance of a tracked frame's camera pose (:meth:`frame_pose`) in the map, in
         geometry_msgs/PoseWithCovariance's order (x, y, z, rotations about x, y, z; see
