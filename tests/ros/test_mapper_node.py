@@ -266,30 +266,38 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         rclpy.try_shutdown()
 
 
-def test_posed_mapper_node_takes_keyframe_poses_from_the_pose_topic():
-    """Posed mode (pose_source:=topic): each keyframe gets the external pose with its stamp,
-    in the map frame as given (no alignment), and waits until that pose has arrived."""
+@pytest.mark.parametrize('source', ['topic', 'tf'])
+def test_posed_mapper_node_takes_keyframe_poses_from_outside(source):
+    """Posed mode (pose_source:=topic, or tf: map -> camera frame on /tf): each keyframe gets
+    the external pose at its stamp, in the map frame as given (no alignment), and waits until
+    that pose has arrived."""
     from geometry_msgs.msg import PoseStamped
     from rfm_mapper_node.mapper_node import MapperNode
     from rfm_msgs.msg import Keyframe, TrackedFrame
+    from tf2_msgs.msg import TFMessage
+
+    from rfm_core.io.messages import transform_stamped_msg
 
     messages, truth, frames = _graph_messages()
     rclpy.init()
     h = None
     try:
-        mapper = MapperNode(parameter_overrides=[Parameter('pose_source', value='topic'),
+        mapper = MapperNode(parameter_overrides=[Parameter('pose_source', value=source),
                                                  Parameter('autosave_every_n_keyframes', value=0)])
         h = _Harness(mapper)
-        pose_pub = h.node.create_publisher(PoseStamped, 'rfm/external_pose',
-                                           QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE))
+        reliable = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        pose_pub = (h.node.create_publisher(PoseStamped, 'rfm/external_pose', reliable) if source == 'topic' else
+                    h.node.create_publisher(TFMessage, '/tf', reliable))
         assert h.wait(lambda: h.kf_pub.get_subscription_count() > 0 and pose_pub.get_subscription_count() > 0)
         keyframes = [m for m in messages if isinstance(m, Keyframe)]
         for msg in keyframes:                   # keyframes first: they wait for their poses
             h.kf_pub.publish(msg)
         assert h.wait(lambda: len(mapper.core.session.pending_keyframes) == len(keyframes))
         assert not mapper.core.mapper.keyframes
-        for frame, _ in frames:
-            pose_pub.publish(pose_stamped_msg(frame.pose_matrix, frame.stamp_ns, 'map'))
+        for frame, obs in frames:
+            pose_pub.publish(pose_stamped_msg(frame.pose_matrix, frame.stamp_ns, 'map') if source == 'topic' else
+                             TFMessage(transforms=[transform_stamped_msg(frame.pose_matrix, frame.stamp_ns, 'map',
+                                                                         obs.frame_id)]))
         for msg in messages:
             if not isinstance(msg, Keyframe):
                 (h.track_pub if isinstance(msg, TrackedFrame) else h.edge_pub).publish(msg)
@@ -303,3 +311,80 @@ def test_posed_mapper_node_takes_keyframe_poses_from_the_pose_topic():
         if h is not None:
             h.close()
         rclpy.try_shutdown()
+
+
+def test_on_a_robot_the_map_hangs_above_the_odometry_and_the_tf_tree_stays_a_tree():
+    """REP 105: with odom -> base_link on /tf and the camera's mount on /tf_static, the mapper
+    broadcasts map -> odom (at each image's stamp, and held between them, stamped ahead),
+    never a second parent for any frame, and map -> odom -> ... -> camera lands where the
+    mapper placed the camera."""
+    from rfm_mapper_node.mapper_node import MapperNode
+    from rfm_msgs.msg import Keyframe, TrackedFrame
+    from tf2_msgs.msg import TFMessage
+
+    from rfm_core.io.messages import transform_stamped_msg, transforms_from_msg
+    from rfm_core.sim.capture import _LINK_FROM_OPTICAL, OPTICAL_FRAME
+    from rfm_core.transforms import TransformBuffer
+
+    messages, truth, frames = _graph_messages()
+    mount = np.eye(4)
+    mount[:3, 3] = (0.1, 0.0, 0.5)                                   # base_link -> camera_link
+    base_to_optical = mount @ _LINK_FROM_OPTICAL
+    drift = np.eye(4)                                                # the odometry's frame: off the world's
+    drift[:3, :3] = [[np.cos(0.5), -np.sin(0.5), 0], [np.sin(0.5), np.cos(0.5), 0], [0, 0, 1]]
+    drift[:3, 3] = (2.0, -1.0, 0.0)
+    odom = {f.stamp_ns: drift @ f.pose_matrix @ np.linalg.inv(base_to_optical) for f, _ in frames}   # T_odom_base
+    rclpy.init()
+    h = None
+    try:
+        mapper = MapperNode(parameter_overrides=[Parameter('autosave_every_n_keyframes', value=0)])
+        h = _Harness(mapper)
+        heard = []
+        h.node.create_subscription(TFMessage, '/tf', heard.append, QoSProfile(depth=5000))
+        tf_pub = h.node.create_publisher(TFMessage, '/tf', QoSProfile(depth=1000))
+        static_pub = h.node.create_publisher(TFMessage, '/tf_static', QoSProfile(
+            depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL))
+        static = TFMessage(transforms=[transform_stamped_msg(mount, 0, 'base_link', 'camera_link'),
+                                       transform_stamped_msg(_LINK_FROM_OPTICAL, 0, 'camera_link', OPTICAL_FRAME)])
+        static_pub.publish(static)
+        assert h.wait(lambda: h.kf_pub.get_subscription_count() > 0 and h.track_pub.get_subscription_count() > 0
+                      and tf_pub.get_subscription_count() > 0)
+        for msg in messages:
+            if isinstance(msg, TrackedFrame):          # the odometry at the frame's stamp comes first
+                stamp = stamp_to_ns(msg.header.stamp)
+                tf_pub.publish(TFMessage(transforms=[transform_stamped_msg(odom[stamp], stamp, 'odom', 'base_link')]))
+                time.sleep(0.05)
+            pub = {Keyframe: h.kf_pub, TrackedFrame: h.track_pub}.get(type(msg), h.edge_pub)
+            pub.publish(msg)
+        assert h.wait(lambda: len(h.cameras) >= 0.9 * len(frames))
+        time.sleep(0.5)                                                # held map -> odom goes on
+    finally:
+        if h is not None:
+            h.close()
+        rclpy.try_shutdown()
+    # every transform heard, ours and the robot's: one parent per frame
+    tree = TransformBuffer(cache_s=1e6)
+    assert tree.add('base_link', 'camera_link', 0, mount, static=True) is None
+    assert tree.add('camera_link', OPTICAL_FRAME, 0, _LINK_FROM_OPTICAL, static=True) is None
+    ours = []
+    for msg in heard:
+        for parent, child, stamp, matrix in transforms_from_msg(msg):
+            if parent == 'map':
+                ours.append((child, stamp, matrix))
+            else:
+                assert tree.add(parent, child, stamp, matrix) is None
+    assert ours and {child for child, _, _ in ours} == {'odom'}, {child for child, _, _ in ours}
+    image_stamps = set(odom)
+    at_images = {stamp: matrix for _, stamp, matrix in ours if stamp in image_stamps}
+    held = [stamp for _, stamp, _ in ours if stamp not in image_stamps]
+    assert len(at_images) >= 0.8 * len(frames) and len(held) >= 5, (len(at_images), len(held))
+    # the camera lands where the mapper put it, through the robot's chain
+    cams = {stamp_to_ns(c.header.stamp): pose_to_matrix(c.pose.pose) for c in h.cameras}
+    for stamp, t_map_odom in at_images.items():
+        through = t_map_odom @ tree.lookup('odom', OPTICAL_FRAME, stamp)
+        assert np.allclose(through, cams[stamp], atol=1e-6)
+    # the odometry here is the world's, moved: map -> odom stays put as the map grows (within
+    # the live poses' errors, a degree or two at a lever of several metres)
+    yaws = np.degrees([np.arctan2(m[1, 0], m[0, 0]) for m in at_images.values()])
+    positions = np.array([m[:3, 3] for m in at_images.values()])
+    assert np.ptp(yaws) < 4.0 and np.max(np.linalg.norm(positions - np.median(positions, axis=0), axis=1)) < 0.3

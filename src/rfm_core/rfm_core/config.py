@@ -107,10 +107,16 @@ class MatcherNodeConfig:
 @dataclass(frozen=True)
 class MapperNodeConfig:
     map_frame: str = setting('map', 'Frame of the map (gravity-aligned, z up)', read_only=True)
-    publish_tf: bool = setting(True, 'Broadcast map -> camera frame of every localized frame on /tf',
-                               read_only=True)
-    tf_child_frame: str = setting('', "Child frame of that transform; empty: the frames' camera optical frame",
-                                  read_only=True)
+    publish_tf: bool = setting(True, "Broadcast the map on /tf as the parent of the camera frame's tree: map -> "
+                               'odom_frame on a robot whose odometry is on /tf (REP 105), else map -> the root of '
+                               "the camera frame's tree (camera_link of a static mount; the camera frame itself "
+                               'without TF)', read_only=True)
+    odom_frame: str = setting('odom', 'The odometry frame: where it is above the camera frame on /tf, the map '
+                              'attaches there', read_only=True)
+    transform_tolerance_s: float = setting(0.1, 'map -> odom is re-published every tf_publish_period_s, stamped '
+                                           'this far ahead (s), so that a lookup at the newest odometry finds it',
+                                           lo=0.0, hi=10.0, read_only=True)
+    tf_publish_period_s: float = setting(0.05, '... this often (s)', lo=0.005, hi=10.0, read_only=True)
     map_publish_period_s: float = setting(1.0, 'Rebuild and publish the object map at most this often (s)',
                                           lo=0.05, hi=60.0)
     map_max_cpu_share: float = setting(0.2, 'Rebuilding the object map may take at most this share of the time',

@@ -30,6 +30,7 @@ from rfm_core.mapping.mapper import MODES
 from rfm_core.matching.factory import make_matcher
 from rfm_core.observations import FrameObservations, FrameTrack
 from rfm_core.session import CameraPose, ExternalPoses, MapSession, SequenceCheck
+from rfm_core.transforms import Attachment, TransformBuffer, map_attachment
 
 __all__ = ['MapperCore', 'Tick', 'MapStatus', 'MapFiles', 'Autosave', 'Throttle', 'default_map_path']
 
@@ -154,7 +155,10 @@ class MapperCore:
         self.autosave = Autosave(config.autosave_every_n_keyframes, config.autosave_growth)
         self.throttle = Throttle(config.map_publish_period_s, config.map_max_cpu_share, clock)
         self.external_poses = ExternalPoses()
-        lookup = {'topic': self.external_poses, 'tf': lookup_tf}.get(config.pose_source)
+        self.tf = TransformBuffer()            # /tf and /tf_static as heard
+        self.held: Attachment | None = None   # map -> odom, re-published between frames
+        self._attached_to = None              # the frame the map last attached to (logged when it changes)
+        lookup = {'topic': self.external_poses, 'tf': lookup_tf or self._lookup_tf}.get(config.pose_source)
         mapper = replace(config.mapper, posed=bool(config.pose_source))
         self.session = MapSession(mapper, matcher=matcher, pose_lookup=lookup,
                                   idle_full_solve_s=config.idle_full_solve_s, warn=self.warn, clock=clock)
@@ -224,6 +228,41 @@ class MapperCore:
         if matrix is not None:
             self.external_poses.add(stamp_ns, matrix)
             self.session.attach_external_poses()
+
+    def transform(self, parent: str, child: str, stamp_ns: int, matrix, static: bool) -> None:
+        """A transform heard on /tf or /tf_static (one that breaks the tree is reported and dropped)."""
+        problem = self.tf.add(parent, child, stamp_ns, matrix, static)
+        if problem is not None:
+            self.warn(f'/tf: {problem}')
+        elif self.config.pose_source == 'tf' and self.session.pending_keyframes:
+            self.session.attach_external_poses()           # posed mode: a keyframe's pose may be there now
+
+    def _lookup_tf(self, obs: FrameObservations):
+        """Posed mode (tf): the camera's pose in the map frame at the keyframe's stamp, from
+        /tf (None: not there yet)."""
+        return self.tf.lookup(self.config.map_frame, obs.frame_id, obs.stamp_ns)
+
+    def attach(self, camera: CameraPose | None) -> Attachment | None:
+        """Where the map attaches to the TF tree for this camera pose
+        (:func:`rfm_core.transforms.map_attachment`); None: nothing to broadcast (said once
+        per change). A moving attachment (map -> odom) is held for re-publishing."""
+        if camera is None or not self.config.publish_tf or self.config.pose_source:
+            return None
+        found = map_attachment(self.tf, camera.matrix, camera.frame_id, camera.stamp_ns, self.config.map_frame,
+                               self.config.odom_frame)
+        if isinstance(found, str):
+            if self._attached_to != found.split(' at ')[0]:
+                self._attached_to = found.split(' at ')[0]
+                self.warn(f'TF: {found}')
+            return None
+        if found.child != self._attached_to:
+            self._attached_to = found.child
+            kind = ('REP 105: the odometry frame' if found.child == self.config.odom_frame else
+                    'the camera frame, which has no TF' if found.child == camera.frame_id else
+                    f"the root of {camera.frame_id}'s tree on /tf")
+            self._log.append(f'TF: broadcasting {self.config.map_frame} -> {found.child} ({kind})')
+        self.held = found if found.held else None
+        return found
 
     def detections(self, obs: FrameObservations | None) -> list:
         """Localization mode: the frame localized as part of a stream; the camera poses found."""

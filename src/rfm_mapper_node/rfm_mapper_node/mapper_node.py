@@ -1,9 +1,9 @@
 """rfm mapper node: pose averaging, object tracks, relocalization, map files (paper 3.5-3.6).
 
 Subscribes rfm/keyframes, rfm/view_graph/edges (their kept history too), rfm/tracked_frames,
-rfm/detections (localization mode) and in posed mode rfm/external_pose (or TF). Publishes
-rfm/keyframe_poses, rfm/trajectory, rfm/camera_pose and TF (map -> camera), rfm/object_map,
-rfm/object_markers and rfm/status. Services: rfm/relocalize, rfm/save_map, rfm/load_map,
+rfm/detections (localization mode), /tf, /tf_static, in posed mode rfm/external_pose. Publishes
+rfm/keyframe_poses, rfm/trajectory, rfm/camera_pose, TF (map -> the root of the camera's tree:
+odom on a robot), rfm/object_map, rfm/object_markers, rfm/status. Services: rfm/relocalize, rfm/save_map, rfm/load_map,
 rfm/reset, rfm/set_mode. Messages in, rfm_core.mapper_core.MapperCore, messages out.
 """
 from __future__ import annotations
@@ -34,22 +34,17 @@ class MapperNode(Node):
         super().__init__('mapper', **kwargs)
         self.config = cfg = declare_config(self, MapperNodeConfig())
         warn = self.get_logger().warning
-        self.core = core = MapperCore(cfg, self._lookup_tf, warn=lambda text: warn(text, throttle_duration_sec=5.0))
+        self.core = core = MapperCore(cfg, warn=lambda text: warn(text, throttle_duration_sec=5.0))
         inputs = [(Keyframe, 'rfm/keyframes', self._on_keyframe, GRAPH),
                   (ViewGraphEdge, 'rfm/view_graph/edges', self._on_edge, GRAPH),
                   (TrackedFrame, 'rfm/tracked_frames', self._on_tracked_frame, STREAM),
                   (FrameDetections, 'rfm/detections', self._on_detections, RELIABLE)]
         if cfg.pose_source == 'topic':
             inputs.append((PoseStamped, 'rfm/external_pose', self._on_external_pose, STREAM))
+        if cfg.publish_tf or cfg.pose_source == 'tf':
+            inputs += [(TFMessage, '/tf', self._on_tf, TF), (TFMessage, '/tf_static', self._on_tf_static, LATCHED)]
         for kind, topic, callback, profile in inputs:
             self.create_subscription(kind, topic, guarded(callback, core.failed), qos(profile))
-        if cfg.pose_source == 'tf':
-            try:
-                from tf2_ros import Buffer, TransformListener  # noqa: PLC0415 - a full ROS install only
-            except ImportError as exc:
-                raise ValueError("pose_source 'tf' needs tf2_ros (a full ROS install); use 'topic'") from exc
-            self.tf_buffer = Buffer()
-            self.tf_listener = TransformListener(self.tf_buffer, self)
         self.pub = {topic: self.create_publisher(kind, topic, qos(profile)) for kind, topic, profile in (
             (PoseArray, 'rfm/keyframe_poses', LATCHED), (Path, 'rfm/trajectory', LATCHED),
             (ObjectMap, 'rfm/object_map', LATCHED), (MarkerArray, 'rfm/object_markers', LATCHED),
@@ -66,6 +61,8 @@ class MapperNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)       # a finished bag stops sim time; the map goes on
         self.create_timer(0.1, guarded(self._tick, core.failed), clock=steady)
         self.create_timer(1.0, guarded(self._publish_status, core.failed), clock=steady)
+        if cfg.publish_tf:                          # map -> odom held between frames (the node's clock: sim time too)
+            self.create_timer(cfg.tf_publish_period_s, guarded(self._republish_tf, core.failed))
         self.get_logger().info(f'mapper ready ({cfg.mode}, {cfg.pose_source or "un-posed"})')
 
     def _on_keyframe(self, msg) -> None:
@@ -89,23 +86,27 @@ class MapperNode(Node):
                                                        self.core.dropped)):
                 self._publish_camera(camera)
 
-    def _lookup_tf(self, obs):
-        """Posed mode (tf): the camera's pose in the map frame at the keyframe's stamp (None: not there yet)."""
-        try:
-            tf = self.tf_buffer.lookup_transform(self.config.map_frame, obs.frame_id,
-                                                 rclpy.time.Time(nanoseconds=obs.stamp_ns))
-        except Exception:                                  # noqa: BLE001 - not there yet
-            return None
-        return m.transform_to_matrix(tf.transform)
+    def _on_tf(self, msg, static: bool = False) -> None:
+        for link in decoded(m.transforms_from_msg, msg, '/tf message', self.core.dropped) or ():
+            self.core.transform(*link, static)
+
+    def _on_tf_static(self, msg) -> None:
+        self._on_tf(msg, True)
+
+    def _republish_tf(self) -> None:
+        """The held map -> odom, stamped ahead by transform_tolerance_s."""
+        if self.core.held is not None:
+            stamp = self.get_clock().now().nanoseconds + int(self.config.transform_tolerance_s * 1e9)
+            self._publish([('/tf', m.attachment_msg(self.core.held, stamp, self.config.map_frame))])
 
     def _tick(self) -> None:
         tick = self.core.tick()
         for line in tick.log:
             self.get_logger().info(line)
-        self._publish(m.tick_outputs(tick, self.config.map_frame, self.config.tf_child_frame))
+        self._publish(m.tick_outputs(tick, self.config.map_frame, self.core.attach(tick.camera)))
 
     def _publish_camera(self, camera) -> None:
-        self._publish(m.camera_pose_outputs(camera, self.config.map_frame, self.config.tf_child_frame))
+        self._publish(m.camera_pose_outputs(camera, self.config.map_frame, self.core.attach(camera)))
 
     def _publish_status(self) -> None:
         self._publish([('rfm/status', m.mapper_status_msg(self.core.status(), self.get_clock().now().nanoseconds,

@@ -27,7 +27,7 @@ __all__ = [
     'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
-    'frame_detections_to_msg', 'tracked_frame_to_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
+    'frame_detections_to_msg', 'tracked_frame_to_msg', 'attachment_msg', 'transforms_from_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
     'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs',
     'object_map_outputs', 'tick_outputs', 'pose_with_covariance_msg', 'mapper_status_msg', 'relocalize_answer',
     'detection_markers_msg', 'diagnostics_msg',
@@ -581,17 +581,35 @@ def keyframe_pose_outputs(ids, poses: dict, stamps: dict, frame_id: str, make=RO
     return [('rfm/keyframe_poses', array), ('rfm/trajectory', path)]
 
 
-def camera_pose_outputs(camera, frame_id: str, tf_child: str = '', make=ROS) -> list:
-    """rfm/camera_pose (geometry_msgs/PoseWithCovarianceStamped) and /tf (``frame_id`` ->
-    ``tf_child``, or the frame's camera frame) of a localized frame
-    (:class:`rfm_core.session.CameraPose`); [] for None."""
+def camera_pose_outputs(camera, frame_id: str, attachment=None, make=ROS) -> list:
+    """rfm/camera_pose (geometry_msgs/PoseWithCovarianceStamped) of a localized frame
+    (:class:`rfm_core.session.CameraPose`), and /tf where the map attaches to the TF tree
+    (``attachment``: :class:`rfm_core.transforms.Attachment`, stamped with the image); [] for None."""
     if camera is None:
         return []
-    child = tf_child or camera.frame_id or 'camera'
-    tf = make('tf2_msgs/msg/TFMessage', transforms=[
-        transform_stamped_msg(camera.matrix, camera.stamp_ns, frame_id, child, make)])
-    return [('rfm/camera_pose', pose_with_covariance_msg(camera.matrix, camera.covariance, camera.stamp_ns, frame_id,
-                                                         make)), ('/tf', tf)]
+    out = [('rfm/camera_pose', pose_with_covariance_msg(camera.matrix, camera.covariance, camera.stamp_ns, frame_id,
+                                                         make))]
+    if attachment is not None:
+        out.append(('/tf', attachment_msg(attachment, camera.stamp_ns, frame_id, make)))
+    return out
+
+
+def transforms_from_msg(msg) -> list:
+    """tf2_msgs/TFMessage -> [(parent, child, stamp_ns, 4x4 T_parent_child)]; ValueError when
+    a transform is not finite."""
+    out = []
+    for t in msg.transforms:
+        matrix = transform_to_matrix(t.transform)
+        if not np.all(np.isfinite(matrix)):
+            raise ValueError(f'transform {t.header.frame_id} -> {t.child_frame_id} is not finite')
+        out.append((t.header.frame_id, t.child_frame_id, stamp_to_ns(t.header.stamp), matrix))
+    return out
+
+
+def attachment_msg(attachment, stamp_ns: int, frame_id: str, make=ROS):
+    """tf2_msgs/TFMessage of the map frame -> the frame the map attaches to."""
+    return make('tf2_msgs/msg/TFMessage', transforms=[
+        transform_stamped_msg(attachment.matrix, stamp_ns, frame_id, attachment.child, make)])
 
 
 def object_map_outputs(tracks, stamp_ns: int, revision: int, frame_id: str, make=ROS) -> list:
@@ -600,11 +618,11 @@ def object_map_outputs(tracks, stamp_ns: int, revision: int, frame_id: str, make
     return [('rfm/object_map', objects), ('rfm/object_markers', markers)]
 
 
-def tick_outputs(tick, frame_id: str, tf_child: str = '', make=ROS) -> list:
+def tick_outputs(tick, frame_id: str, attachment=None, make=ROS) -> list:
     """What a :class:`rfm_core.mapper_core.Tick` publishes: keyframe poses and trajectory, the
-    newest camera pose (and /tf), the object map and its markers."""
+    newest camera pose (and /tf, ``attachment``), the object map and its markers."""
     out = keyframe_pose_outputs(*tick.keyframe_poses, frame_id, make) if tick.keyframe_poses else []
-    out += camera_pose_outputs(tick.camera, frame_id, tf_child, make)
+    out += camera_pose_outputs(tick.camera, frame_id, attachment, make)
     return out + (object_map_outputs(*tick.object_map, frame_id, make) if tick.object_map else [])
 
 
