@@ -276,13 +276,18 @@ def test_capture_timing_heights_and_a_robots_level_camera():
     low = Capture(CaptureConfig(seed=3, frames=20, fps=15, camera_height=(1.0, 1.05)))
     assert np.all(np.abs(low.trajectory.positions[:, 2] - 1.025) < 0.1)
     assert np.allclose(np.diff(low.trajectory.times), 1 / 15)
-    robot = Capture(CaptureConfig(seed=3, capture='robot', frames=40, fps=10, furniture='parts'))
+    robot = Capture(CaptureConfig(seed=3, capture='robot', frames=300, fps=10, furniture='parts'))
     z = robot.trajectory.positions[:, 2]
-    assert 0.25 <= z.min() and z.max() <= 0.45 and np.ptp(z) < 1e-9                  # low, on a base
+    assert 0.3 <= z.min() and z.max() <= 0.9 and np.ptp(z) < 1e-9                    # on a base
     rot = robot.trajectory.rotations
     assert np.allclose(rot[:, 2, 0], 0, atol=1e-9) and np.allclose(rot[:, 2, 2], 0, atol=1e-9)  # level
-    headings = np.unwrap(np.arctan2(rot[:, 1, 2], rot[:, 0, 2]))
-    assert np.ptp(headings) > np.radians(20)                                        # it turns
+    # a wheeled base: it turns in place and drives straight, at a robot's rates, clear of the furniture
+    base = robot.trajectory.path.base(np.arange(0, 30, 0.02))
+    speed = np.linalg.norm(np.diff(base[:, :2], axis=0), axis=1) / 0.02
+    turn = np.degrees(np.abs(np.diff(base[:, 2]))) / 0.02
+    assert speed.max() <= 0.5 + 1e-6 and turn.max() <= 45 * 1.01 and not np.any((speed > 0.01) & (turn > 0.01))
+    assert np.sum(turn) * 0.02 > 90 and np.sum(speed) * 0.02 > 1.0
+    assert not any(robot.room.contains_camera(p, margin=0.3) for p in robot.trajectory.positions)
     frame = next(robot.frames())
     assert frame.render.depth.shape == (240, 320) and len(frame.ground_truth) > 0
 

@@ -51,6 +51,8 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     assert tum.shape == (len(mapper.frame_poses()), 8) and len(tum) >= 0.9 * 40
     assert np.all(np.diff(tum[:, 0]) > 0)
     assert np.loadtxt(out / 'keyframes.tum').shape == (len(mapper.poses), 8)
+    # a handheld camera with a static mount: the map is camera_link's parent (never a second one's)
+    assert {(p, c) for p, c, *_ in _transforms(out) if p == 'map'} == {('map', 'camera_link')}
     # the recording has the mapper's outputs
     from rosbags.highlevel import AnyReader
     with AnyReader([out / 'outputs.mcap']) as reader:
@@ -77,6 +79,50 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
         assert row['scene'] == 'scene_handheld' and row['detections'] >= 0.9 * 40 and row['wrong'] == 0, row
         assert row['registered'] >= 0.9 and row['ATE_median'] < 0.06, row
         assert row['published'] >= 0.8 * 40 and row['within_2sigma'] >= 0.8, row
+
+
+def _transforms(out):
+    """Every transform of a run's recording: [(parent, child, stamp_ns, 4x4, static)]."""
+    from rfm_core.io.bag import topic_messages
+    from rfm_core.io.messages import transforms_from_msg
+
+    return [(*link, topic == '/tf_static') for topic in ('/tf_static', '/tf')
+            for msg in topic_messages(out / 'outputs.mcap', topic) for link in transforms_from_msg(msg)]
+
+
+@pytest.mark.slow
+def test_on_a_robot_bag_the_map_hangs_above_its_odometry(tmp_path):
+    """A robot's capture (wheel odometry on /odom and /tf, the camera's mount on /tf_static):
+    rfm run broadcasts map -> odom, every frame keeps one parent, and map -> odom -> base_link
+    -> camera puts the camera where rfm/camera_pose says; the odometry drifts, the map does not."""
+    from rfm_core.io.bag import topic_messages
+    from rfm_core.io.messages import pose_to_matrix, stamp_to_ns
+    from rfm_core.transforms import TransformBuffer
+
+    bag = tmp_path / 'robot'
+    Capture(CaptureConfig(seed=7, capture='robot', frames=60, fps=10)).write_bag(bag)
+    out = tmp_path / 'out'
+    proc = subprocess.run([shutil.which('rfm'), 'run', '--bag', str(bag), '--output', str(out), '--backend',
+                           'ground_truth', '--quiet', '--settle', '2', '--no-processes'],
+                          capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    tree = TransformBuffer(cache_s=1e6)
+    ours = {}
+    for parent, child, stamp, matrix, static in _transforms(out):
+        assert tree.add(parent, child, stamp, matrix, static) is None, (parent, child)      # one parent each
+        if parent == 'map':
+            ours.setdefault(child, {})[stamp] = matrix
+    assert set(ours) == {'odom'}, set(ours)
+    cameras = {stamp_to_ns(m.header.stamp): pose_to_matrix(m.pose.pose)
+               for m in topic_messages(out / 'outputs.mcap', '/rfm/camera_pose')}
+    at_images = [s for s in ours['odom'] if s in cameras]
+    assert len(at_images) >= 0.8 * 60 and len(ours['odom']) > len(at_images)     # and held between frames
+    for stamp in at_images:
+        assert np.allclose(ours['odom'][stamp] @ tree.lookup('odom', 'camera_color_optical_frame', stamp),
+                           cameras[stamp], atol=1e-5)
+    summary = json.loads((out / 'summary.json').read_text())
+    loc = summary['accuracy']['localization']
+    assert loc['registered'] >= 0.95 and loc['gross'] == 0, loc
 
 
 def test_rfm_run_parameters_are_typed_and_reach_every_node_that_has_them(tmp_path):

@@ -61,7 +61,7 @@ def _add_scene_options(p: argparse.ArgumentParser) -> None:
                         '(range^2 noise, projector shadows, flying pixels, depth lost on dark surfaces, depth a '
                         'pixel off colour and 3-10 ms late, exposure drift, IMU bias and time offset)')
     p.add_argument('--camera-height', type=float, nargs=2, metavar=('MIN', 'MAX'),
-                   help="range of the handheld / robot camera's height, m (default 1.45-1.65 / 0.25-0.45)")
+                   help="range of the handheld / robot camera's height, m (default 1.45-1.65 / 0.3-0.9)")
     p.add_argument('--sparse-gap', type=float, nargs=2, metavar=('MIN', 'MAX'), default=(1.0, 1.0),
                    help='seconds between sparse views, drawn in this range (default 1 1)')
     p.add_argument('--furniture', choices=('boxes', 'parts'), default='boxes',

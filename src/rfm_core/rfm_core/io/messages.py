@@ -27,7 +27,8 @@ __all__ = [
     'camera_info_intrinsics', 'imu_reading',
     'stamp_to_ns', 'ns_to_stamp', 'pose_to_matrix', 'matrix_to_pose', 'pose_to_pose4',
     'pose4_to_pose', 'vector3_to_numpy', 'float32_array', 'frame_detections_from_msg',
-    'frame_detections_to_msg', 'tracked_frame_to_msg', 'attachment_msg', 'transforms_from_msg', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
+    'frame_detections_to_msg', 'tracked_frame_to_msg', 'attachment_msg', 'transforms_from_msg',
+    'odometry_msg', 'planar_matrix', 'tracked_frame_from_msg', 'edge_msg', 'edge_record_from_msg',
     'transform_to_matrix', 'track_colour', 'track_map_msgs', 'keyframe_pose_outputs', 'camera_pose_outputs',
     'object_map_outputs', 'tick_outputs', 'pose_with_covariance_msg', 'mapper_status_msg', 'relocalize_answer',
     'detection_markers_msg', 'diagnostics_msg',
@@ -175,6 +176,30 @@ def imu_msg(linear_acceleration, angular_velocity, stamp_ns: int, frame_id: str,
                 angular_velocity_covariance=gyro_cov,
                 linear_acceleration=_vector3(make, linear_acceleration),
                 linear_acceleration_covariance=np.eye(3).reshape(-1) * accel_sigma ** 2)
+
+
+def planar_matrix(x: float, y: float, heading: float, z: float = 0.0) -> np.ndarray:
+    """4x4 of a planar pose (a heading about z)."""
+    m = np.eye(4)
+    c, s = np.cos(heading), np.sin(heading)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:3, 3] = (x, y, z)
+    return m
+
+
+def odometry_msg(pose, velocity, stamp_ns: int, frame_id: str = 'odom', child_frame_id: str = 'base_link',
+                 sigma_m: float = 0.05, sigma_rad: float = 0.035, make=ROS):
+    """nav_msgs/Odometry of a planar base: ``pose`` (x, y, heading) in ``frame_id``,
+    ``velocity`` (forward m/s, turn rad/s) in ``child_frame_id``; the covariance of a wheel
+    odometry's pose (``sigma_m`` per axis, ``sigma_rad`` in heading; z, roll and pitch fixed)."""
+    cov = np.diag([sigma_m ** 2, sigma_m ** 2, 1e-6, 1e-6, 1e-6, sigma_rad ** 2]).reshape(36).astype(np.float64)
+    inner = make('geometry_msgs/msg/PoseWithCovariance', pose=_pose(make, planar_matrix(*pose)), covariance=cov)
+    twist = make('geometry_msgs/msg/TwistWithCovariance',
+                 twist=make('geometry_msgs/msg/Twist', linear=_vector3(make, (velocity[0], 0.0, 0.0)),
+                            angular=_vector3(make, (0.0, 0.0, velocity[1]))),
+                 covariance=cov.copy())
+    return make('nav_msgs/msg/Odometry', header=header(make, stamp_ns, frame_id), child_frame_id=child_frame_id,
+                pose=inner, twist=twist)
 
 
 def box_markers_msg(corners, texts, text_positions, colours, stamp_ns: int, frame_id: str, ids=None,

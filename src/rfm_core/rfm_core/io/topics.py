@@ -12,6 +12,8 @@ CAMERA_TOPICS = {
     'depth_info': '/camera/depth/camera_info',
     'imu': '/imu/data',
     'tf_static': '/tf_static',
+    'odom': '/odom',                             # a robot's wheel odometry (and odom -> base_link on /tf)
+    'tf': '/tf',
 }
 GROUND_TRUTH_TOPICS = {
     'gt_pose': '/ground_truth/camera_pose',

@@ -12,7 +12,13 @@ topic                           type                               notes
 /camera/depth/camera_info       sensor_msgs/CameraInfo             per frame
 /imu/data                       sensor_msgs/Imu                    ``imu_rate_hz``, camera
                                                                    optical frame
-/tf_static                      tf2_msgs/TFMessage                 latched
+/tf_static                      tf2_msgs/TFMessage                 latched: camera_link ->
+                                                                   optical frame (and a
+                                                                   robot's base_link ->
+                                                                   camera_link)
+/odom, /tf                      nav_msgs/Odometry, odom ->         a robot's wheel
+                                base_link                          odometry,
+                                                                   ``odom_rate_hz``
 ==============================  =================================  =====================
 
 and ground truth on separate topics, which the pipeline never reads:
@@ -39,12 +45,14 @@ from rfm_core.sim.render import NoiseModel, Renderer, RenderOutput
 from rfm_core.sim.furniture import FURNITURE_STYLES
 from rfm_core.sim.room import STYLES, Room, generate_room
 from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
-from rfm_core.sim.trajectory import CAPTURE_STYLES, Trajectory, imu_samples, make_trajectory
+from rfm_core.sim.trajectory import CAPTURE_STYLES, Trajectory, imu_samples, make_trajectory, wheel_odometry
 
 __all__ = ['CaptureConfig', 'SimFrame', 'Capture', 'TOPICS', 'OPTICAL_FRAME', 'START_NS']
 
 OPTICAL_FRAME = 'camera_color_optical_frame'
 BASE_FRAME = 'camera_link'
+ROBOT_BASE_FRAME = 'base_link'          #: a robot's base (REP 105), under odom
+ODOM_FRAME = 'odom'
 START_NS = 1_700_000_000 * 1_000_000_000      # bag time of the first frame
 TOPICS = {**CAMERA_TOPICS, **GROUND_TRUTH_TOPICS}
 # camera_link (x forward, y left, z up) -> optical frame (x right, y down, z forward)
@@ -65,6 +73,7 @@ class CaptureConfig:
     height: int = 240
     hfov_deg: float = 70.0
     imu_rate_hz: float = 200.0
+    odom_rate_hz: float = 50.0            #: a robot's wheel odometry
     depth_encoding: str = '16UC1'         #: 16UC1 (mm) | 32FC1 (m)
     min_visible_fraction: float = 0.001   #: ground-truth detections need this share of the image
     num_objects: tuple = (10, 40)
@@ -105,7 +114,8 @@ class CaptureConfig:
             if d['noise'][key] == asdict(NoiseModel())[key]:
                 del d['noise'][key]
         for key, default in (('trajectory_seed', -1), ('furniture', 'boxes'), ('clutter', False),
-                             ('camera_height', ()), ('sparse_gap_s', (1.0, 1.0)), ('start_s', 0.0)):
+                             ('camera_height', ()), ('sparse_gap_s', (1.0, 1.0)), ('start_s', 0.0),
+                             ('odom_rate_hz', 50.0)):
             value = tuple(d[key]) if isinstance(d[key], list) else d[key]
             if value == default:              # defaults left out: older bags stay identical
                 del d[key]
@@ -226,7 +236,7 @@ class Capture:
         from rfm_core.io.bag import BagWriter  # noqa: PLC0415
         from rfm_core.io.images import numpy_to_image  # noqa: PLC0415
         from rfm_core.io.messages import (  # noqa: PLC0415
-            camera_info_msg, frame_detections_to_msg, header, imu_msg, object_map_msg,
+            camera_info_msg, frame_detections_to_msg, header, imu_msg, object_map_msg, odometry_msg, planar_matrix,
             pose_stamped_msg, transform_stamped_msg,
         )
 
@@ -236,16 +246,19 @@ class Capture:
                           gyro_bias=np.radians(nm.imu_gyro_bias_dps), accel_bias=nm.imu_accel_bias)
         imu_stamps = [self.stamp_ns(t) + int(round(nm.imu_time_offset_ms * 1e6)) for t in imu.times]
         delays = np.random.default_rng([self._noise_seed, 8])     # depth stamped after colour
-        counts = {topic: 0 for topic in TOPICS.values()}
+        robot = self.trajectory.path                   # a wheeled base: its odometry on /odom and /tf
+        topics = {k: v for k, v in TOPICS.items() if robot is not None or k not in ('odom', 'tf')}
+        counts = {topic: 0 for topic in topics.values()}
         with BagWriter(path) as bag:
             make = bag.make
             bag.set_metadata('rfm.sim.config', cfg.to_json())
-            for key, topic in TOPICS.items():
+            for key, topic in topics.items():
                 msgtype = {
                     'color': 'sensor_msgs/msg/Image', 'depth': 'sensor_msgs/msg/Image',
                     'color_info': 'sensor_msgs/msg/CameraInfo',
                     'depth_info': 'sensor_msgs/msg/CameraInfo', 'imu': 'sensor_msgs/msg/Imu',
-                    'tf_static': 'tf2_msgs/msg/TFMessage',
+                    'tf_static': 'tf2_msgs/msg/TFMessage', 'tf': 'tf2_msgs/msg/TFMessage',
+                    'odom': 'nav_msgs/msg/Odometry',
                     'gt_pose': 'geometry_msgs/msg/PoseStamped',
                     'gt_objects': 'rfm_msgs/msg/ObjectMap',
                     'gt_detections': 'rfm_msgs/msg/FrameDetections'}[key]
@@ -257,21 +270,36 @@ class Capture:
                 counts[TOPICS[key]] += 1
 
             start = self.stamp_ns(0.0)
-            write('tf_static', start, make('tf2_msgs/msg/TFMessage', transforms=[
-                transform_stamped_msg(_LINK_FROM_OPTICAL, start, BASE_FRAME, OPTICAL_FRAME, make)]))
+            mounts = [transform_stamped_msg(_LINK_FROM_OPTICAL, start, BASE_FRAME, OPTICAL_FRAME, make)]
+            if robot is not None:                       # base_link -> camera_link: the camera's mount
+                mounts.append(transform_stamped_msg(planar_matrix(robot.MOUNT_X, 0.0, 0.0, robot.height), start,
+                                                    ROBOT_BASE_FRAME, BASE_FRAME, make))
+            write('tf_static', start, make('tf2_msgs/msg/TFMessage', transforms=mounts))
             write('gt_objects', start, object_map_msg(
                 self.room.boxes, self.room.labels, np.arange(len(self.room.objects)) + 1,
                 start, 'map', make=make))
-            next_imu = 0
+            next_imu = next_odom = 0
+            odom_times = np.arange(0.0, self.trajectory.times[-1] + 1e-9, 1.0 / cfg.odom_rate_hz)
+            odom, odom_velocity = (wheel_odometry(robot, odom_times, self._imu_seed, nm.odom_scale_error,
+                                                  nm.odom_turn_error, nm.odom_yaw_bias_dps)
+                                   if robot is not None else (np.zeros((0, 3)), None))
+            odom_stamps = [self.stamp_ns(t) for t in odom_times[:len(odom)]]
 
             def write_imu_until(stamp_ns):
-                """IMU samples up to ``stamp_ns``, so the bag stays in time order."""
-                nonlocal next_imu
+                """IMU samples (and a robot's odometry) up to ``stamp_ns``, so the bag stays in time order."""
+                nonlocal next_imu, next_odom
                 while next_imu < len(imu_stamps) and imu_stamps[next_imu] <= stamp_ns:
                     write('imu', imu_stamps[next_imu], imu_msg(
                         imu.linear_acceleration[next_imu], imu.angular_velocity[next_imu],
                         imu_stamps[next_imu], OPTICAL_FRAME, make=make))
                     next_imu += 1
+                while next_odom < len(odom_stamps) and odom_stamps[next_odom] <= stamp_ns:
+                    stamp = odom_stamps[next_odom]
+                    write('odom', stamp, odometry_msg(odom[next_odom], odom_velocity[next_odom], stamp, ODOM_FRAME,
+                                                      ROBOT_BASE_FRAME, make=make))
+                    write('tf', stamp, make('tf2_msgs/msg/TFMessage', transforms=[transform_stamped_msg(
+                        planar_matrix(*odom[next_odom]), stamp, ODOM_FRAME, ROBOT_BASE_FRAME, make)]))
+                    next_odom += 1
 
             for frame in self.frames():
                 write_imu_until(frame.stamp_ns)
@@ -297,5 +325,5 @@ class Capture:
                 write('gt_detections', stamp, frame_detections_to_msg(frame.ground_truth, make))
                 if progress is not None:
                     progress(frame.index + 1, len(self.trajectory))
-            write_imu_until(imu_stamps[-1] if imu_stamps else 0)
+            write_imu_until(max(imu_stamps[-1] if imu_stamps else 0, odom_stamps[-1] if odom_stamps else 0))
         return {'path': str(Path(path)), 'messages': counts, 'objects': len(self.room.objects)}

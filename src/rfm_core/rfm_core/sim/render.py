@@ -58,11 +58,14 @@ class NoiseModel:
     imu_gyro_bias_dps: float = 0.0      #: constant gyroscope bias (deg/s, random direction)
     imu_accel_bias: float = 0.0         #: constant accelerometer bias (m/s^2, random direction)
     imu_time_offset_ms: float = 0.0     #: IMU stamps this much late relative to the camera's
+    odom_scale_error: float = 0.02      #: a robot's wheel odometry: std of its distance scale error ...
+    odom_turn_error: float = 0.02       #: ... of its turn scale error (both drawn once per capture) ...
+    odom_yaw_bias_dps: float = 0.5      #: ... and its constant yaw drift (deg/s, either sign)
 
     #: fields added after the first bags were written: left out of a stored config at defaults
     ARTEFACTS = ('projector_baseline_m', 'flying_pixel_fraction', 'dark_dropout_below', 'dark_dropout_prob',
                  'registration_offset_px', 'exposure_drift', 'depth_delay_ms', 'imu_gyro_bias_dps',
-                 'imu_accel_bias', 'imu_time_offset_ms')
+                 'imu_accel_bias', 'imu_time_offset_ms', 'odom_scale_error', 'odom_turn_error', 'odom_yaw_bias_dps')
 
     def __post_init__(self):
         object.__setattr__(self, 'depth_delay_ms', tuple(float(v) for v in self.depth_delay_ms))
@@ -85,7 +88,8 @@ class NoiseModel:
     def none(cls) -> 'NoiseModel':
         """No noise, no quantisation, no holes."""
         return cls(color_sigma=0.0, disparity_sigma_px=0.0, disparity_subpixel=0,
-                   depth_hole_fraction=0.0, depth_edge_hole_fraction=0.0, max_depth_m=np.inf)
+                   depth_hole_fraction=0.0, depth_edge_hole_fraction=0.0, max_depth_m=np.inf,
+                   odom_scale_error=0.0, odom_turn_error=0.0, odom_yaw_bias_dps=0.0)
 
 
 @dataclass

@@ -7,8 +7,10 @@ Styles (paper: CA-1M is handheld video, ScanNet++ DSLR captures are scattered):
 - ``sparse``: scattered viewpoints (DSLR-like), random positions and viewing directions,
   in random order: not a smooth path;
 - ``orbit``: a circle around the room's center, looking at the center;
-- ``robot``: a level camera low on a robot base (0.25-0.45 m) driving a smooth loop at
-  about 0.3 m/s, looking along its path with a slow look-around, no pitch or roll;
+- ``robot``: a level camera on a wheeled base (0.3-0.9 m up) that turns in place
+  (25-45 deg/s, now and then a full spin) and drives straight (0.2-0.5 m/s) between free
+  places, looking ahead; no pitch or roll (:class:`RobotPath`, whose base pose the wheel
+  odometry follows);
 - ``outward``: a handheld walk on a small loop near the room's centre, looking out at the
   walls and the furniture along them (the other direction from ``handheld``'s look across
   the room: a second session, or relocalization queries from the other side of the objects).
@@ -25,7 +27,7 @@ import numpy as np
 
 from rfm_core.sim.room import Room
 
-__all__ = ['CAPTURE_STYLES', 'Trajectory', 'ImuSamples', 'make_trajectory', 'imu_samples',
+__all__ = ['CAPTURE_STYLES', 'Trajectory', 'ImuSamples', 'RobotPath', 'make_trajectory', 'imu_samples', 'wheel_odometry',
            'look_rotation']
 
 CAPTURE_STYLES = ('handheld', 'sparse', 'orbit', 'robot', 'outward')
@@ -41,6 +43,7 @@ class Trajectory:
     smooth: bool             #: whether the camera moves continuously between frames
     #: t (s, array) -> (rotations, positions) of the continuous path, for smooth styles
     pose_fn: Callable | None = field(default=None, repr=False, compare=False)
+    path: 'RobotPath | None' = field(default=None, repr=False, compare=False)    #: a robot's moves
 
     def __len__(self) -> int:
         return len(self.times)
@@ -70,7 +73,7 @@ def look_rotation(forward, roll: float = 0.0) -> np.ndarray:
 class _HandheldPath:
     """Continuous handheld motion, so that the IMU can be sampled at any time."""
 
-    def __init__(self, room: Room, rng, speed: float = 0.35, height=None, level: bool = False):
+    def __init__(self, room: Room, rng, speed: float = 0.35, height=None):
         w, d = room.size[:2]
         self.center = np.array([w / 2, d / 2])
         self.reach = 0.7 * np.array([w / 2 - 0.3, d / 2 - 0.3])   # look across the room
@@ -88,7 +91,6 @@ class _HandheldPath:
         self.target_offset = nrng.uniform(0.3, 0.7)
         if height is not None:                    # another height range (from a stream of its own)
             self.height = np.random.default_rng([self.noise_rng_seed, 1]).uniform(*height)
-        self.level = level                        # a robot's camera: no pitch, roll or bobbing
         self.outward = False
 
     def look_out(self, room: Room) -> '_HandheldPath':
@@ -110,13 +112,8 @@ class _HandheldPath:
         a = self.phase + self.direction * self.omega * t
         xy = self.center + self.radii * np.stack([np.cos(a), np.sin(a)], -1) * (
             1 + self._wave(0, t, 0.15))[..., None]
-        z = self.height + (0.0 * t if self.level else self._wave(1, t, 0.05))
+        z = self.height + self._wave(1, t, 0.05)
         position = np.concatenate([xy, z[..., None]], -1)
-        if self.level:                            # along the path, looking around slowly
-            heading = a + self.direction * np.pi / 2 + self._wave(2, t, np.radians(60.0), freqs=(0.05, 0.09, 0.13))
-            forward = np.stack([np.cos(heading), np.sin(heading), np.zeros_like(heading)], -1)
-            rotations = np.stack([look_rotation(f) for f in np.atleast_2d(forward)])
-            return rotations, np.atleast_2d(position)
         # Look across the room: towards a point ahead of and opposite to the walker; or out, at the
         # walls beyond the walker.
         ahead = a + (self.direction * (self._wave(2, t, 0.6) + 0.4 * (self.target_offset - 0.5)) if self.outward
@@ -131,6 +128,95 @@ class _HandheldPath:
         forward[:, 2] += np.atleast_1d(pitch_jitter)
         rotations = np.stack([look_rotation(f, r) for f, r in zip(forward, np.atleast_1d(roll))])
         return rotations, np.atleast_2d(position)
+
+
+def _ease(u):
+    """Smoothstep: 0 -> 1 with zero rate at both ends (finite acceleration, for the IMU)."""
+    u = np.clip(u, 0.0, 1.0)
+    return u * u * (3.0 - 2.0 * u)
+
+
+class RobotPath:
+    """A wheeled base's moves (see the module): turns in place and straight drives, each
+    eased in and out, planned through the room's free space with ``clearance`` from every
+    object at the base's and the camera's height. The camera sits ``MOUNT_X`` ahead of the
+    base's centre at ``height``, level, looking ahead. :meth:`base` is the base's planar pose
+    (the ground truth the wheel odometry drifts from); :meth:`pose` the camera's."""
+
+    MOUNT_X = 0.1                         #: camera ahead of the base's centre (m)
+    SPEED = (0.2, 0.5)                    #: peak drive speed (m/s)
+    TURN_RATE = (25.0, 45.0)              #: peak turn rate (deg/s)
+
+    def __init__(self, room: Room, rng, duration: float, height=(0.3, 0.9), clearance: float = 0.35):
+        self.height = float(rng.uniform(*height))
+        self.room, self.clearance = room, clearance
+        xy = next((p for p in (rng.uniform(0.8, room.size[:2] - 0.8) for _ in range(500)) if self._free(p)), None)
+        if xy is None:
+            raise RuntimeError('no free place for a robot in this room')
+        heading = float(rng.uniform(-np.pi, np.pi))
+        self.moves = []                   # (t0, t1, xy0, heading0, xy1, heading1)
+        t = 0.0
+        while t < duration:
+            if rng.random() < 0.12:                                  # a full spin, now and then
+                target, length = heading + rng.choice([-1.0, 1.0]) * 2 * np.pi, 0.0
+            else:
+                target, length = self._direction(rng, xy, heading)
+            rate = np.radians(rng.uniform(*self.TURN_RATE))
+            turn_s = 1.5 * abs(target - heading) / rate               # eased: the peak rate is 1.5x the mean
+            if turn_s > 0:
+                self.moves.append((t, t + turn_s, xy, heading, xy, target))
+                t += turn_s
+            heading = float(target)                                   # unwrapped: the base turns continuously
+            if length > 0:
+                end = xy + length * np.array([np.cos(heading), np.sin(heading)])
+                drive_s = 1.5 * length / rng.uniform(*self.SPEED)
+                self.moves.append((t, t + drive_s, xy, heading, end, heading))
+                t, xy = t + drive_s, end
+            pause = rng.uniform(0.0, 0.6)
+            self.moves.append((t, t + pause, xy, heading, xy, heading))
+            t += pause
+        self._starts = np.array([m[0] for m in self.moves])
+
+    def _free(self, xy) -> bool:
+        return not any(self.room.contains_camera((xy[0], xy[1], z), margin=self.clearance)
+                       for z in (max(self.clearance, 0.3), max(self.height, self.clearance)))
+
+    def _direction(self, rng, xy, heading):
+        """A new heading and a drive along it through free space (the longest found in a few
+        tries, 0.4-2 m; none: turn and stay)."""
+        best = (heading + rng.uniform(-np.pi, np.pi), 0.0)
+        for _ in range(24):
+            target = heading + rng.uniform(-np.pi, np.pi)
+            direction = np.array([np.cos(target), np.sin(target)])
+            want = rng.uniform(0.4, 2.0)
+            length = 0.0
+            for step in np.arange(0.1, want + 1e-9, 0.1):
+                if not self._free(xy + step * direction):
+                    break
+                length = step
+            if length > best[1]:
+                best = (target, length)
+            if length >= want - 1e-9:
+                break
+        return best if best[1] >= 0.4 else (best[0], 0.0)
+
+    def base(self, t):
+        """(x, y, heading) of the base's centre at times ``t`` (arrays of (T,))."""
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        i = np.clip(np.searchsorted(self._starts, t, side='right') - 1, 0, len(self.moves) - 1)
+        out = np.zeros((len(t), 3))
+        for k in np.unique(i):
+            t0, t1, xy0, h0, xy1, h1 = self.moves[k]
+            u = _ease((t[i == k] - t0) / max(t1 - t0, 1e-9))
+            out[i == k, :2] = np.asarray(xy0) + u[:, None] * (np.asarray(xy1) - np.asarray(xy0))
+            out[i == k, 2] = h0 + u * (h1 - h0)
+        return out
+
+    def pose(self, t):
+        base = self.base(t)
+        forward = np.stack([np.cos(base[:, 2]), np.sin(base[:, 2]), np.zeros(len(base))], -1)
+        positions = np.c_[base[:, :2] + self.MOUNT_X * forward[:, :2], np.full(len(base), self.height)]
+        return np.stack([look_rotation(f) for f in forward]), positions
 
 
 def _orbit(room: Room, rng):
@@ -194,12 +280,14 @@ def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
         rotations, positions = pose(times, duration)
         return Trajectory(style, times, rotations, positions, smooth=True,
                           pose_fn=lambda t: pose(t, duration))
+    if style == 'robot':
+        path = RobotPath(room, rng, times[-1] + 1.0, height=height or (0.3, 0.9))
+        rotations, positions = path.pose(times)
+        return Trajectory(style, times, rotations, positions, smooth=True, pose_fn=path.pose, path=path)
     # Keep at least 0.6 m from furniture if some path allows it, else at least 0.15 m.
     candidates = []
-    robot = style == 'robot'
     for _attempt in range(30):
-        path = _HandheldPath(room, rng, speed=0.3 if robot else 0.35,
-                             height=(0.25, 0.45) if robot and height is None else height, level=robot)
+        path = _HandheldPath(room, rng, speed=0.35, height=height)
         if style == 'outward':
             path.look_out(room)
         rotations, positions = path.pose(times)
@@ -250,3 +338,29 @@ def imu_samples(traj: Trajectory, rate_hz: float, seed: int = 0,
         force = force + accel_bias * bias[0]
         omega = omega + gyro_bias * bias[1]
     return ImuSamples(times, force, omega)
+
+
+def wheel_odometry(path: RobotPath, times, seed: int = 0, scale_error: float = 0.0, turn_error: float = 0.0,
+                   yaw_bias_dps: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """A differential drive's odometry along ``path`` at ``times`` (s): (T, 3) poses (x, y,
+    heading) in the odometry frame (the base's first pose) and (T, 2) velocities (forward m/s,
+    turn rad/s). Each step's distance and turn are the base's true ones scaled by errors drawn
+    once (standard deviations ``scale_error``, ``turn_error``), plus a constant yaw drift of
+    ``yaw_bias_dps`` (either sign), integrated: the drift grows with the distance and the turns."""
+    rng = np.random.default_rng([seed, 11])
+    scale, turn = 1.0 + rng.normal(0.0, scale_error), 1.0 + rng.normal(0.0, turn_error)
+    bias = np.radians(yaw_bias_dps) * rng.choice([-1.0, 1.0])
+    t = np.asarray(times, dtype=np.float64)
+    base = path.base(t)
+    out = np.zeros((len(t), 3))
+    velocity = np.zeros((len(t), 2))
+    for k in range(1, len(t)):
+        dt = t[k] - t[k - 1]
+        c, s = np.cos(base[k - 1, 2]), np.sin(base[k - 1, 2])
+        step = base[k, :2] - base[k - 1, :2]
+        forward = (c * step[0] + s * step[1]) * scale                  # along the base's heading
+        dtheta = (base[k, 2] - base[k - 1, 2]) * turn + bias * dt
+        mid = out[k - 1, 2] + dtheta / 2
+        out[k] = out[k - 1] + (forward * np.cos(mid), forward * np.sin(mid), dtheta)
+        velocity[k] = (forward / dt, dtheta / dt) if dt > 0 else velocity[k - 1]
+    return out, velocity
