@@ -120,6 +120,9 @@ def test_on_a_robot_bag_the_map_hangs_above_its_odometry(tmp_path):
     for stamp in at_images:
         assert np.allclose(ours['odom'][stamp] @ tree.lookup('odom', 'camera_color_optical_frame', stamp),
                            cameras[stamp], atol=1e-5)
+    # the detector attached the camera's pose in the odometry frame to each frame (the matcher's motion prior)
+    epochs = [m.odometry_epoch for m in topic_messages(out / 'outputs.mcap', '/rfm/detections')]
+    assert len(epochs) >= 0.9 * 60 and sum(e == 1 for e in epochs) >= 0.9 * len(epochs)
     summary = json.loads((out / 'summary.json').read_text())
     loc = summary['accuracy']['localization']
     assert loc['registered'] >= 0.95 and loc['gross'] == 0, loc

@@ -480,7 +480,8 @@ def cmd_eval(args) -> int:
     settings = select_settings(args.settings)
     if not settings:
         raise SystemExit(f'rfm eval: no setting matches {args.settings}; settings: {[s.name for s in SETTINGS]}')
-    configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps, world=args.world)
+    configs = eval_configs(args.scenes, args.first_seed, args.frames, args.fps, world=args.world,
+                           capture=args.capture)
     start = time.perf_counter()
 
     def progress(i, n, r):
@@ -847,6 +848,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help='frames per capture (realistic world: frames / fps seconds at the scene\'s rate; '
                         'sparse captures frames / 2 photos)')
     p.add_argument('--fps', type=float, default=10.0)
+    p.add_argument('--capture', choices=('handheld', 'sparse', 'robot'),
+                   help="every scene captured this way (default: the suite's mix)")
     p.add_argument('--world', choices=('realistic', 'boxes'), default='realistic',
                    help='realistic (default): furniture made of parts, clutter, the realsense sensor model on '
                         'half the scenes, robot cameras, 5-30 Hz, 320x240 and 640x480, 60-90 deg; boxes: the '

@@ -64,6 +64,9 @@ class DetectorNodeConfig:
                             'is parameter', read_only=True)
     imu_tau_s: float = setting(1.0, 'Gravity filter time constant (s): the gyroscope carries the estimate '
                                'between accelerometer corrections', lo=0.01, hi=10.0, read_only=True)
+    odom_frame: str = setting('odom', "A robot's odometry frame: where /tf links it to the camera frame, each "
+                              "frame's detections carry the camera's pose in it (the matcher's motion prior); "
+                              "'': none", read_only=True)
     imu_max_age_s: float = setting(1.0, 'Drop frames when the last IMU sample is older than this (s)',
                                    lo=0.01, hi=60.0)
     imu_wait_s: float = setting(0.05, "Wait up to this long for IMU samples up to a frame's stamp (s)",

@@ -90,6 +90,10 @@ class FrameObservations:
     backend: str = ''
     imu_rotation: np.ndarray | None = None   #: (3, 3) camera -> the gyroscope's drifting frame
     imu_epoch: int = 0                       #: 0: none; rotations compare within one epoch
+    #: (4, 4) the camera optical frame in a robot's odometry frame at the stamp (its wheel
+    #: odometry through its TF tree): drifts with distance, exact between close frames
+    odometry: np.ndarray | None = None
+    odometry_epoch: int = 0                  #: 0: none; poses compare within one epoch
     #: height of the camera above the floor along gravity (m), where the detector measured the
     #: floor plane; NaN: not measured
     camera_height: float = float('nan')

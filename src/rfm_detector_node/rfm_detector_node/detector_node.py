@@ -30,14 +30,15 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rfm_msgs.msg import FrameDetections
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
+from tf2_msgs.msg import TFMessage
 from visualization_msgs.msg import MarkerArray
 
 from rfm_core.config import DetectorNodeConfig
 from rfm_core.detection import make_detector
 from rfm_core.detection.frontend import DetectorFrontend, FrameWorker
-from rfm_core.io.messages import detection_markers_msg, diagnostics_msg, frame_detections_to_msg
+from rfm_core.io.messages import detection_markers_msg, diagnostics_msg, frame_detections_to_msg, transforms_from_msg
 from rfm_core.io.parameters import declare_config
-from rfm_core.io.qos import RELIABLE, SENSOR, qos
+from rfm_core.io.qos import LATCHED, RELIABLE, SENSOR, TF, qos
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
 from rfm_detector_node.polling import PolledGroup, take_all
 
@@ -60,7 +61,7 @@ class DetectorNode(Node):
             self.detector, self._submit, fixed_gravity=cfg.gravity if cfg.gravity_source == 'parameter' else None,
             sync_slop_s=cfg.sync_slop_s, queue_size=cfg.queue_size, every_nth_frame=cfg.every_nth_frame,
             imu_tau_s=cfg.imu_tau_s, imu_max_age_s=cfg.imu_max_age_s, imu_wait_s=cfg.imu_wait_s, warn=self._warn,
-            poll_imu=self._take_imu)
+            poll_imu=self._take_imu, odom_frame=cfg.odom_frame)
         self.imu_sub = None
         self._imu_lock = threading.Lock()
         self.counts = self.frontend.counts
@@ -96,6 +97,9 @@ class DetectorNode(Node):
             else:
                 self.create_subscription(Imu, 'imu', self._on_imu, sensor)
             inputs += ', imu' if self.backend != 'ground_truth' else ', imu (optional)'
+        if cfg.odom_frame:                         # a robot's odometry: the camera's pose in it, per frame
+            self.create_subscription(TFMessage, '/tf', lambda msg: self._on_tf(msg, False), qos(TF))
+            self.create_subscription(TFMessage, '/tf_static', lambda msg: self._on_tf(msg, True), qos(LATCHED))
         self.create_timer(self.diagnostics_period, self._publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))          # also while a bag pauses
         self.points_only = self.detector.needs_depth and cfg.cloud_voxel_m > 0
@@ -109,6 +113,15 @@ class DetectorNode(Node):
         if self.imu_sub is not None:
             with self._imu_lock:
                 take_all(self.imu_sub, self._on_imu)
+
+    def _on_tf(self, msg, static: bool) -> None:
+        try:
+            links = transforms_from_msg(msg)
+        except (ValueError, AttributeError) as exc:
+            self._warn(f'/tf message dropped: {exc}')
+            return
+        for link in links:
+            self.frontend.add_transform(*link, static)
 
     def _on_imu(self, msg) -> None:
         try:

@@ -4,7 +4,8 @@ Frames (colour, camera_info, optionally depth; or simulated ground truth) must a
 stamp order (a jump far back, a looping bag, resets the state); gravity comes from the IMU's
 complementary filter (waiting briefly for the IMU to catch up with a frame, and dropping
 frames without recent IMU data) or a fixed vector; the gyroscope's orientation is attached
-to each frame's detections (the matcher checks relative yaws with it). Messages are read by
+to each frame's detections (the matcher checks relative yaws with it), and so is the camera's
+pose in a robot's odometry frame where /tf gives it (the matcher's motion prior). Messages are read by
 their fields (:mod:`rfm_core.io`), so rclpy and rosbags messages both work.
 
 :class:`FrameWorker` runs the detector on one thread with a short backlog (the oldest frame
@@ -28,6 +29,7 @@ from rfm_core.detection.gravity import GravityFilter
 from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_msg, imu_reading, stamp_to_ns
 from rfm_core.io.sync import ApproximateTimeSynchronizer
+from rfm_core.transforms import TransformBuffer
 from rfm_core.observations import FrameObservations
 
 __all__ = ['DetectorFrontend', 'FrameWorker', 'TIME_JUMP_NS', 'DROP_COUNTERS']
@@ -48,7 +50,7 @@ class DetectorFrontend:
     def __init__(self, detector: Detector, on_frame: Callable, fixed_gravity=None, sync_slop_s: float = 0.05,
                  queue_size: int = 10, every_nth_frame: int = 1, imu_tau_s: float = 1.0, imu_max_age_s: float = 1.0,
                  imu_wait_s: float = 0.05, warn: Callable[[str], None] | None = None,
-                 poll_imu: Callable[[], None] | None = None):
+                 poll_imu: Callable[[], None] | None = None, odom_frame: str = ''):
         self.detector = detector
         self.on_frame = on_frame
         self.fixed_gravity = None if fixed_gravity is None else np.asarray(fixed_gravity, float)
@@ -60,6 +62,9 @@ class DetectorFrontend:
         # takes the IMU samples queued so far (into add_imu): before each frame and while waiting for them
         self.poll_imu = poll_imu or (lambda: None)
         self.gravity_filter = GravityFilter(tau_s=imu_tau_s)
+        self.odom_frame = odom_frame          # a robot's odometry: the camera's pose in it goes with each frame
+        self.tf = TransformBuffer()
+        self._tf_lock = threading.Lock()      # /tf arrives on the node's thread, frames are detected on the worker's
         self.counts = dict(received=0, processed=0, published=0, points_only=0, dropped_busy=0, dropped_invalid=0,
                            dropped_no_gravity=0, dropped_out_of_order=0, skipped_nth=0)
         # colour, camera_info and depth when needed (ground truth arrives as one message)
@@ -140,7 +145,19 @@ class DetectorFrontend:
         found = self.gravity_filter.orientation_at(obs.stamp_ns)
         if found is not None:
             obs.imu_rotation, obs.imu_epoch = found
+        if self.odom_frame:
+            with self._tf_lock:
+                odometry = self.tf.lookup(self.odom_frame, obs.frame_id, obs.stamp_ns)
+            if odometry is not None:
+                obs.odometry, obs.odometry_epoch = odometry, 1
         return obs
+
+    def add_transform(self, parent: str, child: str, stamp_ns: int, matrix, static: bool = False) -> None:
+        """A transform of /tf or /tf_static (a robot's odometry and the camera's mount)."""
+        with self._tf_lock:
+            problem = self.tf.add(parent, child, stamp_ns, matrix, static)
+        if problem is not None:
+            self.warn(f'/tf: {problem}')
 
     def _gravity(self, stamp: int):
         if self.fixed_gravity is not None:

@@ -101,8 +101,9 @@ def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps
     made of parts and clutter; every other pair of scenes seen through the ``realsense``
     sensor model; every fourth handheld slot a robot's low, level camera; per scene (drawn
     from its seed) a frame rate of 5, 15 or 30 Hz for ``frames / fps`` seconds (10 s by
-    default), 640x480 one time in four (else 320x240), a horizontal field of view of
-    60-90 deg, a handheld camera 1.0-1.8 m high; sparse captures are ``frames / 2`` photos
+    default), 640x480 one time in four (else 320x240; a robot's camera: 10, 15 or 30 Hz,
+    640x480 one time in two), a horizontal field of view of 60-90 deg, a handheld camera
+    1.0-1.8 m high; sparse captures are ``frames / 2`` photos
     1.5-5 s apart. ``capture``: every scene captured this way instead (``'handheld'``: the
     relocalization protocol's walk around each room, ``frames / fps`` seconds at the scene's
     rate; the rooms and the scenes' other draws are the suite's).
@@ -126,6 +127,10 @@ def eval_configs(count: int = 20, first_seed: int = 5000, frames: int = 100, fps
         if kind == 'handheld' and i % 8 == 4:
             kind = 'robot'
         kind = capture or kind
+        if kind == 'robot':                  # a robot's camera: 10-30 Hz, 640x480 one time in two
+            robot = np.random.default_rng([seed, 98])
+            rate = float(robot.choice([10.0, 15.0, 30.0]))
+            width, height = (640, 480) if robot.random() < 0.5 else (320, 240)
         options = dict(seed=seed, room_style=style, capture=kind, width=width, height=height, hfov_deg=hfov,
                        furniture='parts', clutter=True,
                        noise=NoiseModel.realsense() if (i // 2) % 2 else NoiseModel())

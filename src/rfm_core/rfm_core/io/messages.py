@@ -386,7 +386,7 @@ def frame_detections_from_msg(msg) -> FrameObservations:
         camera_height=float(getattr(msg, 'camera_height', 0.0)),
         walls=_walls(msg, obs_rotation),
         cloud=_cloud(msg, obs_rotation),
-        **_imu_fields(msg),
+        **_imu_fields(msg), **_odometry_fields(msg),
     )
 
 
@@ -452,6 +452,19 @@ def _imu_fields(msg) -> dict:
     return {'imu_rotation': matrix_from_quaternion(q / np.linalg.norm(q)), 'imu_epoch': epoch}
 
 
+def _odometry_fields(msg) -> dict:
+    """odometry / odometry_epoch of a FrameDetections (none in older messages; ValueError for
+    a non-finite pose or a zero quaternion with an epoch)."""
+    epoch = int(getattr(msg, 'odometry_epoch', 0) or 0)
+    if not epoch:
+        return {}
+    q = _quat(msg.odometry.orientation)
+    m = pose_to_matrix(msg.odometry) if np.all(np.isfinite(q)) and np.linalg.norm(q) > 1e-6 else None
+    if m is None or not np.all(np.isfinite(m)):
+        raise ValueError('odometry must be a finite pose with a non-zero quaternion')
+    return {'odometry': m, 'odometry_epoch': epoch}
+
+
 def frame_detections_to_msg(obs: FrameObservations, make=ROS):
     """FrameObservations -> rfm_msgs/FrameDetections (box poses in the camera optical frame)."""
     camera_from_aligned = obs.rotation_aligned_from_camera.T
@@ -485,6 +498,8 @@ def frame_detections_to_msg(obs: FrameObservations, make=ROS):
                 cy=float(intr.cy), width=int(intr.width), height=int(intr.height),
                 gravity=_vector3(make, obs.gravity_cam), imu_orientation=_quaternion(make, obs.imu_rotation),
                 imu_epoch=int(obs.imu_epoch) if obs.imu_rotation is not None else 0,
+                odometry=_pose(make, obs.odometry if obs.odometry is not None else np.eye(4)),
+                odometry_epoch=int(obs.odometry_epoch) if obs.odometry is not None else 0,
                 camera_height=float(obs.camera_height) if np.isfinite(obs.camera_height) else 0.0,
                 wall_normals=[_vector3(make, camera_from_aligned @ np.r_[w[:2], 0.0]) for w in obs.walls],
                 wall_distances=np.asarray(obs.walls[:, 2], dtype=np.float64),

@@ -7,7 +7,9 @@ per pair of frames: frames no more than ``max_frame_gap_s`` apart belong to one 
 segment. Within a segment a camera cannot turn or move arbitrarily fast (the motion prior:
 each tracked frame must be reachable from the previous one, each edge from its source
 keyframe), the gyroscope's rotation between two frames checks a relative pose's yaw, and the
-frames objects placed give the camera's velocity, which predicts where the next frame is.
+frames objects placed give the camera's velocity, which predicts where the next frame is; a
+robot's wheel odometry, where the detector attached it, predicts it better, and carries the
+camera where objects and depth points place nothing (:meth:`StreamMotion.odometry`).
 Across segments nothing is known of the motion.
 """
 from __future__ import annotations
@@ -101,9 +103,12 @@ class StreamMotion:
         return v if speed <= self.config.max_speed_m_s else v * (self.config.max_speed_m_s / speed)
 
     def predicted_pose(self, prev: TrackState | None, reference: Keyframe, obs: FrameObservations) -> Pose4 | None:
-        """T_reference_frame as the previous tracked frame's position, moved on at the camera's
-        recent velocity, and the gyroscope's yaw predict it; None without a previous frame on
-        the reference or without a gyroscope."""
+        """T_reference_frame as a robot's odometry measured it; else as the previous tracked
+        frame's position, moved on at the camera's recent velocity, and the gyroscope's yaw
+        predict it; None without odometry, a previous frame on the reference or a gyroscope."""
+        odometry = self.odometry(reference.observations, obs)
+        if odometry is not None:
+            return odometry
         if prev is None or prev.keyframe_id != reference.keyframe_id:
             return None
         measured = self.imu_yaw(reference.observations, obs)
@@ -111,6 +116,17 @@ class StreamMotion:
             return None
         dt = (obs.stamp_ns - prev.stamp_ns) / 1e9
         return Pose4(measured[0], np.asarray(prev.pose.t) + self.velocity(prev) * max(dt, 0.0))
+
+    @staticmethod
+    def odometry(a: FrameObservations, b: FrameObservations) -> Pose4 | None:
+        """T_a_b between the two frames' gravity-aligned camera frames as a robot's odometry
+        measured it (both carry it, of one epoch; its yaw and translation), else None."""
+        if a.odometry is None or b.odometry is None or not a.odometry_epoch or a.odometry_epoch != b.odometry_epoch:
+            return None
+        camera = np.linalg.inv(a.odometry) @ b.odometry                 # T_acam_bcam
+        m = a.rotation_aligned_from_camera @ camera[:3, :3] @ b.rotation_aligned_from_camera.T
+        t = a.rotation_aligned_from_camera @ camera[:3, 3]
+        return Pose4(float(np.arctan2(m[1, 0], m[0, 0])), t)
 
     def reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the

@@ -112,9 +112,10 @@ class PointTracking:
     """A frame of a stream that objects did not localize, tracked on its depth points:
     aligned to the reference keyframe's from the predicted pose, where the motion is
     plausible; None otherwise. A direction the points leave free (at most one) keeps the
-    prediction, and only within ``max_motion_edge_s`` of the last frame placed in full. The
-    frame becomes no keyframe; a bridge from it to a later frame weighs its pose as a motion
-    edge (no object matches)."""
+    prediction, and only within ``max_motion_edge_s`` of the last frame placed in full. Where
+    the points place nothing, a robot's odometry carries the frame (its pose relative to the
+    reference as the odometry measured it). The frame becomes no keyframe; a bridge from it
+    to a later frame weighs its pose as a motion edge (no object matches)."""
 
     def __init__(self, g: 'ViewGraphBuilder'):
         self.g = g
@@ -130,15 +131,16 @@ class PointTracking:
         start = time.perf_counter()
         found = track_on_points(predicted, ref.observations, obs, g.matching)
         g.stats.tracking_s += time.perf_counter() - start
-        if found is None:
-            return None
-        full = found.free == 0
+        odometry = g.motion.odometry(ref.observations, obs)
+        full = found is not None and found.free == 0
         late = obs.stamp_ns - prev.last_verified_ns > g.config.keyframes.max_motion_edge_s * 1e9
-        if found.free > 1 or not full and late:
-            return None
-        if not (g.motion.reachable(prev.pose.inverse() @ found.pose, prev.stamp_ns, obs.stamp_ns)
-                and g.motion.imu_agrees(found.pose, ref.observations, obs)):
-            return None
+        if (found is None or found.free > 1 or not full and late and odometry is None
+                or not (g.motion.reachable(prev.pose.inverse() @ found.pose, prev.stamp_ns, obs.stamp_ns)
+                        and g.motion.imu_agrees(found.pose, ref.observations, obs))):
+            if odometry is None:
+                return None
+            g.stats.odometry_tracked += 1                         # the robot's odometry carries it
+            return g.placed_on_points(frame, ref, odometry, prev.last_verified_ns)
         g.stats.point_tracked += 1
         verified_ns = g.verified_through(ref.keyframe_id) if full else prev.last_verified_ns
         return g.placed_on_points(frame, ref, found.pose, verified_ns)

@@ -229,6 +229,23 @@ class Capture:
             boxes_2d=out.boxes_2d[keep], visibility=visibility, object_ids=keep + 1,
             backend='ground_truth')
 
+    def odometry(self, times) -> tuple[np.ndarray, np.ndarray]:
+        """A robot capture's wheel odometry at ``times`` (s): (T, 3) base_link's (x, y, heading)
+        in odom and (T, 2) velocities (:func:`~rfm_core.sim.trajectory.wheel_odometry`)."""
+        nm = self.config.noise
+        return wheel_odometry(self.trajectory.path, times, self._imu_seed, nm.odom_scale_error, nm.odom_turn_error,
+                              nm.odom_yaw_bias_dps)
+
+    def camera_odometry(self) -> dict:
+        """{stamp_ns: 4x4 camera optical frame in odom} of every frame of a robot capture, as
+        its TF tree gives it (odom -> base_link -> camera_link -> optical frame)."""
+        from rfm_core.io.messages import planar_matrix  # noqa: PLC0415
+
+        path = self.trajectory.path
+        mount = planar_matrix(path.MOUNT_X, 0.0, 0.0, path.height) @ _LINK_FROM_OPTICAL
+        odom, _ = self.odometry(self.trajectory.times)
+        return {self.stamp_ns(t): planar_matrix(*o) @ mount for t, o in zip(self.trajectory.times, odom)}
+
     # ------------------------------------------------------------------ bag writing
 
     def write_bag(self, path, progress: Callable[[int, int], None] | None = None) -> dict:
@@ -280,9 +297,7 @@ class Capture:
                 start, 'map', make=make))
             next_imu = next_odom = 0
             odom_times = np.arange(0.0, self.trajectory.times[-1] + 1e-9, 1.0 / cfg.odom_rate_hz)
-            odom, odom_velocity = (wheel_odometry(robot, odom_times, self._imu_seed, nm.odom_scale_error,
-                                                  nm.odom_turn_error, nm.odom_yaw_bias_dps)
-                                   if robot is not None else (np.zeros((0, 3)), None))
+            odom, odom_velocity = self.odometry(odom_times) if robot is not None else (np.zeros((0, 3)), None)
             odom_stamps = [self.stamp_ns(t) for t in odom_times[:len(odom)]]
 
             def write_imu_until(stamp_ns):

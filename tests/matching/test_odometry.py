@@ -1,0 +1,52 @@
+"""A robot's wheel odometry as the motion prior: relative poses from it, and a robot that
+turns in place and faces bare walls tracked through them."""
+import dataclasses
+
+import numpy as np
+import pytest
+from sim_frames import detected_frames
+
+from rfm_core.evaluation.trajectory import trajectory_errors
+from rfm_core.geometry import Pose4
+from rfm_core.matching.motion import StreamMotion
+from rfm_core.session import Session
+from rfm_core.sim.capture import Capture, CaptureConfig
+from rfm_core.sim.render import NoiseModel
+
+
+def test_odometry_gives_the_relative_pose_between_gravity_aligned_frames():
+    """Without odometry errors the relative pose is the truth's, in the matcher's frames."""
+    config = CaptureConfig(seed=12, capture='robot', frames=40, fps=5, noise=NoiseModel.none())
+    capture = Capture(config)
+    frames = detected_frames(seed=12, frames=40, fps=5, capture='robot', noise=NoiseModel.none())
+    poses = {f.stamp_ns: f for f in capture.frames()}
+    a, b = frames[3], frames[30]
+    measured = StreamMotion.odometry(a, b)
+    truth = poses[a.stamp_ns].aligned_from_map() @ poses[b.stamp_ns].aligned_from_map().inverse()
+    assert abs(measured.yaw - truth.yaw) < 1e-6 and np.allclose(measured.t, truth.t, atol=1e-6)
+    assert StreamMotion.odometry(a, dataclasses.replace(b, odometry_epoch=2)) is None      # another epoch
+    assert StreamMotion.odometry(a, dataclasses.replace(b, odometry=None, odometry_epoch=0)) is None
+
+
+@pytest.fixture(scope='module')
+def robot_frames():
+    # a tuning seed whose robot spins and drives past bare walls for long stretches
+    return detected_frames(seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
+                           noise=NoiseModel.realsense())
+
+
+def test_the_odometry_carries_a_robot_where_objects_and_points_do_not(robot_frames):
+    truth = {f.stamp_ns: f.pose_matrix for f in Capture(CaptureConfig(
+        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
+        noise=NoiseModel.realsense())).frames()}
+    results = {}
+    for use in (True, False):
+        session = Session()
+        for obs in robot_frames:
+            session.step(obs if use else dataclasses.replace(obs, odometry=None, odometry_epoch=0))
+        session.finish()
+        results[use] = trajectory_errors(session.mapper.frame_poses(), truth), session.graph.stats.odometry_tracked
+    (with_odometry, carried), (without, _) = results[True], results[False]
+    assert with_odometry['registered'] >= 0.95 and with_odometry['gross'] <= 0.01 * 300, with_odometry
+    assert with_odometry['ARE_median'] < 1.5 and with_odometry['ATE_median'] < 0.12, with_odometry
+    assert carried > 50 and without['registered'] < 0.7, (carried, without)
