@@ -134,7 +134,7 @@ class NewKeyframe:
         rel = with_surfaces(without_objects(predicted), g.reference.observations, obs, g.matching)
         # measured from the last frame objects placed: motion edges never chain past it (a
         # robot's odometry measures the motion, which the gyroscope and the velocity guess)
-        if (not rel.on_points and g.motion.odometry(g.reference.observations, obs) is None
+        if (not rel.on_points and not g.motion.odometry_trusted(obs)
                 and obs.stamp_ns - g.state.last_verified_ns > g.config.keyframes.max_motion_edge_s * 1e9):
             return None
         g.stats.motion_edges += 1

@@ -45,6 +45,12 @@ class MotionConfig:
                                             "gyroscope's by this (deg) ...", lo=0.1, hi=180.0)
     imu_yaw_drift_deg_s: float = setting(1.0, "... plus this per second between the frames (the gyroscope's bias; "
                                          'raise it for an uncalibrated IMU, deg/s)', lo=0.0, hi=90.0)
+    odometry_error: float = setting(0.03, "A robot's wheel odometry: its error per metre driven and per radian "
+                                    'turned (a fraction) ...', lo=0.0, hi=1.0)
+    odometry_drift_deg_s: float = setting(1.0, '... and its yaw drift (deg/s)', lo=0.0, hi=90.0)
+    odometry_max_error_deg: float = constant(5.0, 'The odometry carries the camera while its error since the last '
+                                             'frame objects placed stays within this (deg) ...', lo=0.0, hi=180.0)
+    odometry_max_error_m: float = constant(0.25, '... and this (m): where a pose counts as wrong', lo=0.0, hi=10.0)
 
 
 class StreamMotion:
@@ -57,6 +63,7 @@ class StreamMotion:
         self._last_stamp = None               # of the previous frame (any frame: the stream's timing)
         self._placed: list = []               # (keyframe id, stamp, T_keyframe_frame.t) of frames objects placed
         self._carried = (None, np.zeros(3))   # (motion-placed keyframe id, the velocity carried into it)
+        self._verified_odometry = None        # a robot's odometry at the last frame objects placed
 
     def continues(self, stamp_ns: int) -> bool:
         """Whether a frame continues the stream of the previous one (no more than
@@ -68,12 +75,15 @@ class StreamMotion:
             self.stats.segments += 1
         return stream
 
-    def observe(self, state: TrackState | None) -> None:
-        """A frame was localized (or a keyframe made): a sample of the motion when objects
-        placed it; None: the stream broke."""
+    def observe(self, state: TrackState | None, obs: FrameObservations | None = None) -> None:
+        """A frame (``obs``) was localized (or a keyframe made): a sample of the motion when
+        objects placed it; None: the stream broke."""
         if state is None:
             self._placed = []
+            self._verified_odometry = None
         elif state.verified_ns is None:               # placed by objects: a sample of the motion
+            if obs is not None and obs.odometry is not None:
+                self._verified_odometry = obs
             window = self.config.velocity_window_s * 1e9
             self._placed = [p for p in self._placed
                             if p[0] == state.keyframe_id and 0 <= state.stamp_ns - p[1] <= window]
@@ -105,11 +115,14 @@ class StreamMotion:
     def predicted_pose(self, prev: TrackState | None, reference: Keyframe, obs: FrameObservations) -> Pose4 | None:
         """T_reference_frame as a robot's odometry measured it; else as the previous tracked
         frame's position, moved on at the camera's recent velocity, and the gyroscope's yaw
-        predict it; None without odometry, a previous frame on the reference or a gyroscope."""
-        odometry = self.odometry(reference.observations, obs)
+        predict it; None without a previous frame (the stream broke), or without odometry, a
+        previous frame on the reference or a gyroscope."""
+        if prev is None:
+            return None
+        odometry = self.carried(prev, reference, obs)
         if odometry is not None:
             return odometry
-        if prev is None or prev.keyframe_id != reference.keyframe_id:
+        if prev.keyframe_id != reference.keyframe_id:
             return None
         measured = self.imu_yaw(reference.observations, obs)
         if measured is None:
@@ -127,6 +140,32 @@ class StreamMotion:
         m = a.rotation_aligned_from_camera @ camera[:3, :3] @ b.rotation_aligned_from_camera.T
         t = a.rotation_aligned_from_camera @ camera[:3, 3]
         return Pose4(float(np.arctan2(m[1, 0], m[0, 0])), t)
+
+    def carried(self, prev: TrackState | None, reference: Keyframe, obs: FrameObservations) -> Pose4 | None:
+        """T_reference_frame as the odometry carries the camera on from the previous frame
+        localized on the reference (T_reference_prev, then the odometry's motion since),
+        or from the reference itself; None without odometry."""
+        if prev is not None and prev.keyframe_id == reference.keyframe_id and prev.observations is not None:
+            step = self.odometry(prev.observations, obs)
+            if step is not None:
+                return prev.pose @ step
+        return self.odometry(reference.observations, obs)
+
+    def odometry_trusted(self, obs: FrameObservations) -> bool:
+        """Whether the odometry may carry the camera to ``obs``: its error since the last frame
+        objects placed (``odometry_error`` per metre and per radian, ``odometry_drift_deg_s``;
+        the yaw error's lever over the distance) stays within ``odometry_max_error_deg`` and
+        ``odometry_max_error_m``."""
+        since = self._verified_odometry
+        motion = self.odometry(since, obs) if since is not None else None
+        if motion is None:
+            return False
+        cfg = self.config
+        distance = float(np.linalg.norm(motion.t[:2]))
+        yaw_error = (cfg.odometry_error * abs(motion.yaw)
+                     + np.radians(cfg.odometry_drift_deg_s) * abs(obs.stamp_ns - since.stamp_ns) / 1e9)
+        return (np.degrees(yaw_error) <= cfg.odometry_max_error_deg
+                and cfg.odometry_error * distance + yaw_error * distance <= cfg.odometry_max_error_m)
 
     def reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the

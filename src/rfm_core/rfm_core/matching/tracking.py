@@ -113,8 +113,9 @@ class PointTracking:
     aligned to the reference keyframe's from the predicted pose, where the motion is
     plausible; None otherwise. A direction the points leave free (at most one) keeps the
     prediction, and only within ``max_motion_edge_s`` of the last frame placed in full. Where
-    the points place nothing, a robot's odometry carries the frame (its pose relative to the
-    reference as the odometry measured it). The frame becomes no keyframe; a bridge from it
+    the points place nothing, a robot's odometry carries the frame on from the last one
+    (while its error since the last frame objects placed stays small:
+    :meth:`~rfm_core.matching.motion.StreamMotion.odometry_trusted`). The frame becomes no keyframe; a bridge from it
     to a later frame weighs its pose as a motion edge (no object matches)."""
 
     def __init__(self, g: 'ViewGraphBuilder'):
@@ -131,7 +132,7 @@ class PointTracking:
         start = time.perf_counter()
         found = track_on_points(predicted, ref.observations, obs, g.matching)
         g.stats.tracking_s += time.perf_counter() - start
-        odometry = g.motion.odometry(ref.observations, obs)
+        odometry = g.motion.carried(prev, ref, obs) if g.motion.odometry_trusted(obs) else None
         full = found is not None and found.free == 0
         late = obs.stamp_ns - prev.last_verified_ns > g.config.keyframes.max_motion_edge_s * 1e9
         if (found is None or found.free > 1 or not full and late and odometry is None
