@@ -216,10 +216,12 @@ def cmd_convert(args) -> int:
         raise SystemExit(f'rfm convert: {exc}') from None
     if not args.quiet:
         sys.stderr.write('\n')
-    imu = (f'{summary["imu"]} IMU samples ({"accelerometer and gyroscope" if summary["gyroscope"] else "accelerometer only"})'
-           if summary['imu'] else 'no IMU (run with --param detector.gravity_source:=parameter)')
+    sensors = 'accelerometer and gyroscope' if summary['gyroscope'] else 'accelerometer only'
+    imu = (f'{summary["imu"]} IMU samples ({sensors})' if summary['imu']
+           else 'no IMU (run with --param detector.gravity_source:=parameter)')
     levelled = f'levelled by {summary["levelled_deg"]:.1f} deg' if summary['imu'] else 'as given: no IMU to level it'
-    truth = f'{summary["ground_truth"]} ground-truth poses ({levelled})' if summary['ground_truth'] else 'no ground truth'
+    truth = (f'{summary["ground_truth"]} ground-truth poses ({levelled})' if summary['ground_truth']
+             else 'no ground truth')
     print(f'wrote {out}: {summary["frames"]} frames {summary["width"]}x{summary["height"]} ({summary["layout"]} '
           f'layout; {summary["skipped"]} colour images without depth within {args.max_difference} s), {imu}, '
           f'{truth}. Next: rfm run --bag {out}')

@@ -340,8 +340,8 @@ def write_bag(folder: RgbdFolder, out, progress=None) -> dict:
                                  f'colour and depth image must be {width}x{height} (depth registered to colour)')
             if millimetres:
                 depth_px = np.rint(np.asarray(depth, np.float64) / (folder.depth_scale / 1000.0))
-                depth_msg = numpy_to_image(np.clip(depth_px, 0, 65535).astype(np.uint16), '16UC1', header(make, d_stamp, OPTICAL_FRAME),
-                                           make=make)
+                depth_msg = numpy_to_image(np.clip(depth_px, 0, 65535).astype(np.uint16), '16UC1',
+                                           header(make, d_stamp, OPTICAL_FRAME), make=make)
             else:
                 metres = np.where(depth > 0, np.asarray(depth, np.float32) / np.float32(folder.depth_scale), np.nan)
                 depth_msg = numpy_to_image(metres.astype(np.float32), '32FC1', header(make, d_stamp, OPTICAL_FRAME),

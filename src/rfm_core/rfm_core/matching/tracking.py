@@ -115,8 +115,9 @@ class PointTracking:
     prediction, and only within ``max_motion_edge_s`` of the last frame placed in full. Where
     the points place nothing, a robot's odometry carries the frame on from the last one
     (while its error since the last frame objects placed stays small:
-    :meth:`~rfm_core.matching.motion.StreamMotion.odometry_trusted`). The frame becomes no keyframe; a bridge from it
-    to a later frame weighs its pose as a motion edge (no object matches)."""
+    :meth:`~rfm_core.matching.motion.StreamMotion.odometry_trusted`). The frame becomes no
+    keyframe; a bridge from it to a later frame weighs its pose as a motion edge (no object
+    matches)."""
 
     def __init__(self, g: 'ViewGraphBuilder'):
         self.g = g

@@ -27,8 +27,8 @@ import numpy as np
 
 from rfm_core.sim.room import Room
 
-__all__ = ['CAPTURE_STYLES', 'Trajectory', 'ImuSamples', 'RobotPath', 'make_trajectory', 'imu_samples', 'wheel_odometry',
-           'look_rotation']
+__all__ = ['CAPTURE_STYLES', 'Trajectory', 'ImuSamples', 'RobotPath', 'make_trajectory', 'imu_samples',
+           'wheel_odometry', 'look_rotation']
 
 CAPTURE_STYLES = ('handheld', 'sparse', 'orbit', 'robot', 'outward')
 GRAVITY = 9.80665
