@@ -135,13 +135,13 @@ class MapStatus:
 
 class MapperCore:
     """The mapper node's work (see the module), configured by a
-    :class:`~rfm_core.config.MapperNodeConfig`. ``lookup_tf``: posed mode's pose from TF
-    (``pose_source`` 'tf'); ``warn``: where dropped input is reported (the node logs it,
-    throttled); ``matcher``: relocalization's object matcher (default: the configured one).
+    :class:`~rfm_core.config.MapperNodeConfig`; /tf and /tf_static come in through
+    :meth:`transform` (posed mode's pose source 'tf', and where the map attaches to the TF
+    tree). ``warn``: where dropped input is reported (the node logs it, throttled); ``matcher``: relocalization's object matcher (default: the configured one).
     With ``load_map_on_start`` the map file is loaded. ValueError for a matcher checkpoint or
     a map file that cannot be loaded."""
 
-    def __init__(self, config, lookup_tf=None, warn: Callable[[str], None] | None = None,
+    def __init__(self, config, warn: Callable[[str], None] | None = None,
                  clock: Callable[[], float] = time.monotonic, matcher=None):
         self.config = config
         self.warn = warn or (lambda text: None)
@@ -158,7 +158,7 @@ class MapperCore:
         self.tf = TransformBuffer()            # /tf and /tf_static as heard
         self.held: Attachment | None = None   # map -> odom, re-published between frames
         self._attached_to = None              # the frame the map last attached to (logged when it changes)
-        lookup = {'topic': self.external_poses, 'tf': lookup_tf or self._lookup_tf}.get(config.pose_source)
+        lookup = {'topic': self.external_poses, 'tf': self._lookup_tf}.get(config.pose_source)
         mapper = replace(config.mapper, posed=bool(config.pose_source))
         self.session = MapSession(mapper, matcher=matcher, pose_lookup=lookup,
                                   idle_full_solve_s=config.idle_full_solve_s, warn=self.warn, clock=clock)
