@@ -91,6 +91,15 @@ def _noise(model, args):
     return noise
 
 
+def _frame_progress(prefix: str):
+    """A progress(done, total) that rewrites one line on a terminal (else only the last)."""
+    def progress(done, total):
+        if sys.stderr.isatty() or done == total:
+            sys.stderr.write(f'\r{prefix} {done}/{total} frames')
+            sys.stderr.flush()
+    return progress
+
+
 def _prepare(path: Path, force: bool) -> None:
     if path.exists():
         if not force:
@@ -112,10 +121,7 @@ def cmd_sim(args) -> int:
     _prepare(out, args.force)
     config = _config(args, args.seed, args.style, args.capture)
 
-    def progress(done, total):
-        if sys.stderr.isatty() or done == total:
-            sys.stderr.write(f'\r[rfm sim] rendered {done}/{total} frames')
-            sys.stderr.flush()
+    progress = _frame_progress('[rfm sim] rendered')
     from rfm_core.sim.capture import Capture  # noqa: PLC0415
     capture = Capture(config)
     summary = capture.write_bag(out, progress=progress)
@@ -205,13 +211,8 @@ def cmd_convert(args) -> int:
     except (FileNotFoundError, ValueError) as exc:
         raise SystemExit(f'rfm convert: {exc}') from None
     _prepare(out, args.force)
-
-    def progress(done, total):
-        if sys.stderr.isatty() or done == total:
-            sys.stderr.write(f'\r[rfm convert] {done}/{total} frames')
-            sys.stderr.flush()
     try:
-        summary = write_bag(folder, out, progress=None if args.quiet else progress)
+        summary = write_bag(folder, out, progress=None if args.quiet else _frame_progress('[rfm convert]'))
     except (FileNotFoundError, ValueError) as exc:
         raise SystemExit(f'rfm convert: {exc}') from None
     if not args.quiet:

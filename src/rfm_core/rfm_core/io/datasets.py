@@ -35,7 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rfm_core.geometry import matrix_from_quaternion
 from rfm_core.observations import CameraIntrinsics
+from rfm_core.transforms import interpolate
 
 __all__ = ['RgbdFolder', 'read_folder', 'write_bag', 'level_ground_truth', 'parse_axes', 'TUM_INTRINSICS']
 
@@ -43,7 +45,6 @@ __all__ = ['RgbdFolder', 'read_folder', 'write_bag', 'level_ground_truth', 'pars
 TUM_INTRINSICS = {'freiburg1': (517.3, 516.5, 318.6, 255.3), 'freiburg2': (520.9, 521.0, 325.1, 249.7),
                   'freiburg3': (535.4, 539.2, 320.1, 247.6), 'default': (525.0, 525.0, 319.5, 239.5)}
 TUM_DEPTH_SCALE = 5000.0        #: TUM depth PNG units per metre
-OPTICAL_FRAME = 'camera_color_optical_frame'
 
 
 @dataclass
@@ -197,42 +198,20 @@ def read_folder(root, intrinsics=None, accel_axes: str | None = None,
 def _at_frames(stamps: list, gt_stamps: np.ndarray, positions: np.ndarray, quaternions: np.ndarray,
                max_gap_s: float = 0.1) -> list:
     """Ground truth at the frames' stamps (evaluation compares poses of one stamp):
-    interpolated between the two poses around each (position linearly, rotation by slerp)
+    interpolated between the two poses around each (:func:`rfm_core.transforms.interpolate`)
     where they are at most ``max_gap_s`` apart; frames outside the ground truth have none."""
-    from scipy.spatial.transform import Rotation, Slerp  # noqa: PLC0415
-
+    poses = np.tile(np.eye(4), (len(gt_stamps), 1, 1))
+    poses[:, :3, :3] = matrix_from_quaternion(quaternions)
+    poses[:, :3, 3] = positions
     out = []
-    if len(gt_stamps) < 2:
-        return [(s, _matrix(positions[0], quaternions[0])) for s in stamps if len(gt_stamps) and s == gt_stamps[0]]
     for s in stamps:
         j = int(np.searchsorted(gt_stamps, s))
         if j < len(gt_stamps) and gt_stamps[j] == s:
-            out.append((s, _matrix(positions[j], quaternions[j])))
-            continue
-        if j == 0 or j == len(gt_stamps) or (gt_stamps[j] - gt_stamps[j - 1]) * 1e-9 > max_gap_s:
-            continue
-        a = (s - gt_stamps[j - 1]) / (gt_stamps[j] - gt_stamps[j - 1])
-        rot = Slerp([0.0, 1.0], Rotation.from_quat(quaternions[j - 1:j + 1]))([a])[0]
-        m = np.eye(4)
-        m[:3, :3] = rot.as_matrix()
-        m[:3, 3] = (1 - a) * positions[j - 1] + a * positions[j]
-        out.append((s, m))
+            out.append((s, poses[j]))
+        elif 0 < j < len(gt_stamps) and (gt_stamps[j] - gt_stamps[j - 1]) * 1e-9 <= max_gap_s:
+            share = (s - gt_stamps[j - 1]) / (gt_stamps[j] - gt_stamps[j - 1])
+            out.append((s, interpolate(poses[j - 1], poses[j], share)))
     return out
-
-
-def _matrix(position, quaternion) -> np.ndarray:
-    m = np.eye(4)
-    m[:3, :3] = _quaternion_matrix(quaternion)
-    m[:3, 3] = position
-    return m
-    return RgbdFolder(root, layout, frames, k, scale, imu, truth, skipped)
-
-
-def _quaternion_matrix(q) -> np.ndarray:
-    x, y, z, w = q
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def level_ground_truth(truth: list, imu_stamps: np.ndarray, imu: np.ndarray,
@@ -243,6 +222,8 @@ def level_ground_truth(truth: list, imu_stamps: np.ndarray, imu: np.ndarray,
     acceleration, which is its change of velocity over the time (from the ground truth's
     positions at both ends). Returns (poses, the turn in degrees); unchanged (0) without IMU
     samples near the poses."""
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415
+
     if len(truth) < 2 or not len(imu):
         return truth, 0.0
     stamps = np.array([s for s, _ in truth], np.int64)
@@ -264,17 +245,10 @@ def level_ground_truth(truth: list, imu_stamps: np.ndarray, imu: np.ndarray,
     if np.linalg.norm(up) < 1e-9:
         return truth, 0.0
     up /= np.linalg.norm(up)
-    z = np.array([0.0, 0.0, 1.0])
-    axis, cos = np.cross(up, z), float(np.clip(up @ z, -1.0, 1.0))
-    if np.linalg.norm(axis) < 1e-12:
-        turn = np.eye(3) if cos > 0 else np.diag([1.0, -1.0, -1.0])
-    else:
-        k = axis / np.linalg.norm(axis)
-        kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-        turn = np.eye(3) + np.sin(np.arccos(cos)) * kx + (1 - cos) * (kx @ kx)
+    turn = Rotation.align_vectors([[0.0, 0.0, 1.0]], [up])[0].as_matrix()     # the shortest turn of up onto z
     g = np.eye(4)
     g[:3, :3] = turn
-    return [(s, g @ m) for s, m in truth], float(np.degrees(np.arccos(cos)))
+    return [(s, g @ m) for s, m in truth], float(np.degrees(np.arccos(np.clip(up[2], -1.0, 1.0))))
 
 
 def _read_image(path: Path) -> np.ndarray:
@@ -294,7 +268,7 @@ def write_bag(folder: RgbdFolder, out, progress=None) -> dict:
     from rfm_core.io.bag import BagWriter  # noqa: PLC0415
     from rfm_core.io.images import numpy_to_image  # noqa: PLC0415
     from rfm_core.io.messages import camera_info_msg, header, imu_msg, pose_stamped_msg  # noqa: PLC0415
-    from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS  # noqa: PLC0415
+    from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS, OPTICAL_FRAME  # noqa: PLC0415
 
     if not folder.frames:
         raise ValueError(f'{folder.root}: no colour image has a depth image within the time tolerance')

@@ -3,7 +3,9 @@ align_depth, and rfm's simulated bags), and of the simulator's ground truth: one
 the simulator, the bag readers, ``rfm run``'s default remaps and the launch file."""
 from __future__ import annotations
 
-__all__ = ['CAMERA_TOPICS', 'GROUND_TRUTH_TOPICS']
+__all__ = ['CAMERA_TOPICS', 'GROUND_TRUTH_TOPICS', 'OPTICAL_FRAME']
+
+OPTICAL_FRAME = 'camera_color_optical_frame'    #: the colour camera's optical frame (realsense2_camera's name)
 
 CAMERA_TOPICS = {
     'color': '/camera/color/image_raw',

@@ -44,12 +44,11 @@ from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.sim.render import NoiseModel, Renderer, RenderOutput
 from rfm_core.sim.furniture import FURNITURE_STYLES
 from rfm_core.sim.room import STYLES, Room, generate_room
-from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
+from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS, OPTICAL_FRAME
 from rfm_core.sim.trajectory import CAPTURE_STYLES, Trajectory, imu_samples, make_trajectory, wheel_odometry
 
 __all__ = ['CaptureConfig', 'SimFrame', 'Capture', 'TOPICS', 'OPTICAL_FRAME', 'START_NS']
 
-OPTICAL_FRAME = 'camera_color_optical_frame'
 BASE_FRAME = 'camera_link'
 ROBOT_BASE_FRAME = 'base_link'          #: a robot's base (REP 105), under odom
 ODOM_FRAME = 'odom'
@@ -236,13 +235,20 @@ class Capture:
         return wheel_odometry(self.trajectory.path, times, self._imu_seed, nm.odom_scale_error, nm.odom_turn_error,
                               nm.odom_yaw_bias_dps)
 
+    def mount(self) -> np.ndarray:
+        """A robot capture's base_link -> camera_link (4x4): the camera ahead of the base's
+        centre at its height, level."""
+        from rfm_core.io.messages import planar_matrix  # noqa: PLC0415
+
+        path = self.trajectory.path
+        return planar_matrix(path.MOUNT_X, 0.0, 0.0, path.height)
+
     def camera_odometry(self) -> dict:
         """{stamp_ns: 4x4 camera optical frame in odom} of every frame of a robot capture, as
         its TF tree gives it (odom -> base_link -> camera_link -> optical frame)."""
         from rfm_core.io.messages import planar_matrix  # noqa: PLC0415
 
-        path = self.trajectory.path
-        mount = planar_matrix(path.MOUNT_X, 0.0, 0.0, path.height) @ _LINK_FROM_OPTICAL
+        mount = self.mount() @ _LINK_FROM_OPTICAL
         odom, _ = self.odometry(self.trajectory.times)
         return {self.stamp_ns(t): planar_matrix(*o) @ mount for t, o in zip(self.trajectory.times, odom)}
 
@@ -289,8 +295,7 @@ class Capture:
             start = self.stamp_ns(0.0)
             mounts = [transform_stamped_msg(_LINK_FROM_OPTICAL, start, BASE_FRAME, OPTICAL_FRAME, make)]
             if robot is not None:                       # base_link -> camera_link: the camera's mount
-                mounts.append(transform_stamped_msg(planar_matrix(robot.MOUNT_X, 0.0, 0.0, robot.height), start,
-                                                    ROBOT_BASE_FRAME, BASE_FRAME, make))
+                mounts.append(transform_stamped_msg(self.mount(), start, ROBOT_BASE_FRAME, BASE_FRAME, make))
             write('tf_static', start, make('tf2_msgs/msg/TFMessage', transforms=mounts))
             write('gt_objects', start, object_map_msg(
                 self.room.boxes, self.room.labels, np.arange(len(self.room.objects)) + 1,
