@@ -155,8 +155,11 @@ class MapperCore:
         self.autosave = Autosave(config.autosave_every_n_keyframes, config.autosave_growth)
         self.throttle = Throttle(config.map_publish_period_s, config.map_max_cpu_share, clock)
         self.external_poses = ExternalPoses()
-        self.tf = TransformBuffer()            # /tf and /tf_static as heard
+        # /tf and /tf_static as heard; no extrapolation at all (as tf2): the map's attachment
+        # holds the camera where the mapper put it only with the odometry at the image's stamp
+        self.tf = TransformBuffer(tolerance_s=0.0)
         self.held: Attachment | None = None   # map -> odom, re-published between frames
+        self.held_stamp_ns = 0                # the image stamp it was computed at
         self._attached_to = None              # the frame the map last attached to (logged when it changes)
         lookup = {'topic': self.external_poses, 'tf': self._lookup_tf}.get(config.pose_source)
         mapper = replace(config.mapper, posed=bool(config.pose_source))
@@ -262,7 +265,17 @@ class MapperCore:
                     f"the root of {camera.frame_id}'s tree on /tf")
             self._log.append(f'TF: broadcasting {self.config.map_frame} -> {found.child} ({kind})')
         self.held = found if found.held else None
+        self.held_stamp_ns = camera.stamp_ns
         return found
+
+    def held_transform(self, now_ns: int):
+        """(the held map -> odom, its stamp) to re-publish between frames, or None: stamped
+        ``transform_tolerance_s`` ahead of the clock or of the image it came from, whichever
+        is later (a clock behind the images must not date it onto an earlier image's stamp,
+        which carries another value)."""
+        if self.held is None:
+            return None
+        return self.held, max(now_ns, self.held_stamp_ns) + int(self.config.transform_tolerance_s * 1e9)
 
     def detections(self, obs: FrameObservations | None) -> list:
         """Localization mode: the frame localized as part of a stream; the camera poses found."""

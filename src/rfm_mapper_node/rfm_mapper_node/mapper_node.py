@@ -94,10 +94,9 @@ class MapperNode(Node):
         self._on_tf(msg, True)
 
     def _republish_tf(self) -> None:
-        """The held map -> odom, stamped ahead by transform_tolerance_s."""
-        if self.core.held is not None:
-            stamp = self.get_clock().now().nanoseconds + int(self.config.transform_tolerance_s * 1e9)
-            self._publish([('/tf', m.attachment_msg(self.core.held, stamp, self.config.map_frame))])
+        held = self.core.held_transform(self.get_clock().now().nanoseconds)
+        if held is not None:
+            self._publish([('/tf', m.attachment_msg(*held, self.config.map_frame))])
 
     def _tick(self) -> None:
         tick = self.core.tick()
