@@ -57,6 +57,8 @@ def test_moving_frames_are_interpolated_and_never_extrapolated_far():
     assert np.allclose(mid[:3, 3], (2.5, 0.0, 0.0))
     assert np.isclose(Rotation.from_matrix(mid[:3, :3]).as_euler('zyx', degrees=True)[0], 25.0)
     assert np.allclose(buf.lookup('odom', 'base_link', 10 * S + 10**7)[:3, 3], (10.0, 0, 0))   # 10 ms late: the last
+    assert buf.lookup('odom', 'base_link', 10 * S + 10**7, exact=True) is None                 # ... unless exact
+    assert np.allclose(buf.lookup('odom', 'base_link', int(2.5 * S), exact=True), mid)
     assert buf.lookup('odom', 'base_link', 11 * S) is None                                    # a second late: nothing
     assert buf.lookup('odom', 'optical', -S) is None
 

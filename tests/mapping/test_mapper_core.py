@@ -106,3 +106,23 @@ def test_a_tick_says_what_changed_and_autosaves(tmp_path, observations):
     assert len(loaded.mapper.keyframes) == len(core.mapper.keyframes)
     assert loaded.tick().log and loaded.tick().log == []            # 'loaded ...' once
     np.testing.assert_equal(sorted(loaded.mapper.keyframes), sorted(core.mapper.keyframes))
+
+
+def test_map_to_odom_never_goes_out_twice_at_one_stamp(tmp_path):
+    """tf2 keeps only the first transform of a stamp: re-published ahead at 10 Hz with a 0.1 s
+    tolerance, the held map -> odom goes out just short of the next image's stamp, where that
+    image's own goes; and none goes out twice at one stamp."""
+    from rfm_core.session import CameraPose
+    core = MapperCore(with_values(MapperNodeConfig(), {'map_path': str(tmp_path / 'map.rfm'),
+                                                        'transform_tolerance_s': 0.1}), clock=_Clock())
+    core.transform('odom', 'base_link', 0, np.eye(4), False)
+    core.transform('odom', 'base_link', 2 * 10**9, np.eye(4), False)
+    core.transform('base_link', 'camera_optical', 0, np.eye(4), True)
+    first = core.attach(CameraPose(10**9, 'camera_optical', np.eye(4)))
+    assert first.child == 'odom' and first.stamp_ns == 10**9
+    _, ahead = core.held_transform(now_ns=10**9)
+    assert ahead == 11 * 10**8 - 1
+    second = core.attach(CameraPose(11 * 10**8, 'camera_optical', np.eye(4)))
+    assert second.stamp_ns == 11 * 10**8
+    again = core.attach(CameraPose(11 * 10**8, 'camera_optical', np.eye(4)))     # the same image twice
+    assert again.stamp_ns == 11 * 10**8 + 1

@@ -152,8 +152,8 @@ def test_the_gyroscope_checks_tracking_and_predicts_the_boxes(stream):
     _with_gyroscope(stream[2], b)
     true = stream[0].aligned_from_map() @ stream[2].aligned_from_map().inverse()
     from rfm_core.geometry import Pose4
-    assert graph.motion.imu_agrees(Pose4(true.yaw + np.radians(1.0), true.t), a, b)
-    assert not graph.motion.imu_agrees(Pose4(true.yaw + np.radians(30.0), true.t), a, b)
+    assert graph.motion.sensors_agree(Pose4(true.yaw + np.radians(1.0), true.t), a, b)
+    assert not graph.motion.sensors_agree(Pose4(true.yaw + np.radians(30.0), true.t), a, b)
 
 
 def _lost_for_a_moment(graph, stream) -> list:

@@ -126,6 +126,8 @@ def test_on_a_robot_bag_the_map_hangs_above_its_odometry(tmp_path):
     summary = json.loads((out / 'summary.json').read_text())
     loc = summary['accuracy']['localization']
     assert loc['registered'] >= 0.95 and loc['gross'] == 0, loc
+    # what a tf2 lookup of map -> camera gives at every image, scored too
+    assert loc['tf']['registered'] >= loc['registered'] - 0.02 and loc['tf']['gross'] == 0, loc['tf']
 
 
 def test_rfm_run_parameters_are_typed_and_reach_every_node_that_has_them(tmp_path):

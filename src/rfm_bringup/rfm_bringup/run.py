@@ -514,6 +514,7 @@ def run_graph(args) -> int:
         loc, m = acc['localization'], acc['mapping']
         print(f'  vs ground truth: ARE {loc["ARE_median"]:.2f} deg, ATE {100 * loc["ATE_median"]:.1f} cm, '
               f'{100 * loc["registered"]:.0f}% of frames localized ({loc.get("gross", 0)} wrong: > 5 deg or > 25 cm)'
+              + (f'; through TF {100 * loc["tf"]["registered"]:.0f}% ({loc["tf"]["gross"]} wrong)' if loc.get('tf') else '')
               + (f', AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}, {m["objects"]} objects for {m["ground_truth"]}'
                  if m else ''))
     print(f'  report: {output / "report.md"}, picture: {output / "top_down.png"}')
@@ -525,8 +526,8 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
     """Everything but the recording, from the saved map (which this also validates), with
     the configuration the mapper ran with (stored in the map file)."""
     from rfm_core.evaluation.report import (  # noqa: PLC0415
-        GroundTruth, evaluate_run, published_camera_poses, read_ground_truth, render_top_down, write_keyframes_tum,
-        write_object_json, write_report, write_tum)
+        GroundTruth, evaluate_run, published_camera_poses, read_ground_truth, render_top_down, tf_camera_poses,
+        write_keyframes_tum, write_object_json, write_report, write_tum)
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
 
@@ -534,7 +535,9 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
     load_map(mapper, output / 'map.rfm')
     truth = read_ground_truth(bag) if bag is not None else GroundTruth()
     published = published_camera_poses(output) if (output / 'outputs.mcap').exists() else None
-    accuracy = evaluate_run(mapper, truth, posed=posed, published=published) if truth else None
+    through_tf = (tf_camera_poses(output, bag, truth.camera_poses, params['mapper'].get('map_frame', 'map'))
+                  if truth and published is not None else None)
+    accuracy = evaluate_run(mapper, truth, posed=posed, published=published, through_tf=through_tf) if truth else None
     write_tum(output / 'trajectory.tum', mapper)
     write_keyframes_tum(output / 'keyframes.tum', mapper)
     write_object_json(output / 'objects.json', mapper)

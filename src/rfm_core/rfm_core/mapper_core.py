@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import time
+from collections import deque
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable
@@ -160,6 +161,7 @@ class MapperCore:
         self.tf = TransformBuffer(tolerance_s=0.0)
         self.held: Attachment | None = None   # map -> odom, re-published between frames
         self.held_stamp_ns = 0                # the image stamp it was computed at
+        self._tf_stamps = deque(maxlen=64)    # the stamps the map's attachment went out with lately
         self._attached_to = None              # the frame the map last attached to (logged when it changes)
         lookup = {'topic': self.external_poses, 'tf': self._lookup_tf}.get(config.pose_source)
         mapper = replace(config.mapper, posed=bool(config.pose_source))
@@ -266,7 +268,7 @@ class MapperCore:
             self._log.append(f'TF: broadcasting {self.config.map_frame} -> {found.child} ({kind})')
         self.held = found if found.held else None
         self.held_stamp_ns = camera.stamp_ns
-        return found
+        return replace(found, stamp_ns=self._unique_stamp(camera.stamp_ns))
 
     def held_transform(self, now_ns: int):
         """(the held map -> odom, its stamp) to re-publish between frames, or None: stamped
@@ -275,7 +277,18 @@ class MapperCore:
         which carries another value)."""
         if self.held is None:
             return None
-        return self.held, max(now_ns, self.held_stamp_ns) + int(self.config.transform_tolerance_s * 1e9)
+        # a nanosecond short: at 10 Hz with a 0.1 s tolerance the held map -> odom would be dated
+        # exactly on the next image's stamp, where that image's own must be the one tf2 keeps
+        ahead = int(self.config.transform_tolerance_s * 1e9) - 1
+        return self.held, self._unique_stamp(max(now_ns, self.held_stamp_ns) + ahead)
+
+    def _unique_stamp(self, stamp_ns: int) -> int:
+        """``stamp_ns``, or a nanosecond later where the attachment already went out at it:
+        tf2 keeps the first transform of a stamp and drops the others (TF_REPEATED_DATA)."""
+        while stamp_ns in self._tf_stamps:
+            stamp_ns += 1
+        self._tf_stamps.append(stamp_ns)
+        return stamp_ns
 
     def detections(self, obs: FrameObservations | None) -> list:
         """Localization mode: the frame localized as part of a stream; the camera poses found."""

@@ -111,7 +111,7 @@ class TransformBuffer:
                 return False
         return False
 
-    def _link_at(self, child: str, stamp_ns: int) -> np.ndarray | None:
+    def _link_at(self, child: str, stamp_ns: int, tolerance_ns: int) -> np.ndarray | None:
         link = self.links[child]
         if link.static:
             return link.matrices[0]
@@ -123,11 +123,13 @@ class TransformBuffer:
             a, b = stamps[i - 1], stamps[i]
             return interpolate(link.matrices[i - 1], link.matrices[i], (stamp_ns - a) / (b - a))
         nearest = 0 if i == 0 else len(stamps) - 1
-        return link.matrices[nearest] if abs(stamps[nearest] - stamp_ns) <= self.tolerance_ns else None
+        return link.matrices[nearest] if abs(stamps[nearest] - stamp_ns) <= tolerance_ns else None
 
-    def lookup(self, target: str, source: str, stamp_ns: int) -> np.ndarray | None:
+    def lookup(self, target: str, source: str, stamp_ns: int, exact: bool = False) -> np.ndarray | None:
         """T_target_source (maps points in ``source`` into ``target``) at ``stamp_ns``; None
-        when the frames are not connected or a link has nothing near that moment."""
+        when the frames are not connected or a link has nothing near that moment (``exact``:
+        nothing on both sides of it, no tolerance)."""
+        tolerance_ns = 0 if exact else self.tolerance_ns
         up_source, up_target = self._ancestors(source), self._ancestors(target)
         common = next((f for f in up_source if f in set(up_target)), None)
         if common is None:
@@ -136,7 +138,7 @@ class TransformBuffer:
         def to_common(chain):                       # T_common_frame along one branch
             m = np.eye(4)
             for f in chain[:chain.index(common)]:
-                link = self._link_at(f, stamp_ns)
+                link = self._link_at(f, stamp_ns, tolerance_ns)
                 if link is None:
                     return None
                 m = link @ m
@@ -153,11 +155,12 @@ class Attachment:
     """Where the map hangs on the TF tree for one camera pose: ``parent`` (the map frame) ->
     ``child`` = ``matrix``; ``held``: the child is a moving frame of the robot's odometry
     (``map -> odom``), so the transform is re-published between frames (future-dated), not
-    only at the image's stamp."""
+    only at the image's stamp. ``stamp_ns``: when it is broadcast (0: at the image's stamp)."""
 
     child: str
     matrix: np.ndarray
     held: bool
+    stamp_ns: int = 0
 
 
 def map_attachment(buffer: TransformBuffer, camera_to_map: np.ndarray, camera_frame: str, stamp_ns: int,

@@ -145,12 +145,23 @@ class DetectorFrontend:
         found = self.gravity_filter.orientation_at(obs.stamp_ns)
         if found is not None:
             obs.imu_rotation, obs.imu_epoch = found
-        if self.odom_frame:
-            with self._tf_lock:
-                odometry = self.tf.lookup(self.odom_frame, obs.frame_id, obs.stamp_ns)
-            if odometry is not None:
-                obs.odometry, obs.odometry_epoch = odometry, 1
+        odometry = self._odometry(obs.frame_id, obs.stamp_ns) if self.odom_frame else None
+        if odometry is not None:
+            obs.odometry, obs.odometry_epoch = odometry, 1
         return obs
+
+    def _odometry(self, frame_id: str, stamp_ns: int) -> np.ndarray | None:
+        """The camera's pose in the odometry frame at the image's stamp: interpolated once /tf
+        has odometry past the stamp (waiting for it up to ``imu_wait_s``), else the newest
+        within the buffer's tolerance; None without odometry."""
+        deadline = time.monotonic() + self.imu_wait_s
+        while True:
+            with self._tf_lock:
+                exact = self.tf.lookup(self.odom_frame, frame_id, stamp_ns, exact=True)
+                near = exact if exact is not None else self.tf.lookup(self.odom_frame, frame_id, stamp_ns)
+            if exact is not None or near is None or time.monotonic() >= deadline:
+                return near
+            time.sleep(0.002)
 
     def add_transform(self, parent: str, child: str, stamp_ns: int, matrix, static: bool = False) -> None:
         """A transform of /tf or /tf_static (a robot's odometry and the camera's mount)."""

@@ -16,7 +16,8 @@ from rfm_core.evaluation.trajectory import covariance_coverage, map_to_truth, tr
 from rfm_core.geometry import Pose4, bev_corners, iou_3d, quaternion_from_matrix
 from rfm_core.io.messages import track_colour
 
-__all__ = ['GroundTruth', 'read_ground_truth', 'map_boxes', 'frames_seeing_mapped', 'evaluate_run', 'write_tum',
+__all__ = ['GroundTruth', 'read_ground_truth', 'published_camera_poses', 'tf_camera_poses', 'map_boxes',
+           'frames_seeing_mapped', 'evaluate_run', 'write_tum',
            'write_keyframes_tum', 'write_object_json', 'render_top_down', 'write_report']
 
 
@@ -100,15 +101,46 @@ def published_camera_poses(output) -> tuple[dict, dict]:
     return poses, covariances
 
 
+def tf_camera_poses(output, bag, stamps, map_frame: str = 'map') -> dict:
+    """{stamp_ns: 4x4 camera-to-map} at each of ``stamps`` (every image of the input) as a
+    tf2 lookup of ``map_frame`` -> the camera's frame gives it after an ``rfm run``: the
+    bag's ``/tf`` and ``/tf_static`` (a robot's odometry and its camera's mount) under the
+    transforms from ``map_frame`` the mapper broadcast (``outputs.mcap``: ``map`` -> ``odom``
+    on a robot), interpolated, never extrapolated. What a robot stack reads, at every image,
+    also those the detector had no time for; empty when the mapper broadcast nothing."""
+    from rfm_core.io.bag import topics_messages  # noqa: PLC0415
+    from rfm_core.io.messages import transforms_from_msg  # noqa: PLC0415
+    from rfm_core.transforms import TransformBuffer  # noqa: PLC0415
+
+    outputs = Path(output) / 'outputs.mcap'
+    buffer = TransformBuffer(cache_s=1e9, tolerance_s=0.0)
+    camera, broadcast = None, False
+    for path in (bag, outputs):
+        for topic, msg in topics_messages(path, ('/tf_static', '/tf', '/rfm/tracked_frames')):
+            if topic == '/rfm/tracked_frames':
+                camera = camera or msg.header.frame_id
+                continue
+            for parent, child, stamp_ns, matrix in transforms_from_msg(msg):
+                if (parent == map_frame) != (path == outputs):     # the bag's own transforms from the bag
+                    continue
+                refused = buffer.add(parent, child, stamp_ns, matrix, static=topic == '/tf_static')
+                broadcast |= path == outputs and refused is None
+    if camera is None or not broadcast:
+        return {}
+    return {s: m for s in stamps if (m := buffer.lookup(map_frame, camera, s)) is not None}
+
+
 def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed: bool = False,
-                 published: tuple | None = None) -> dict:
+                 published: tuple | None = None, through_tf: dict | None = None) -> dict:
     """Localization and mapping accuracy of a mapper against ground truth (``mapping`` None
     where the ground truth has camera poses only, no objects). Localization is
     over every frame of the input (``registered``: the share of the ground truth's frames
     localized, as in the paper), with the keyframes' figures beside it (``keyframe_*``) and,
     given ``published`` (:func:`published_camera_poses`), the camera poses as the mapper
     published them: ``published``, ``published_gross`` (wrong ones) and ``within_2sigma``
-    (:func:`~rfm_core.evaluation.trajectory.covariance_coverage`)."""
+    (:func:`~rfm_core.evaluation.trajectory.covariance_coverage`); given ``through_tf``
+    (:func:`tf_camera_poses`), the camera poses a tf2 lookup gives at every image:
+    ``tf`` (the localization figures of :func:`trajectory_errors`)."""
     align_kind = False if posed else '4dof'
     frames = mapper.frame_poses()
     loc = trajectory_errors(frames, truth.camera_poses, align=align_kind)
@@ -118,6 +150,8 @@ def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed:
         loc['published_gross'] = trajectory_errors(live, truth.camera_poses, align=align_kind)['gross']
         loc['within_2sigma'] = covariance_coverage(live, covariances, truth.camera_poses, align=align_kind)[
             'within_2sigma']
+    if through_tf:
+        loc['tf'] = trajectory_errors(through_tf, truth.camera_poses, align=align_kind)
     est = mapper.camera_poses()
     by_stamp = {mapper.keyframes[k].stamp_ns: m for k, m in est.items()}
     truth_kf = {mapper.keyframes[k].stamp_ns: truth.camera_poses[mapper.keyframes[k].stamp_ns]
@@ -291,7 +325,12 @@ def write_report(path, summary: dict) -> Path:
                      f'{loc["published_gross"]} |', '',
                      f'{_percent(loc.get("within_2sigma"))} of the poses as published lie within the 2-sigma bound '
                      'of their covariance (4-DoF; a calibrated covariance: about 95%).']
-                    if loc.get('published') else []), '',
+                    if loc.get('published') else []),
+                  *([f'| {round(loc["tf"]["registered"] * loc["frames"])} through TF (`map` -> camera at each image) '
+                     f'| {loc["tf"]["ARE_median"]:.2f} | {100 * loc["tf"]["ATE_median"]:.1f} | '
+                     f'{loc["tf"]["ARE_rmse"]:.2f} | {100 * loc["tf"]["ATE_rmse"]:.1f} | '
+                     f'{100 * loc["tf"]["registered"]:.0f}% | {loc["tf"]["gross"]} |']
+                    if loc.get('tf') else []), '',
                   *(['| AP15 | AR15 | AP25 | AR25 | map objects | ground-truth objects |', '|---|---|---|---|---|---|',
                      f'| {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | {m["objects"]} | '
                      f'{m["ground_truth"]} |', ''] if m else

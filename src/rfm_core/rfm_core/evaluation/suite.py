@@ -201,6 +201,7 @@ def scene_metrics(summary: dict) -> dict:
     """One run's ``summary.json`` -> the metrics :func:`summarize` averages."""
     acc = summary.get('accuracy') or {}
     loc, mapping = acc.get('localization', {}), acc.get('mapping', {})
+    tf = loc.get('tf') or {}                   # as a tf2 lookup gives the camera at every image
     nan = float('nan')
     out = {k: loc.get(k, nan) for k in ('ARE_median', 'ARE_rmse', 'ATE_median', 'ATE_rmse',
                                         'keyframe_ARE_median', 'keyframe_ATE_median')}
@@ -208,6 +209,8 @@ def scene_metrics(summary: dict) -> dict:
                frames=loc.get('frames', summary.get('input_frames') or 0), gross=loc.get('gross', 0),
                published=loc.get('published', 0), published_gross=loc.get('published_gross', 0),
                within_2sigma=loc.get('within_2sigma', nan),
+               tf_registered=tf.get('registered', nan), tf_gross=tf.get('gross', 0),
+               tf_ARE_median=tf.get('ARE_median', nan), tf_ATE_median=tf.get('ATE_median', nan),
                keyframes=summary.get('keyframes', 0),
                processed=summary.get('frames', 0) / max(summary.get('input_frames') or 1, 1),
                realtime=summary.get('realtime', nan),
@@ -377,8 +380,21 @@ def summarize(results, settings=SETTINGS) -> dict:
             'published': int(np.nansum(col('published', 0))),
             'published_gross': int(np.nansum(col('published_gross', 0))),
             'within_2sigma': pooled_share(col('within_2sigma'), col('published', 0)),
+            # the camera poses a tf2 lookup gives at every image (a robot's map -> odom and its odometry)
+            'tf_registered': _over_finite(np.mean, col('tf_registered')),
+            'tf_localized': int(round(np.nansum(col('tf_registered') * col('frames', 0)))),
+            'tf_gross': int(np.nansum(col('tf_gross', 0))),
+            'tf_ARE_median': _over_finite(np.median, col('tf_ARE_median')),
+            'tf_ATE_median': _over_finite(np.median, col('tf_ATE_median')),
         }
     return out
+
+
+def _over_finite(statistic, values) -> float:
+    """``statistic`` of the finite values (NaN when none is: no scene had the figure)."""
+    values = np.asarray(values, float)
+    values = values[np.isfinite(values)]
+    return float(statistic(values)) if len(values) else float('nan')
 
 
 def pooled_share(share, count) -> float:
@@ -398,14 +414,16 @@ def format_tables(summary: dict) -> str:
              'averaged over scenes)', '',
              '| setting | ARE median (deg) | ATE median (cm) | ARE RMSE (deg) | ATE RMSE (cm) | frames localized '
              '| wrong (> 5 deg or > 25 cm) | keyframes registered | frames processed | as published: wrong, within '
-             '2 sigma |',
-             '|---|---|---|---|---|---|---|---|---|---|']
+             '2 sigma | through TF: localized, wrong, ARE, ATE |',
+             '|---|---|---|---|---|---|---|---|---|---|---|']
     for name, m in summary.items():
         live = (f'{m["published_gross"]} of {m["published"]}, {100 * m["within_2sigma"]:.1f}%'
                 if m.get('published') else '-')
+        tf = (f'{100 * m["tf_registered"]:.1f}%, {m["tf_gross"]} of {m["tf_localized"]}, {m["tf_ARE_median"]:.2f} deg, '
+              f'{100 * m["tf_ATE_median"]:.1f} cm' if np.isfinite(m.get('tf_registered', float('nan'))) else '-')
         lines.append(f'| {name} | {m["ARE_median"]:.2f} | {100 * m["ATE_median"]:.1f} | {m["ARE_rmse"]:.2f} | '
                      f'{100 * m["ATE_rmse"]:.1f} | {100 * m["registered"]:.1f}% | {wrong_share(m)} | '
-                     f'{100 * m["keyframe_registered"]:.1f}% | {100 * m["processed"]:.1f}% | {live} |')
+                     f'{100 * m["keyframe_registered"]:.1f}% | {100 * m["processed"]:.1f}% | {live} | {tf} |')
     lines += ['', 'Mapping (scene-level AP/AR at 3D IoU 0.15 / 0.25, mean over scenes; objects mapped per object '
               'in the room, median over scenes; what the map objects are, pooled over scenes: the first box '
               'of a real object (IoU >= 0.25), a duplicate, a poor fit (IoU 0.1-0.25), nothing real '

@@ -118,13 +118,19 @@ def topic_messages(path, topic: str):
     """The deserialised messages of one topic of a bag (rosbag2 folder or file), in bag order;
     nothing when the bag has no such topic (``reader.messages(connections=[])`` would read
     every topic)."""
+    for _, msg in topics_messages(path, (topic,)):
+        yield msg
+
+
+def topics_messages(path, topics):
+    """(topic, deserialised message) of the given topics of a bag, in bag order, in one pass."""
     from rosbags.highlevel import AnyReader  # noqa: PLC0415
 
     with AnyReader([Path(path)], default_typestore=rfm_typestore()) as reader:
-        conns = [c for c in reader.connections if c.topic == topic]
+        conns = [c for c in reader.connections if c.topic in set(topics)]
         if conns:
             for conn, _, raw in reader.messages(connections=conns):
-                yield reader.deserialize(raw, conn.msgtype)
+                yield conn.topic, reader.deserialize(raw, conn.msgtype)
 
 
 def iter_camera_frames(path, color_topic: str, depth_topic: str | None, info_topic: str,

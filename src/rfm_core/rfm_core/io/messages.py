@@ -630,7 +630,7 @@ def camera_pose_outputs(camera, frame_id: str, attachment=None, make=ROS) -> lis
     out = [('rfm/camera_pose', pose_with_covariance_msg(camera.matrix, camera.covariance, camera.stamp_ns, frame_id,
                                                          make))]
     if attachment is not None:
-        out.append(('/tf', attachment_msg(attachment, camera.stamp_ns, frame_id, make)))
+        out.append(('/tf', attachment_msg(attachment, attachment.stamp_ns or camera.stamp_ns, frame_id, make)))
     return out
 
 

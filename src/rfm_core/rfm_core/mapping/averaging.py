@@ -15,7 +15,8 @@ cannot throw a whole branch off). Yaw averaging is then Gauss-Newton on wrapped 
 with robust (Cauchy) IRLS weights; translation averaging is a sparse linear
 least-squares problem per axis with Cauchy IRLS weights (metric scale: boxes are metric).
 Each is run for ``rounds`` rounds, dropping edges that disagree by more than
-``max_yaw_residual_deg`` / ``max_translation_residual_m``; only the largest connected
+``max_yaw_residual_deg`` / ``max_translation_residual_m`` (never an edge no loop checks: only
+the gyroscope's yaw can disagree with it, :func:`_bridges`); only the largest connected
 component of the surviving edges is registered. The gauge is the component's first
 keyframe (identity pose). A wrong edge the growth meets early can make the right ones look
 wrong (a loop closure dropped for it), so where no loaded map is held the solve is grown
@@ -431,6 +432,24 @@ def _robust_cost(theta, centres, comp, src, dst, yaw, trans, weight, full, cfg: 
     return float(np.sum((weight * cost)[inside]))
 
 
+def _bridges(candidates, edges, src, dst, n) -> np.ndarray:
+    """Which of the ``candidates`` (edge indices) are full edges of ``edges`` (a mask) that no
+    loop of them checks: removing one disconnects its two keyframes. Such an edge is never
+    dropped as an outlier: only the gyroscope's yaw-only edges can disagree with it, and they
+    outvote its yaw but place no keyframe, so dropping it would only split the map (a robot's
+    odometry chaining keyframes past a bare wall, its yaw a few degrees off the gyroscope's)."""
+    out = np.zeros(len(candidates), bool)
+    for j, i in enumerate(candidates):
+        if not edges[i]:
+            continue
+        keep = edges.copy()
+        keep[i] = False
+        graph = sp.coo_matrix((np.ones(int(keep.sum())), (src[keep], dst[keep])), shape=(n, n))
+        labels = connected_components(graph, directed=False)[1]
+        out[j] = labels[src[i]] != labels[dst[i]]
+    return out
+
+
 def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, reference=None,
                fixed=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
@@ -497,6 +516,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
                                        free, cfg)
                     yr, _ = _residuals(theta, np.zeros((n, 3)), src, dst, yaw, trans)
                     bad = use & (yr > cfg.max_yaw_residual_deg)
+                    bad[np.flatnonzero(bad)[_bridges(np.flatnonzero(bad), use & full, src, dst, n)]] = False
                 else:
                     centres = _solve_centres(theta, np.where(comp[:, None], centres, 0.0), src[use], dst[use],
                                              trans[use], weight[use], free, cfg)
@@ -820,6 +840,7 @@ class IncrementalAverager:
         yr, tr = _residuals(theta, centres, src[use], dst[use], yaw[use], trans[use])
         bad = (yr > cfg.max_yaw_residual_deg) | ((tr > cfg.max_translation_residual_m) & full[use])
         idx = np.flatnonzero(use)[bad]
+        idx = idx[~_bridges(idx, active & full & registered[src] & registered[dst], src, dst, n)]
         inside = free[src[idx]] & free[dst[idx]]
         self.edges.active[idx[inside]] = False     # local outliers: drop
         # edges to keyframes outside the window that the window cannot explain: a loop

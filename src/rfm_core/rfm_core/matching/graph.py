@@ -91,6 +91,7 @@ class GraphStats:
     predicted_tracking: int = 0       #: frames tracked with predicted matches (no object matcher)
     point_tracked: int = 0            #: frames tracked on their depth points alone (objects did not place them)
     odometry_tracked: int = 0         #: frames a robot's odometry placed (neither objects nor points did)
+    odometry_rejected: int = 0        #: relative poses a robot's odometry contradicted
     motion_edges: int = 0             #: keyframes placed by the motion alone (tracking lost a moment)
     reused: int = 0                   #: frames that made an older keyframe the reference (revisits)
     reused_on_points: int = 0         #: ... of them aligned to it on their depth points (objects did not verify)

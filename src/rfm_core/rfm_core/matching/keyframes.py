@@ -123,18 +123,18 @@ class NewKeyframe:
         """Where the camera went while tracking was lost for a moment: the reference to this
         frame as the gyroscope's yaw and the last tracked frame's position, moved on at the
         camera's recent velocity, predict it, refined on the two frames' surfaces. Where the
-        depth points fix every direction (``rel.on_points``) it is a measurement; otherwise at
-        most ``max_motion_edge_s`` after the last frame that objects (or points) placed:
-        motion edges never chain longer. It has no object matches; the averaging weighs it as
-        ``averaging.points_edge_weight`` objects."""
+        depth points fix every direction (``rel.on_points``) or a robot's odometry measured the
+        motion it is a measurement; otherwise at most ``max_motion_edge_s`` after the last
+        frame that objects (or points) placed: motion edges never chain longer. It has no
+        object matches; the averaging weighs it as ``averaging.points_edge_weight`` objects."""
         g = self.g
         predicted = g.predicted_pose(obs)
         if predicted is None:
             return None
         rel = with_surfaces(without_objects(predicted), g.reference.observations, obs, g.matching)
-        # measured from the last frame objects placed: motion edges never chain past it (a
-        # robot's odometry measures the motion, which the gyroscope and the velocity guess)
-        if (not rel.on_points and not g.motion.odometry_trusted(obs)
+        # guessed from the last frame objects placed, motion edges never chain past it; a
+        # robot's odometry measures the motion, which the gyroscope and the velocity guess
+        if (not rel.on_points and g.motion.carried(g.state, g.reference, obs) is None
                 and obs.stamp_ns - g.state.last_verified_ns > g.config.keyframes.max_motion_edge_s * 1e9):
             return None
         g.stats.motion_edges += 1

@@ -9,7 +9,9 @@ each tracked frame must be reachable from the previous one, each edge from its s
 keyframe), the gyroscope's rotation between two frames checks a relative pose's yaw, and the
 frames objects placed give the camera's velocity, which predicts where the next frame is; a
 robot's wheel odometry, where the detector attached it, predicts it better, and carries the
-camera where objects and depth points place nothing (:meth:`StreamMotion.odometry`).
+camera where objects and depth points place nothing (:meth:`StreamMotion.odometry`): as
+the odometry of a pose-graph SLAM system, it never lets the stream's map break apart, and
+objects seen again correct its drift.
 Across segments nothing is known of the motion.
 """
 from __future__ import annotations
@@ -45,12 +47,11 @@ class MotionConfig:
                                             "gyroscope's by this (deg) ...", lo=0.1, hi=180.0)
     imu_yaw_drift_deg_s: float = setting(1.0, "... plus this per second between the frames (the gyroscope's bias; "
                                          'raise it for an uncalibrated IMU, deg/s)', lo=0.0, hi=90.0)
-    odometry_error: float = setting(0.03, "A robot's wheel odometry: its error per metre driven and per radian "
-                                    'turned (a fraction) ...', lo=0.0, hi=1.0)
-    odometry_drift_deg_s: float = setting(1.0, '... and its yaw drift (deg/s)', lo=0.0, hi=90.0)
-    odometry_max_error_deg: float = constant(5.0, 'The odometry carries the camera while its error since the last '
-                                             'frame objects placed stays within this (deg) ...', lo=0.0, hi=180.0)
-    odometry_max_error_m: float = constant(0.25, '... and this (m): where a pose counts as wrong', lo=0.0, hi=10.0)
+    odometry_error: float = setting(0.03, "A robot's wheel odometry checks relative poses within its error: this "
+                                    'fraction of the distance driven and of the turn ...', lo=0.0, hi=1.0)
+    odometry_drift_deg_s: float = setting(1.0, '... plus this yaw drift per second (deg/s) ...', lo=0.0, hi=90.0)
+    odometry_slack_m: float = constant(0.1, "... plus a relative pose's own error (m; the averaging's outlier "
+                                       'threshold)', lo=0.0, hi=10.0)
 
 
 class StreamMotion:
@@ -63,7 +64,6 @@ class StreamMotion:
         self._last_stamp = None               # of the previous frame (any frame: the stream's timing)
         self._placed: list = []               # (keyframe id, stamp, T_keyframe_frame.t) of frames objects placed
         self._carried = (None, np.zeros(3))   # (motion-placed keyframe id, the velocity carried into it)
-        self._verified_odometry = None        # a robot's odometry at the last frame objects placed
 
     def continues(self, stamp_ns: int) -> bool:
         """Whether a frame continues the stream of the previous one (no more than
@@ -75,15 +75,12 @@ class StreamMotion:
             self.stats.segments += 1
         return stream
 
-    def observe(self, state: TrackState | None, obs: FrameObservations | None = None) -> None:
-        """A frame (``obs``) was localized (or a keyframe made): a sample of the motion when
-        objects placed it; None: the stream broke."""
+    def observe(self, state: TrackState | None) -> None:
+        """A frame was localized (or a keyframe made): a sample of the motion when objects
+        placed it; None: the stream broke."""
         if state is None:
             self._placed = []
-            self._verified_odometry = None
         elif state.verified_ns is None:               # placed by objects: a sample of the motion
-            if obs is not None and obs.odometry is not None:
-                self._verified_odometry = obs
             window = self.config.velocity_window_s * 1e9
             self._placed = [p for p in self._placed
                             if p[0] == state.keyframe_id and 0 <= state.stamp_ns - p[1] <= window]
@@ -151,22 +148,6 @@ class StreamMotion:
                 return prev.pose @ step
         return self.odometry(reference.observations, obs)
 
-    def odometry_trusted(self, obs: FrameObservations) -> bool:
-        """Whether the odometry may carry the camera to ``obs``: its error since the last frame
-        objects placed (``odometry_error`` per metre and per radian, ``odometry_drift_deg_s``;
-        the yaw error's lever over the distance) stays within ``odometry_max_error_deg`` and
-        ``odometry_max_error_m``."""
-        since = self._verified_odometry
-        motion = self.odometry(since, obs) if since is not None else None
-        if motion is None:
-            return False
-        cfg = self.config
-        distance = float(np.linalg.norm(motion.t[:2]))
-        yaw_error = (cfg.odometry_error * abs(motion.yaw)
-                     + np.radians(cfg.odometry_drift_deg_s) * abs(obs.stamp_ns - since.stamp_ns) / 1e9)
-        return (np.degrees(yaw_error) <= cfg.odometry_max_error_deg
-                and cfg.odometry_error * distance + yaw_error * distance <= cfg.odometry_max_error_m)
-
     def reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the
         quarter-turn flips and look-alike matches that two objects cannot rule out."""
@@ -188,21 +169,35 @@ class StreamMotion:
         allowed = cfg.imu_yaw_tolerance_deg + cfg.imu_yaw_drift_deg_s * abs(b.stamp_ns - a.stamp_ns) / 1e9
         return yaw, allowed
 
-    def imu_agrees(self, t_a_b: Pose4, a: FrameObservations, b: FrameObservations) -> bool:
-        """Whether a relative pose's yaw agrees with the rotation the gyroscope measured
-        between the two frames (True when they share no integration epoch)."""
+    def sensors_agree(self, t_a_b: Pose4, a: FrameObservations, b: FrameObservations) -> bool:
+        """Whether a relative pose agrees with what the sensors measured between the two
+        frames: its yaw with the gyroscope's rotation, and on a robot its yaw and translation
+        with the wheel odometry's motion, within the odometry's error over the way
+        (``odometry_error``, ``odometry_drift_deg_s``, ``odometry_slack_m``). True for what
+        the frames do not share (an integration epoch, an odometry epoch)."""
         measured = self.imu_yaw(a, b)
-        if measured is None:
+        if measured is not None:
+            yaw, allowed = measured
+            if np.degrees(abs(wrap_angle(t_a_b.yaw - yaw))) > allowed:
+                self.stats.imu_rejected += 1
+                return False
+        odometry = self.odometry(a, b)
+        if odometry is None:
             return True
-        yaw, allowed = measured
-        if np.degrees(abs(wrap_angle(t_a_b.yaw - yaw))) > allowed:
-            self.stats.imu_rejected += 1
+        cfg = self.config
+        distance = float(np.linalg.norm(odometry.t[:2]))
+        yaw_error = (cfg.odometry_error * abs(odometry.yaw)
+                     + np.radians(cfg.odometry_drift_deg_s) * abs(b.stamp_ns - a.stamp_ns) / 1e9)
+        if (abs(wrap_angle(t_a_b.yaw - odometry.yaw)) > np.radians(cfg.imu_yaw_tolerance_deg) + yaw_error
+                or np.linalg.norm(np.asarray(t_a_b.t) - odometry.t)
+                > cfg.odometry_slack_m + (cfg.odometry_error + yaw_error) * distance):
+            self.stats.odometry_rejected += 1
             return False
         return True
 
     def plausible(self, rel: RelativePose | None, a: FrameObservations, b: FrameObservations) -> RelativePose | None:
         """``rel`` (T_a_b) between two frames of one stream segment if the motion prior and
-        the gyroscope allow it."""
-        if rel is None or not self.reachable(rel.pose, a.stamp_ns, b.stamp_ns) or not self.imu_agrees(rel.pose, a, b):
+        the sensors (:meth:`sensors_agree`) allow it."""
+        if rel is None or not self.reachable(rel.pose, a.stamp_ns, b.stamp_ns) or not self.sensors_agree(rel.pose, a, b):
             return None
         return rel

@@ -178,7 +178,7 @@ class RevisitOnPoints:
         for _, j, t_ref_j, t_j_frame in sorted(near, key=lambda n: n[0])[:g.config.revisits.nearest_on_points]:
             kf = g.keyframes[j].observations
             a = track_on_points(t_j_frame, kf, obs, g.matching)
-            if a is None or a.free or not g.motion.imu_agrees(a.pose, kf, obs):
+            if a is None or a.free or not g.motion.sensors_agree(a.pose, kf, obs):
                 continue
             # the motion from the previous frame (on the reference) through the graph must be plausible
             if prev.keyframe_id == ref_id and not g.motion.reachable(prev.pose.inverse() @ t_ref_j @ a.pose,

@@ -105,7 +105,7 @@ class Tracking:
             ok = g.motion.reachable(prev.pose.inverse() @ rel.pose, prev.stamp_ns, obs.stamp_ns)
         else:
             ok = g.motion.reachable(rel.pose, last.observations.stamp_ns, obs.stamp_ns)
-        return rel if ok and g.motion.imu_agrees(rel.pose, last.observations, obs) else None
+        return rel if ok and g.motion.sensors_agree(rel.pose, last.observations, obs) else None
 
 
 class PointTracking:
@@ -114,8 +114,7 @@ class PointTracking:
     plausible; None otherwise. A direction the points leave free (at most one) keeps the
     prediction, and only within ``max_motion_edge_s`` of the last frame placed in full. Where
     the points place nothing, a robot's odometry carries the frame on from the last one
-    (while its error since the last frame objects placed stays small:
-    :meth:`~rfm_core.matching.motion.StreamMotion.odometry_trusted`). The frame becomes no
+    (:meth:`~rfm_core.matching.motion.StreamMotion.carried`). The frame becomes no
     keyframe; a bridge from it to a later frame weighs its pose as a motion edge (no object
     matches)."""
 
@@ -133,12 +132,12 @@ class PointTracking:
         start = time.perf_counter()
         found = track_on_points(predicted, ref.observations, obs, g.matching)
         g.stats.tracking_s += time.perf_counter() - start
-        odometry = g.motion.carried(prev, ref, obs) if g.motion.odometry_trusted(obs) else None
+        odometry = g.motion.carried(prev, ref, obs)
         full = found is not None and found.free == 0
         late = obs.stamp_ns - prev.last_verified_ns > g.config.keyframes.max_motion_edge_s * 1e9
         if (found is None or found.free > 1 or not full and late and odometry is None
                 or not (g.motion.reachable(prev.pose.inverse() @ found.pose, prev.stamp_ns, obs.stamp_ns)
-                        and g.motion.imu_agrees(found.pose, ref.observations, obs))):
+                        and g.motion.sensors_agree(found.pose, ref.observations, obs))):
             if odometry is None:
                 return None
             g.stats.odometry_tracked += 1                         # the robot's odometry carries it

@@ -115,10 +115,7 @@ class ViewGraphBuilder:
     @state.setter
     def state(self, state: TrackState | None) -> None:
         self._state = state
-        obs = None if state is None else state.observations
-        if obs is None and state is not None and self.keyframes and self.reference.keyframe_id == state.keyframe_id:
-            obs = self.reference.observations                   # the state is a keyframe
-        self.motion.observe(state, obs)
+        self.motion.observe(state)
 
     @property
     def reference(self) -> Keyframe:

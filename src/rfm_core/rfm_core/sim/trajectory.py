@@ -149,8 +149,12 @@ class RobotPath:
 
     def __init__(self, room: Room, rng, duration: float, height=(0.3, 0.9), clearance: float = 0.35):
         self.height = float(rng.uniform(*height))
-        self.room, self.clearance = room, clearance
-        xy = next((p for p in (rng.uniform(0.8, room.size[:2] - 0.8) for _ in range(500)) if self._free(p)), None)
+        self.room = room
+        xy = None
+        for self.clearance in (clearance, clearance / 2, clearance / 4):     # closer in a crowded room
+            xy = next((p for p in (rng.uniform(0.8, room.size[:2] - 0.8) for _ in range(500)) if self._free(p)), None)
+            if xy is not None:
+                break
         if xy is None:
             raise RuntimeError('no free place for a robot in this room')
         heading = float(rng.uniform(-np.pi, np.pi))
