@@ -90,3 +90,90 @@ def test_an_array_declaring_more_data_than_the_file_holds_is_refused_before_read
     with pytest.raises(MapFileError, match='declares more data'):
         load_map(mapper, bad)
     assert not mapper.keyframes
+
+
+def test_map_files_are_checked_as_strictly_as_messages(saved, tmp_path):
+    """Every float finite, every stored setting within its declared range, every header field
+    typed and within what messages carry."""
+    mapper = Mapper()
+    load_map(mapper, saved)
+    keyframes = dict(mapper.keyframes)
+    good = _arrays(saved)
+    header = json.loads(bytes(good['header']).decode())
+    config = header['config']
+
+    def with_setting(section, name, value):
+        changed = json.loads(json.dumps(config))
+        changed[section][name] = value
+        return _with_header(good, config=changed)
+
+    nan_at_first = lambda a: np.where(np.arange(a.size).reshape(a.shape) == 0, np.nan, a).astype(a.dtype)  # noqa: E731
+    crafted = {
+        'NaN detection scores': (dict(good, det_scores=nan_at_first(good['det_scores'])), 'non-finite'),
+        'NaN 2D boxes': (dict(good, det_boxes_2d=nan_at_first(good['det_boxes_2d'])), 'non-finite'),
+        'an infinite edge score': (dict(good, edge_scores=good['edge_scores'] + np.inf), 'non-finite'),
+        'NaN corner matches': (dict(good, edge_corners=np.full((len(good['edge_corners']), 5), np.nan)),
+                               'non-finite') if len(good['edge_corners']) else None,
+        'a stored setting out of its range': (with_setting('averaging', 'translation_scale_m', 0.0),
+                                              'translation_scale_m'),
+        'keyframe ids past 2^62': (dict(good, kf_ids=good['kf_ids'] + 2 ** 62,
+                                        edge_ids=good['edge_ids'] + 2 ** 62, pose_ids=good['pose_ids'] + 2 ** 62),
+                                   'out of range'),
+        'a negative revision': (_with_header(good, revision=-1), 'revision'),
+        'a revision past 2^64': (_with_header(good, revision=2 ** 64), 'revision'),
+        'labels that are not strings': (_with_header(good, det_labels=[7] * len(header['det_labels'])), 'det_labels'),
+        'frame ids that are not strings': (_with_header(good, kf_frame_ids=[None] * len(header['kf_frame_ids'])),
+                                           'kf_frame_ids'),
+    }
+    for what, case in crafted.items():
+        if case is None:
+            continue
+        arrays, reason = case
+        with pytest.raises(MapFileError, match=reason):
+            load_map(mapper, _write(tmp_path / 'bad.npz', arrays))
+        assert mapper.keyframes.keys() == keyframes.keys(), what
+    # a camera height not measured is NaN, and loads
+    load_map(mapper, _write(tmp_path / 'heights.npz', dict(good, kf_camera_height=np.full(len(good['kf_ids']),
+                                                                                             np.nan))))
+    assert mapper.keyframes.keys() == keyframes.keys()
+
+
+def test_a_compression_bomb_is_refused_before_it_inflates(saved, tmp_path):
+    """An array of 300 MB of zeros deflates to a few hundred kB; the file is refused from its
+    directory before anything is inflated."""
+    import resource
+    rows = 300 * 2 ** 20 // 56
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(header, {'descr': '<f8', 'fortran_order': False, 'shape': (rows, 7)})
+    bad = tmp_path / 'bomb.npz'
+    with zipfile.ZipFile(saved) as src, zipfile.ZipFile(bad, 'w', zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            if info.filename != 'det_boxes.npy':
+                dst.writestr(info.filename, src.read(info))
+                continue
+            with dst.open('det_boxes.npy', 'w', force_zip64=True) as member:
+                member.write(np.lib.format.magic(1, 0) + header.getvalue()[8:])
+                zeros = bytes(2 ** 20)
+                for _ in range(rows * 56 // len(zeros)):
+                    member.write(zeros)
+                member.write(bytes(rows * 56 % len(zeros)))
+    assert bad.stat().st_size < 3 * 2 ** 20
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    mapper = Mapper()
+    with pytest.raises(MapFileError, match='compression bomb'):
+        load_map(mapper, bad)
+    assert not mapper.keyframes
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100 * 1024     # kB: nothing inflated
+
+
+def test_saving_never_replaces_a_good_file_with_one_loading_would_refuse(saved, tmp_path):
+    mapper = Mapper()
+    load_map(mapper, saved)
+    target = tmp_path / 'map.rfm'
+    save_map(mapper, target)
+    good_bytes = target.read_bytes()
+    first = min(mapper.keyframes)
+    mapper.keyframes[first].scores[:] = np.nan                   # a NaN in memory
+    with pytest.raises(MapFileError, match='not saved'):
+        save_map(mapper, target)
+    assert target.read_bytes() == good_bytes and not list(tmp_path.glob('*.tmp'))

@@ -81,6 +81,50 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
         assert row['published'] >= 0.8 * 40 and row['within_2sigma'] >= 0.8, row
 
 
+def _children(pid: int) -> list:
+    """PIDs of the live processes whose parent is ``pid`` (Linux /proc)."""
+    out = []
+    for stat in Path('/proc').glob('[0-9]*/stat'):
+        try:
+            fields = stat.read_text().rsplit(')', 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid and fields[0] != 'Z':
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f'/proc/{pid}/stat').read_text().rsplit(')', 1)[1].split()[0] != 'Z'
+    except OSError:
+        return False
+
+
+@pytest.mark.slow
+def test_the_nodes_die_with_rfm_run_however_it_dies(short_bag, tmp_path):
+    """rfm run killed with SIGKILL (the OOM killer, docker kill): its node processes and bag
+    player do not live on (they would keep autosaving and join the next run's graph)."""
+    import os
+    import signal
+    import time
+    proc = subprocess.Popen([shutil.which('rfm'), 'run', '--bag', str(short_bag), '--output', str(tmp_path / 'out'),
+                             '--backend', 'ground_truth', '--quiet'], stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    children = []
+    while time.monotonic() < deadline and len(children) < 4:       # three nodes and the bag player
+        time.sleep(0.5)
+        children = _children(proc.pid)
+    assert len(children) >= 4, children
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait()
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and any(map(_alive, children)):
+        time.sleep(0.1)
+    assert not [pid for pid in children if _alive(pid)]
+
+
 def _transforms(out):
     """Every transform of a run's recording: [(parent, child, stamp_ns, 4x4, static)]."""
     from rfm_core.io.bag import topic_messages

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 from rfm_core.detection.frontend import DROP_COUNTERS
+from rfm_core.processes import die_with_parent
 from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
 
 __all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
@@ -274,13 +275,30 @@ class _ProcessGraph:
     def __init__(self, params: dict, remaps: dict, log_dir: Path, detections):
         """``detections``: a callable giving the number of rfm/detections messages seen so far
         (the detector runs elsewhere; the recorder counts them)."""
-        from ament_index_python.packages import get_package_prefix  # noqa: PLC0415
         from diagnostic_msgs.msg import DiagnosticArray  # noqa: PLC0415
         from rclpy.node import Node  # noqa: PLC0415
         from rfm_msgs.msg import MapperStatus  # noqa: PLC0415
 
         self.procs = []
         self.logs = []
+        try:
+            self._start_nodes(params, remaps, log_dir)
+        except BaseException:                      # none left running when a later one cannot start
+            self._stop_nodes()
+            raise
+        self.node = Node('rfm_run')
+        self.status = None
+        self.detections = detections
+        self.diagnostics = {}                      # status name -> {key: value} (the latest)
+        self.node.create_subscription(MapperStatus, 'rfm/status', self._on_status, 10)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
+        self.executor = SingleThreadedExecutor()
+        self.executor.add_node(self.node)
+
+    def _start_nodes(self, params: dict, remaps: dict, log_dir: Path) -> None:
+        from ament_index_python.packages import get_package_prefix  # noqa: PLC0415
+
         for package, exe in (('rfm_detector_node', 'detector'), ('rfm_matcher_node', 'matcher'),
                              ('rfm_mapper_node', 'mapper')):
             cmd = [os.path.join(get_package_prefix(package), 'lib', package, exe), '--ros-args']
@@ -291,17 +309,23 @@ class _ProcessGraph:
                     cmd += ['-r', f'{a}:={b}']
             log = open(log_dir / f'{exe}.log', 'w')
             self.logs.append(log)
-            # a session of its own: a terminal's Ctrl-C reaches rfm run alone, which saves the map, then stops them
-            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True))
-        self.node = Node('rfm_run')
-        self.status = None
-        self.detections = detections
-        self.diagnostics = {}                      # status name -> {key: value} (the latest)
-        self.node.create_subscription(MapperStatus, 'rfm/status', self._on_status, 10)
-        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
-        from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(self.node)
+            # a session of its own: a terminal's Ctrl-C reaches rfm run alone, which saves the map, then stops
+            # them; and they die with rfm run however it dies (SIGKILL too)
+            self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+                                               preexec_fn=die_with_parent()))
+
+    def _stop_nodes(self) -> None:
+        """SIGINT (each node saves what it must), then SIGKILL after 15 s."""
+        for p in self.procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)
+        for p in self.procs:
+            try:
+                p.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        for log in self.logs:
+            log.close()
 
     def _on_status(self, msg):
         self.status = msg
@@ -372,19 +396,10 @@ class _ProcessGraph:
         return future.done() and future.result().success
 
     def stop(self):
-        for p in self.procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGINT)
-        for p in self.procs:
-            try:
-                p.wait(timeout=15)
-            except subprocess.TimeoutExpired:
-                p.kill()
+        self._stop_nodes()
         self.executor.shutdown()
         self.thread.join(timeout=10)
         self.node.destroy_node()
-        for log in self.logs:
-            log.close()
 
 
 def _bag_extent(bag, remaps: dict) -> tuple:
@@ -452,7 +467,8 @@ def run_graph(args) -> int:
                 cmd += ['--pace', _detector_inputs(args.backend, remaps)[0], '/rfm/detections']
             if args.posed:
                 cmd += ['--remap', '/ground_truth/camera_pose:=/rfm/external_pose']
-            player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+            player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                      preexec_fn=die_with_parent())
         last_line = 0.0
         settle_since, last_state = None, None
         while True:

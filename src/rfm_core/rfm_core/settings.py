@@ -166,7 +166,8 @@ def _replace(config, values: dict, prefix: str):
 def from_dict(cls, values: dict):
     """A configuration from nested dictionaries (``dataclasses.asdict`` of one, as map files
     store it): settings it lacks keep their defaults, unknown ones are ignored (files of other
-    rfm versions). ValueError for a value of the wrong type."""
+    rfm versions). Each value is checked as a parameter is (:meth:`Setting.check`: its type,
+    range and choices): ValueError naming the setting for one that is not."""
     if not isinstance(values, dict):
         raise ValueError(f'{cls.__name__}: expected a mapping, got {type(values).__name__}')
     kwargs = {}
@@ -174,13 +175,12 @@ def from_dict(cls, values: dict):
     for f in fields(cls):
         if f.name not in values:
             continue
-        current, value = getattr(default, f.name), values[f.name]
+        current, value, meta = getattr(default, f.name), values[f.name], f.metadata
         if is_dataclass(current):
             kwargs[f.name] = from_dict(type(current), value)
-        elif 'description' in f.metadata:
-            kwargs[f.name] = Setting(f'{cls.__name__}.{f.name}', current, '').check(value)
-        else:
-            kwargs[f.name] = value
+        elif 'description' in meta:
+            kwargs[f.name] = Setting(f'{cls.__name__}.{f.name}', current, '', meta['lo'], meta['hi'],
+                                     choices=meta['choices']).check(value)
     return cls(**kwargs)
 
 

@@ -45,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from rfm_core.evaluation.mapping import OBJECT_KINDS
+from rfm_core.processes import die_with_parent
 
 __all__ = ['SETTINGS', 'Setting', 'WORLDS', 'scene_kind', 'eval_configs', 'seed_config', 'scene_info', 'select_settings', 'evaluate_scene', 'evaluate_scene_graph', 'run_suite',
            'run_graph_suite', 'summarize', 'format_tables', 'QUERY_CAPTURES', 'RELOC_PROTOCOLS', 'query_capture',
@@ -280,7 +281,8 @@ def evaluate_scene_graph(args) -> dict:
         cmd = [rfm, 'run', '--bag', str(bag), '--output', str(run), '--force', '--quiet', *run_args(s)]
         if params:
             cmd += ['--param', *params]
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600,
+                              preexec_fn=die_with_parent())
         if proc.returncode != 0 or not (run / 'summary.json').is_file():
             tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
             out[s.name] = {**scene_metrics({}), 'error': f'rfm run exited {proc.returncode}: {" / ".join(tail)}'}
@@ -504,7 +506,8 @@ def relocalization_scene_graph(args) -> list:
         cmd = [rfm, 'run', '--bag', str(bag), '--output', str(output), '--force', '--quiet', *detector_args, *extra]
         if params:
             cmd += ['--param', *params]
-        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600)
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=3600,
+                              preexec_fn=die_with_parent())
         if proc.returncode != 0 or not (output / 'summary.json').is_file():
             tail = (proc.stdout + proc.stderr).strip().splitlines()[-3:]
             return f'rfm run exited {proc.returncode}: {" / ".join(tail)}'

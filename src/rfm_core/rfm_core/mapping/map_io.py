@@ -38,6 +38,19 @@ __all__ = ['FORMAT', 'VERSION', 'MapFileError', 'save_map', 'load_map', 'read_ma
 
 FORMAT = 'rfm-map'
 VERSION = 1
+#: a map file's arrays inflate to at most this many times the file's size, plus
+#: :data:`INFLATION_ALLOWANCE` bytes (maps inflate about 1.3 times: floats barely compress);
+#: more is a compression bomb, refused before anything is inflated
+MAX_INFLATION = 20
+INFLATION_ALLOWANCE = 64 * 2 ** 20
+#: keyframe ids and stamps a map may hold: what rfm_msgs carry (uint64), within int64 arrays
+MAX_ID = 2 ** 62
+#: header fields that count something
+_HEADER_COUNTS = ('keyframes', 'edges', 'registered', 'frames', 'revision')
+#: arrays where NaN means "not measured"
+_UNMEASURED = ('kf_camera_height',)
+#: header fields that list strings
+_HEADER_STRINGS = ('kf_frame_ids', 'kf_backends', 'det_labels')
 
 
 class MapFileError(ValueError):
@@ -161,7 +174,10 @@ def _parse_culled(data: dict, keyframes: dict) -> tuple[dict, dict, dict]:
 
 
 def save_map(mapper: Mapper, path) -> Path:
-    """Write the mapper's map to ``path`` atomically. Returns the path."""
+    """Write the mapper's map to ``path`` atomically, read back and validated before it
+    replaces the file there: MapFileError (the file there kept) for a map that loading would
+    refuse (a non-finite value in memory must not become the autosave the next start cannot
+    load). Returns the path."""
     path = Path(path).expanduser()
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays, lists = _keyframe_arrays(mapper)
@@ -183,6 +199,10 @@ def save_map(mapper: Mapper, path) -> Path:
             f.write(buffer.getvalue())
             f.flush()
             os.fsync(f.fileno())
+        try:
+            read_map(tmp)
+        except MapFileError as exc:
+            raise MapFileError(f'not saved to {path}, the map is not valid: {exc}') from None
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -197,10 +217,16 @@ _INTEGER_ARRAYS = ('kf_ids', 'kf_counts', 'kf_stamps', 'edge_ids', 'edge_inlier_
 
 def _load_arrays(path: Path) -> dict:
     """The archive's arrays; MapFileError for anything unreadable, and before reading for
-    an array that declares more data than its archive member holds (a small crafted file
-    must not make the loader allocate terabytes)."""
+    an array that declares more data than its archive member holds, or members that inflate
+    past :data:`MAX_INFLATION` (a small crafted file must not make the loader allocate
+    gigabytes)."""
     try:
         with zipfile.ZipFile(path) as archive:
+            inflated = sum(info.file_size for info in archive.infolist())
+            allowed = MAX_INFLATION * path.stat().st_size + INFLATION_ALLOWANCE
+            if inflated > allowed:
+                raise MapFileError(f'{path}: its arrays would inflate to {inflated / 2 ** 20:.0f} MB, more than '
+                                   f'{MAX_INFLATION} times the file ({allowed / 2 ** 20:.0f} MB): a compression bomb')
             for info in archive.infolist():
                 with archive.open(info) as member:
                     version = np.lib.format.read_magic(member)
@@ -249,9 +275,18 @@ def _parse_map(path: Path, data: dict) -> dict:
     wrong = [k for k in _INTEGER_ARRAYS if data[k].dtype.kind not in 'iu']
     if wrong:
         raise MapFileError(f'{path}: arrays {wrong} must hold integers')
-    for key in ('keyframes', 'revision'):
-        if not isinstance(header.get(key, 0), int) or isinstance(header.get(key, 0), bool):
-            raise MapFileError(f'{path}: header field {key!r} must be an integer, got {header.get(key)!r}')
+    for key in _HEADER_COUNTS:
+        value = header.get(key, 0)
+        if not isinstance(value, int) or isinstance(value, bool) or not 0 <= value < MAX_ID:
+            raise MapFileError(f'{path}: header field {key!r} must be an integer in [0, 2^62), got {value!r}')
+    for key in _HEADER_STRINGS:
+        value = header.get(key, [])
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise MapFileError(f'{path}: header field {key!r} must be a list of strings')
+    floats = [k for k, v in data.items() if k != 'header' and v.dtype.kind in 'fc'
+              and not np.all(np.isfinite(v) | (k in _UNMEASURED) & np.isnan(v))]
+    if floats:
+        raise MapFileError(f'{path}: arrays {sorted(floats)} hold non-finite values (NaN or infinity)')
     n_kf, n_det, n_edge = len(data['kf_ids']), int(data['kf_counts'].sum()), len(data['edge_ids'])
     checks = [
         (len(data['kf_counts']) == n_kf and len(data['kf_stamps']) == n_kf, 'keyframe arrays differ in length'),
@@ -273,10 +308,10 @@ def _parse_map(path: Path, data: dict) -> dict:
         (int(data['edge_corner_counts'].sum()) == len(data['edge_corners']), 'edge corner counts'),
         (data['pose_values'].shape == (len(data['pose_ids']), 4), 'pose arrays'),
         (len(np.unique(data['kf_ids'])) == n_kf, 'duplicate keyframe ids'),
+        (np.all((data['kf_ids'] >= 0) & (data['kf_ids'] < MAX_ID)) and np.all(data['kf_stamps'] >= 0),
+         'keyframe ids or stamps out of range'),
         (np.all(np.isin(data['edge_ids'], data['kf_ids'])), 'edges reference unknown keyframes'),
         (np.all(np.isin(data['pose_ids'], data['kf_ids'])), 'poses reference unknown keyframes'),
-        (all(np.all(np.isfinite(data[k])) for k in ('det_boxes', 'edge_poses', 'pose_values', 'kf_gravity')),
-         'non-finite values'),
     ]
     frame_keys = [f'frame_{k}' for k in FrameLog().arrays()]
     if any(k in data for k in frame_keys):
@@ -285,8 +320,6 @@ def _parse_map(path: Path, data: dict) -> dict:
             (all(k in data and len(data[k]) == n_frames for k in frame_keys), 'frame arrays differ in length'),
             (data['frame_poses'].shape == (n_frames, 4) and data['frame_gravity'].shape == (n_frames, 3),
              'frame shapes'),
-            (np.all(np.isfinite(data['frame_poses'])) and np.all(np.isfinite(data['frame_gravity'])),
-             'non-finite frame poses'),
             (np.all(np.linalg.norm(data['frame_gravity'], axis=1) > 0.5), 'frame gravity is not a unit vector'),
         ]
     if 'kf_origin' in data:                                   # none in maps of older rfm versions
@@ -294,8 +327,7 @@ def _parse_map(path: Path, data: dict) -> dict:
                     'keyframe origins')]
     if 'kf_full' in data or 'det_full_boxes' in data:       # none in maps of older rfm versions
         full = data.get('det_full_boxes', np.zeros(0))
-        checks += [(data.get('kf_full', np.zeros(0)).shape == (n_kf,) and full.shape == (n_det, 7)
-                    and np.all(np.isfinite(full)), 'full box arrays')]
+        checks += [(data.get('kf_full', np.zeros(0)).shape == (n_kf,) and full.shape == (n_det, 7), 'full box arrays')]
     if 'kf_camera_height' in data:                            # none in maps of older rfm versions
         checks += [(data['kf_camera_height'].shape == (n_kf,) and data['kf_camera_height'].dtype.kind == 'f',
                     'keyframe camera heights')]
