@@ -11,7 +11,7 @@ help:
 	@echo "make demo   - set up everything and run rfm on the bundled demo bag (results: rfm_output/demo)"
 	@echo "make test   - set up everything and run the test suite"
 	@echo "make test-fast - the suite without the tests marked slow (whole-graph runs, training; ~1 min)"
-	@echo "make fuzz   - 10,000 hostile messages and service calls into the three nodes (tests/fault)"
+	@echo "make fuzz   - 10,000 hostile messages and service calls into the three nodes, 5,000 mutated map files"
 	@echo "make soak   - 10 min of a camera walking round one room, replayed through the graph: growth and memory (bench/soak.py)"
 	@echo "make setup  - only create .venv and build the ROS workspace (idempotent)"
 	@echo "make bench  - the benchmark suite in bench/ (bench/README.md; ~25 min)"
@@ -27,7 +27,8 @@ test-fast: setup
 	@$(LOCAL) $(ENV) python -m pytest tests -m "not slow" $(PYTEST_ARGS)
 
 fuzz: setup
-	@RFM_FUZZ_N=$${RFM_FUZZ_N:-10000} $(LOCAL) $(ENV) python -m pytest tests/fault $(PYTEST_ARGS)
+	@RFM_FUZZ_N=$${RFM_FUZZ_N:-10000} $(LOCAL) $(ENV) python -m pytest tests/fault tests/mapping/test_map_files.py \
+		$(PYTEST_ARGS)
 
 soak: setup
 	@$(LOCAL) $(ENV) python bench/soak.py

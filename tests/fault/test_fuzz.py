@@ -1,6 +1,7 @@
 """Hostile input for every node (#19 item 2): every subscription and service of the
-detector, matcher and mapper, called with malformed messages; no node may raise, and each
-keeps serving good input afterwards.
+detector, matcher and mapper, called with malformed messages; no node may raise or count an
+unexpected error (their guards would hide one), their timers then run cleanly, and each keeps
+serving good input afterwards, with no reset.
 
 Messages start from every field filled at random (extreme integers included) and are then
 mutated: floats to NaN / inf / huge, sequences emptied or grown to hundreds of elements,
@@ -134,13 +135,19 @@ def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
                 pytest.fail(f'input {i}: {name} {kind} {topic} raised {exc!r}')
         assert all(hits.values()), hits                   # every input of every node was hit
         print(f'{N} hostile inputs: ' + ', '.join(f'{t} {n}' for t, n in sorted(hits.items())))
+        deadline = time.monotonic() + 60
+        while not detector.worker.idle and time.monotonic() < deadline:     # the frames it took, done
+            time.sleep(0.05)
+        for node in nodes:                                # the timers after hostile input
+            for timer in node.timers:
+                timer.callback()
+        assert [node.unexpected_errors for node in nodes] == [0, 0, 0], mapper.core.session.message
         detector.worker.stop()
-        # ... and each keeps serving good input: the matcher makes keyframes of good frames,
-        # the mapper maps them
+        # ... and each keeps serving good input, nothing reset: the matcher makes keyframes of
+        # good frames, the mapper maps them
         from rfm_msgs.srv import SetMode
         set_mode = next(s for s in mapper.services if s.srv_name.endswith('/set_mode'))
         set_mode.callback(SetMode.Request(mode=0), SetMode.Response())
-        mapper.core.session.reset()
         before = matcher.graph.stats.keyframes
         kf_sub = next(s for s in mapper.subscriptions if s.topic_name == '/rfm/keyframes')
         published = []
@@ -150,10 +157,50 @@ def test_no_hostile_message_or_request_kills_a_node(tmp_path, good_frames):
         assert matcher.graph.stats.keyframes > before
         for msg in published:
             kf_sub.callback(msg)
-        assert len(mapper.core.mapper.keyframes) == len(published) >= 2
+        stamps = {f.stamp_ns for f in mapper.core.mapper.keyframes.values()}
+        assert len(published) >= 2 and all(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec in stamps
+                                           for m in published)
+        for timer in mapper.timers:
+            timer.callback()
+        assert mapper.unexpected_errors == 0, mapper.core.session.message
+        import numpy as np
+        assert all(np.isfinite(p.yaw) and np.all(np.isfinite(p.t)) for p in mapper.core.mapper.poses.values())
     finally:
         for node in nodes:
             if isinstance(node, DetectorNode):
                 node.worker.stop()
+            node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def test_an_unexpected_error_in_a_timer_is_counted_and_the_node_goes_on(tmp_path):
+    """Every node's callbacks and timers run guarded alike: the error is counted (the
+    matcher's and detector's /diagnostics, the mapper's rfm/status message), logged, and the
+    next call runs as if nothing happened."""
+    from rfm_mapper_node.mapper_node import MapperNode
+    from rfm_matcher_node.matcher_node import MatcherNode
+
+    rclpy.init()
+    nodes = []
+    try:
+        mapper = MapperNode(parameter_overrides=[Parameter('map_path', value=str(tmp_path / 'map.rfm'))])
+        matcher = MatcherNode()
+        nodes = [mapper, matcher]
+        tick = next(t for t in mapper.timers if t.callback.__name__ == '_tick')
+        real = mapper.core.tick
+        mapper.core.tick = lambda: 1 / 0
+        tick.callback()
+        assert mapper.unexpected_errors == 1 and 'ZeroDivisionError' in mapper.core.session.message
+        mapper.core.tick = real
+        tick.callback()
+        assert mapper.unexpected_errors == 1
+        diagnostics = next(t for t in matcher.timers if t.callback.__name__ == '_publish_diagnostics')
+        published = []
+        matcher.diag_pub.publish = published.append
+        matcher.graph.stats = None                       # breaks the diagnostics once
+        diagnostics.callback()
+        assert matcher.unexpected_errors == 1 and not published
+    finally:
+        for node in nodes:
             node.destroy_node()
         rclpy.try_shutdown()

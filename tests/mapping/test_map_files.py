@@ -177,3 +177,71 @@ def test_saving_never_replaces_a_good_file_with_one_loading_would_refuse(saved, 
     with pytest.raises(MapFileError, match='not saved'):
         save_map(mapper, target)
     assert target.read_bytes() == good_bytes and not list(tmp_path.glob('*.tmp'))
+
+
+def _mutated(good: dict, rng) -> tuple:
+    """A real map file's arrays with one thing changed: an array's dtype, shape or values, or
+    a header field. Returns (arrays, what)."""
+    arrays = dict(good)
+    names = sorted(k for k in good if k != 'header')
+    if rng.random() < 0.25:
+        header = json.loads(bytes(good['header']).decode())
+        key = rng.choice(sorted(header))
+        value = rng.choice([None, -1, 2 ** 64, 1e308, float('nan'), 'x', [], {}, [7] * 3, True,
+                            header[key] if not isinstance(header[key], dict) else {'averaging': {'window': -5}}])
+        return _with_header(arrays, **{key: value}), f'header {key}={value!r:.40}'
+    name = rng.choice(names)
+    a = good[name]
+    kind = rng.randrange(4)
+    if kind == 0:                                            # another dtype
+        dtype = rng.choice([np.float32, np.float64, np.int64, np.uint8, np.bool_])
+        arrays[name] = a.astype(dtype)
+    elif kind == 1 and a.ndim:                               # a row more or fewer
+        arrays[name] = a[:-1] if len(a) and rng.random() < 0.5 else np.concatenate([a, a[:1]])
+    elif kind == 2 and a.size:                               # hostile values
+        b = a.copy().reshape(-1)
+        i = rng.randrange(b.size)
+        if b.dtype.kind == 'f':
+            bad = [np.nan, np.inf, -1e300 if b.dtype.itemsize == 8 else -1e30, 1e30]
+        elif b.dtype.kind in 'iu':
+            info = np.iinfo(b.dtype)
+            bad = [info.min, info.max, *([-1] if info.min < 0 else []), *([2 ** 62] if info.max >= 2 ** 62 else [])]
+        else:
+            bad = [not b[i]]
+        b[i] = rng.choice(bad)
+        arrays[name] = b.reshape(a.shape)
+    else:                                                    # another shape
+        arrays[name] = a.reshape(-1) if a.ndim > 1 else a.reshape(-1, 1)
+    return arrays, f'{name} ({"dtype shape values reshape".split()[kind]})'
+
+
+def test_mutated_map_files_are_refused_or_load_into_a_working_map(saved, tmp_path):
+    """Each array's dtype, shape and values and each header field of a real map file,
+    mutated (``RFM_FUZZ_N`` / 2 files; ``make fuzz``: thousands): loading either refuses the
+    file with MapFileError, the current map kept, or gives a map whose poses are finite and
+    which solves and builds its tracks. Never another error."""
+    import os
+    import random
+    rng = random.Random(int(os.environ.get('RFM_FUZZ_SEED', '19')))
+    good = _arrays(saved)
+    mapper = Mapper()
+    load_map(mapper, saved)
+    kept = set(mapper.keyframes)
+    refused = 0
+    for i in range(int(os.environ.get('RFM_FUZZ_N', '400')) // 2):
+        arrays, what = _mutated(good, rng)
+        path = _write(tmp_path / 'mutated.npz', arrays)
+        try:
+            load_map(mapper, path)
+        except MapFileError:
+            refused += 1
+            assert set(mapper.keyframes) == kept, (i, what)
+            continue
+        try:
+            mapper.update(force_full=True)
+            mapper.tracks()
+        except Exception as exc:  # noqa: BLE001 - the point of the test
+            pytest.fail(f'file {i} ({what}) loaded into a map that fails: {exc!r}')
+        assert all(np.isfinite(p.yaw) and np.all(np.isfinite(p.t)) for p in mapper.poses.values()), (i, what)
+        load_map(mapper, saved)                               # back to the good map
+    assert refused > 0

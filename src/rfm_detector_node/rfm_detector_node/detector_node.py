@@ -37,13 +37,14 @@ from rfm_core.config import DetectorNodeConfig
 from rfm_core.detection import make_detector
 from rfm_core.detection.frontend import DetectorFrontend, FrameWorker
 from rfm_core.io.messages import detection_markers_msg, diagnostics_msg, frame_detections_to_msg, transforms_from_msg
+from rfm_core.io.guard import GuardedCallbacks
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.qos import LATCHED, RELIABLE, SENSOR, TF, qos
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR
 from rfm_detector_node.polling import PolledGroup, take_all
 
 
-class DetectorNode(Node):
+class DetectorNode(GuardedCallbacks, Node):
 
     def __init__(self, **kwargs):
         super().__init__('detector', **kwargs)
@@ -169,7 +170,7 @@ class DetectorNode(Node):
 
     def _publish_diagnostics(self) -> None:
         values = dict(self.frontend.diagnostics(), last_latency_ms=round(self.last_latency_ms, 1),
-                      last_detections=self.last_detections)
+                      last_detections=self.last_detections, unexpected_errors=self.unexpected_errors)
         self.diag_pub.publish(diagnostics_msg(
             'rfm detector', self.backend, bool(self.counts['dropped_invalid'] + self.counts['dropped_no_gravity']),
             f'{self.counts["published"]} frames published', values, self.get_clock().now().nanoseconds))

@@ -22,19 +22,18 @@ from visualization_msgs.msg import MarkerArray
 
 from rfm_core.config import MapperNodeConfig
 from rfm_core.io import messages as m
-from rfm_core.io.guard import decoded, guarded
+from rfm_core.io.guard import GuardedCallbacks, decoded
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.qos import GRAPH, LATCHED, RELIABLE, STREAM, TF, qos
 from rfm_core.mapper_core import MapperCore
 
 
-class MapperNode(Node):
+class MapperNode(GuardedCallbacks, Node):
 
     def __init__(self, **kwargs):
         super().__init__('mapper', **kwargs)
         self.config = cfg = declare_config(self, MapperNodeConfig())
-        warn = self.get_logger().warning
-        self.core = core = MapperCore(cfg, warn=lambda text: warn(text, throttle_duration_sec=5.0))
+        self.core = core = MapperCore(cfg, warn=lambda text: self.get_logger().warning(text, throttle_duration_sec=5.0))
         inputs = [(Keyframe, 'rfm/keyframes', self._on_keyframe, GRAPH),
                   (ViewGraphEdge, 'rfm/view_graph/edges', self._on_edge, GRAPH),
                   (TrackedFrame, 'rfm/tracked_frames', self._on_tracked_frame, STREAM),
@@ -42,9 +41,10 @@ class MapperNode(Node):
         if cfg.pose_source == 'topic':
             inputs.append((PoseStamped, 'rfm/external_pose', self._on_external_pose, STREAM))
         if cfg.publish_tf or cfg.pose_source == 'tf':
-            inputs += [(TFMessage, '/tf', self._on_tf, TF), (TFMessage, '/tf_static', self._on_tf_static, LATCHED)]
+            inputs += [(TFMessage, '/tf', self._on_tf, TF),
+                       (TFMessage, '/tf_static', lambda msg: self._on_tf(msg, static=True), LATCHED)]
         for kind, topic, callback, profile in inputs:
-            self.create_subscription(kind, topic, guarded(callback, core.failed), qos(profile))
+            self.create_subscription(kind, topic, callback, qos(profile))
         self.pub = {topic: self.create_publisher(kind, topic, qos(profile)) for kind, topic, profile in (
             (PoseArray, 'rfm/keyframe_poses', LATCHED), (Path, 'rfm/trajectory', LATCHED),
             (ObjectMap, 'rfm/object_map', LATCHED), (MarkerArray, 'rfm/object_markers', LATCHED),
@@ -57,13 +57,17 @@ class MapperNode(Node):
                                    (LoadMap, 'load_map', lambda q: core.load(q.path)),
                                    (Trigger, 'reset', lambda q: core.reset()),
                                    (SetMode, 'set_mode', lambda q: core.set_mode(q.mode))):
-            self.create_service(kind, f'rfm/{name}', guarded(self._service(name, answer), core.failed))
+            self.create_service(kind, f'rfm/{name}', self._service(name, answer))
         steady = Clock(clock_type=ClockType.STEADY_TIME)       # a finished bag stops sim time; the map goes on
-        self.create_timer(0.1, guarded(self._tick, core.failed), clock=steady)
-        self.create_timer(1.0, guarded(self._publish_status, core.failed), clock=steady)
+        self.create_timer(0.1, self._tick, clock=steady)
+        self.create_timer(1.0, self._publish_status, clock=steady)
         if cfg.publish_tf:                          # map -> odom held between frames (the node's clock: sim time too)
-            self.create_timer(cfg.tf_publish_period_s, guarded(self._republish_tf, core.failed))
+            self.create_timer(cfg.tf_publish_period_s, self._republish_tf)
         self.get_logger().info(f'mapper ready ({cfg.mode}, {cfg.pose_source or "un-posed"})')
+
+    def callback_failed(self, name: str, exc: Exception) -> None:
+        super().callback_failed(name, exc)
+        self.core.failed(name, exc)                  # rfm/status says it
 
     def _on_keyframe(self, msg) -> None:
         obs = decoded(m.frame_detections_from_msg, msg.detections, f'keyframe {msg.keyframe_id}', self.core.dropped)
@@ -89,9 +93,6 @@ class MapperNode(Node):
     def _on_tf(self, msg, static: bool = False) -> None:
         for link in decoded(m.transforms_from_msg, msg, '/tf message', self.core.dropped) or ():
             self.core.transform(*link, static)
-
-    def _on_tf_static(self, msg) -> None:
-        self._on_tf(msg, True)
 
     def _republish_tf(self) -> None:
         held = self.core.held_transform(self.get_clock().now().nanoseconds)

@@ -27,6 +27,7 @@ from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 from rfm_core.config import MatcherNodeConfig
 from rfm_core.io.messages import (diagnostics_msg, edge_msg, frame_detections_from_msg, frame_detections_to_msg,
                                   stamp_to_ns, tracked_frame_to_msg)
+from rfm_core.io.guard import GuardedCallbacks
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.qos import GRAPH, RELIABLE, STREAM, qos
 from rfm_core.mapping.averaging import AveragingConfig
@@ -36,7 +37,7 @@ from rfm_core.matching.load import FrameShedder
 from rfm_core.matching.view_graph import ViewGraphBuilder
 
 
-class MatcherNode(Node):
+class MatcherNode(GuardedCallbacks, Node):
 
     def __init__(self, **kwargs):
         super().__init__('matcher', **kwargs)
@@ -89,9 +90,6 @@ class MatcherNode(Node):
         except ValueError as exc:
             self.get_logger().warning(f'detections dropped: {exc}', throttle_duration_sec=5.0)
             return
-        except Exception as exc:  # noqa: BLE001 - a frame never kills the matcher
-            self.get_logger().error(f'detections dropped, unexpected error: {exc!r}', throttle_duration_sec=5.0)
-            return
         if keyframe is not None:                  # this frame or, bridging lost tracking, the previous one
             detections = msg if keyframe.observations is obs else frame_detections_to_msg(keyframe.observations)
             self.keyframe_pub.publish(self._numbered(Keyframe(header=detections.header,
@@ -106,7 +104,8 @@ class MatcherNode(Node):
 
     def _publish_diagnostics(self) -> None:
         counts = self.shedder.counts
-        values = dict(counts, keyframes=self.graph.stats.keyframes, edges=self.sequence[ViewGraphEdge])
+        values = dict(counts, keyframes=self.graph.stats.keyframes, edges=self.sequence[ViewGraphEdge],
+                      unexpected_errors=self.unexpected_errors)
         self.diag_pub.publish(diagnostics_msg(
             'rfm matcher', self.config.matcher, bool(counts['lost']),
             f'{counts["processed"]} of {counts["received"]} frames processed', values,

@@ -667,8 +667,10 @@ def tick_outputs(tick, frame_id: str, attachment=None, make=ROS) -> list:
 
 
 def mapper_status_msg(status, stamp_ns: int, frame_id: str, make=ROS):
-    """rfm_msgs/MapperStatus of a :class:`rfm_core.mapper_core.MapStatus` (the same fields)."""
-    fields = dict(vars(status))
+    """rfm_msgs/MapperStatus of a :class:`rfm_core.mapper_core.MapStatus` (the same fields;
+    counts saturate at the message's uint32: hostile sequence numbers can claim 2^64 lost)."""
+    fields = {k: min(max(v, 0), 2 ** 32 - 1) if isinstance(v, int) and not isinstance(v, bool) else v
+              for k, v in vars(status).items()}
     fields['mode'] = 1 if fields['mode'] == 'localization' else 0          # MODE_LOCALIZATION / MODE_MAPPING
     return make('rfm_msgs/msg/MapperStatus', header=header(make, stamp_ns, frame_id), **fields)
 
