@@ -131,4 +131,6 @@ def test_detector_on_one_host_matcher_and_mapper_on_another(two_hosts, tmp_path)
                       'AP25': m['AP25']}))
     # (keyframes held: in the map or culled into one of its keyframes)
     assert len(mapper.keyframes) + len(mapper.merged) >= 8 and len(mapper.poses) >= 0.7 * len(mapper.keyframes)
-    assert loc['registered'] >= 0.5 and loc['ATE_median'] < 0.2 and m['AP25'] > 0.2, (loc, m)
+    # measured (3 runs, 2026-12-05): 100% localized, ATE 0.63 cm, AP25 0.72; bounds with room for
+    # a slower machine, tight enough that a regression shows
+    assert loc['registered'] >= 0.9 and loc['ATE_median'] < 0.02 and m['AP25'] > 0.5, (loc, m)

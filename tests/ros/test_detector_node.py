@@ -131,8 +131,10 @@ def test_frames_it_is_behind_on_go_out_with_their_depth_points_only(graph, scene
     stamps = [frames[0].stamp_ns + i * 33_000_000 for i in range(6)]        # a 30 Hz camera
     for i, stamp in enumerate(stamps):
         publish_frame(pubs, cap, frames[i // 3], stamp=stamp)
-    assert wait_for(lambda: detector.worker.idle and len(got) >= 3), (detector.counts, len(got))
-    time.sleep(0.5)                                   # (a sensor-data queue may lose one of the burst)
+    newest = stamps[-1]                               # (a sensor-data queue may lose one of the burst)
+    assert wait_for(lambda: detector.worker.idle and len(got) >= 3
+                    and any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == newest for m in got)), \
+        (detector.counts, len(got))
     sent = [frame_detections_from_msg(m) for m in got]
     assert [o.stamp_ns for o in sent] == sorted(o.stamp_ns for o in sent)
     points_only = [o for o in sent if len(o) == 0]

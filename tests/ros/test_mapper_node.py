@@ -221,9 +221,11 @@ def test_mapper_node_maps_saves_restores_and_relocalizes(tmp_path):
         bad_mode = h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=7))
         assert not bad_mode.success
         assert h.call(SetMode, 'rfm/set_mode', SetMode.Request(mode=1)).success
-        h.kf_pub.publish(messages[0])                                   # ignored in localization mode
-        time.sleep(0.3)
-        assert _held(mapper.core.mapper) == n_kf
+        ignored = Keyframe(header=messages[0].header, keyframe_id=10_000, detections=messages[0].detections,
+                           session=7, sequence=1)                      # numbered: its arrival is seen
+        h.kf_pub.publish(ignored)
+        assert h.wait(lambda: getattr(mapper.core._sequences.get('keyframes'), 'session', 0) == 7)
+        assert _held(mapper.core.mapper) == n_kf                             # arrived, ignored in localization mode
         poses_before = mapper.core.mapper.poses
         tracks_before = [(t.track_id, t.box) for t in mapper.core.mapper.tracks()]
         assert h.call(Trigger, 'rfm/reset', Trigger.Request()).success

@@ -207,8 +207,12 @@ def load_matcher_net(path) -> tuple[ObjectMatcherNet, dict]:
 
 
 def default_weights(backend: str) -> Path | None:
-    """The shipped weights for a detector backend ('depth_clusters', 'ground_truth:rgb', ...)."""
+    """The shipped weights for a detector backend ('depth_clusters', 'ground_truth:rgb', ...);
+    None for none, and for a name that is no backend's (a message's, so a file name of the
+    weights directory: lower-case letters, digits and underscores)."""
     family = backend.split(':', 1)[0]
+    if not (0 < len(family) <= 64 and family.replace('_', '').isalnum() and family.isascii() and family.islower()):
+        return None
     path = WEIGHTS_DIR / f'object_matcher_{family}.pt'
     return path if path.is_file() else None
 
