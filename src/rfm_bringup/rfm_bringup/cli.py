@@ -491,7 +491,10 @@ def cmd_eval(args) -> int:
         first = r['results'].get(settings[0].name, {})
         print(f'[rfm eval] {i}/{n} {r["scene"]}: {settings[0].name}: ARE {first.get("ARE_median", float("nan")):.2f} '
               f'ATE {100 * first.get("ATE_median", float("nan")):.1f} cm, {100 * first.get("registered", 0):.0f}% '
-              f'of frames localized ({first.get("gross", 0)} wrong), AP25 {first.get("AP25", float("nan")):.3f}'
+              f'of frames localized ({first.get("gross", 0)} wrong)'
+              + (f', through TF {100 * first["tf_registered"]:.0f}% ({first.get("tf_gross", 0)} wrong)'
+                 if first.get('tf_registered', 0) > 0 else '')
+              + f', AP25 {first.get("AP25", float("nan")):.3f}'
               f'{" (" + first["error"] + ")" if "error" in first else ""} ({time.perf_counter() - start:.0f} s)',
               flush=True)
 
