@@ -4,7 +4,7 @@ moves between frames.
 Whether frames come from a continuous stream (a camera moving through the room) or are
 separate views (photos seconds apart, an unordered collection) is decided from their timing,
 per pair of frames: frames no more than ``max_frame_gap_s`` apart belong to one stream
-segment. Within a segment a camera cannot turn or move arbitrarily fast (the motion prior:
+segment, and so do a robot's frames across any gap its odometry measured. Within a segment a camera cannot turn or move arbitrarily fast (the motion prior:
 each tracked frame must be reachable from the previous one, each edge from its source
 keyframe), the gyroscope's rotation between two frames checks a relative pose's yaw, and the
 frames objects placed give the camera's velocity, which predicts where the next frame is; a
@@ -32,7 +32,8 @@ __all__ = ['MotionConfig', 'StreamMotion']
 @dataclass(frozen=True)
 class MotionConfig:
     max_frame_gap_s: float = setting(0.5, 'Frames further apart than this are separate views (photos): no motion '
-                                     'prior between them; closer frames are one stream (s)', lo=0.01, hi=3600.0)
+                                     "prior between them; closer frames are one stream, and so are a robot's "
+                                     'frames its odometry links (s)', lo=0.01, hi=3600.0)
     max_yaw_rate_deg_s: float = setting(90.0, 'Motion prior within a stream: fastest turn of the camera (deg/s)',
                                         lo=1.0, hi=3600.0)
     max_speed_m_s: float = setting(1.5, 'Motion prior within a stream: fastest motion of the camera (m/s)',
@@ -61,15 +62,18 @@ class StreamMotion:
     def __init__(self, config: MotionConfig, stats: GraphStats):
         self.config, self.stats = config, stats
         self.segment = -1                     # the current stream segment
-        self._last_stamp = None               # of the previous frame (any frame: the stream's timing)
+        self._last = None                     # the previous frame (any frame: the stream's timing)
         self._placed: list = []               # (keyframe id, stamp, T_keyframe_frame.t) of frames objects placed
         self._carried = (None, np.zeros(3))   # (motion-placed keyframe id, the velocity carried into it)
 
-    def continues(self, stamp_ns: int) -> bool:
-        """Whether a frame continues the stream of the previous one (no more than
-        ``max_frame_gap_s`` later); a new segment begins where it does not."""
-        last, self._last_stamp = self._last_stamp, stamp_ns
-        stream = last is not None and 0 < stamp_ns - last <= self.config.max_frame_gap_s * 1e9
+    def continues(self, obs: FrameObservations) -> bool:
+        """Whether a frame continues the stream of the previous one: no more than
+        ``max_frame_gap_s`` later, or later by any time a robot's odometry measured the
+        motion over (the detector that had no time for some frames breaks no stream); a new
+        segment begins where it does not."""
+        last, self._last = self._last, obs
+        gap = obs.stamp_ns - last.stamp_ns if last is not None else 0
+        stream = 0 < gap and (gap <= self.config.max_frame_gap_s * 1e9 or self.odometry(last, obs) is not None)
         if not stream:
             self.segment += 1
             self.stats.segments += 1

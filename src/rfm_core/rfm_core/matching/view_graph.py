@@ -89,7 +89,7 @@ class ViewGraphBuilder:
             raise ValueError(f'detections with {obs.embeddings.shape[1]}-value embeddings; this view graph holds '
                              f'{dim}-value ones (one detector backend per graph)')
         self.stats.frames += 1
-        frame = Frame(obs, self.motion.continues(obs.stamp_ns))
+        frame = Frame(obs, self.motion.continues(obs))
         if not frame.stream:
             self.state = None                    # nothing predicts a separate view
         if len(obs) < self.config.keyframes.min_detections:           # too few objects to match
