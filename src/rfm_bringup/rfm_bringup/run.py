@@ -24,8 +24,8 @@ import time
 from pathlib import Path
 
 from rfm_core.detection.frontend import DROP_COUNTERS
-from rfm_core.processes import die_with_parent
 from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
+from rfm_core.processes import die_with_parent
 
 __all__ = ['run_graph', 'BAG_REMAPS', 'OUTPUT_TOPICS']
 
@@ -530,7 +530,8 @@ def run_graph(args) -> int:
         loc, m = acc['localization'], acc['mapping']
         print(f'  vs ground truth: ARE {loc["ARE_median"]:.2f} deg, ATE {100 * loc["ATE_median"]:.1f} cm, '
               f'{100 * loc["registered"]:.0f}% of frames localized ({loc.get("gross", 0)} wrong: > 5 deg or > 25 cm)'
-              + (f'; through TF {100 * loc["tf"]["registered"]:.0f}% ({loc["tf"]["gross"]} wrong)' if loc.get('tf') else '')
+              + (f'; through TF {100 * loc["tf"]["registered"]:.0f}% ({loc["tf"]["gross"]} wrong)'
+                 if loc.get('tf') else '')
               + (f', AP25 {m["AP25"]:.3f}, AR25 {m["AR25"]:.3f}, {m["objects"]} objects for {m["ground_truth"]}'
                  if m else ''))
     print(f'  report: {output / "report.md"}, picture: {output / "top_down.png"}')

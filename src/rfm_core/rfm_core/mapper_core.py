@@ -138,7 +138,8 @@ class MapperCore:
     """The mapper node's work (see the module), configured by a
     :class:`~rfm_core.config.MapperNodeConfig`; /tf and /tf_static come in through
     :meth:`transform` (posed mode's pose source 'tf', and where the map attaches to the TF
-    tree). ``warn``: where dropped input is reported (the node logs it, throttled); ``matcher``: relocalization's object matcher (default: the configured one).
+    tree). ``warn``: where dropped input is reported (the node logs it, throttled);
+    ``matcher``: relocalization's object matcher (default: the configured one).
     With ``load_map_on_start`` the map file is loaded. ValueError for a matcher checkpoint or
     a map file that cannot be loaded."""
 

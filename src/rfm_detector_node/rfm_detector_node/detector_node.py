@@ -36,8 +36,8 @@ from visualization_msgs.msg import MarkerArray
 from rfm_core.config import DetectorNodeConfig
 from rfm_core.detection import make_detector
 from rfm_core.detection.frontend import DetectorFrontend, FrameWorker
-from rfm_core.io.messages import detection_markers_msg, diagnostics_msg, frame_detections_to_msg, transforms_from_msg
 from rfm_core.io.guard import GuardedCallbacks
+from rfm_core.io.messages import detection_markers_msg, diagnostics_msg, frame_detections_to_msg, transforms_from_msg
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.qos import LATCHED, RELIABLE, SENSOR, TF, qos
 from rfm_core.matching.config import MONOCULAR_RANGE_ERROR

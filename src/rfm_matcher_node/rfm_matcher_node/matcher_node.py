@@ -25,9 +25,9 @@ from rclpy.node import Node
 from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 
 from rfm_core.config import MatcherNodeConfig
+from rfm_core.io.guard import GuardedCallbacks
 from rfm_core.io.messages import (diagnostics_msg, edge_msg, frame_detections_from_msg, frame_detections_to_msg,
                                   stamp_to_ns, tracked_frame_to_msg)
-from rfm_core.io.guard import GuardedCallbacks
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.qos import GRAPH, RELIABLE, STREAM, qos
 from rfm_core.mapping.averaging import AveragingConfig

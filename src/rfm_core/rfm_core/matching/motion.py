@@ -4,15 +4,15 @@ moves between frames.
 Whether frames come from a continuous stream (a camera moving through the room) or are
 separate views (photos seconds apart, an unordered collection) is decided from their timing,
 per pair of frames: frames no more than ``max_frame_gap_s`` apart belong to one stream
-segment, and so do a robot's frames across any gap its odometry measured. Within a segment a camera cannot turn or move arbitrarily fast (the motion prior:
-each tracked frame must be reachable from the previous one, each edge from its source
-keyframe), the gyroscope's rotation between two frames checks a relative pose's yaw, and the
-frames objects placed give the camera's velocity, which predicts where the next frame is; a
-robot's wheel odometry, where the detector attached it, predicts it better, and carries the
-camera where objects and depth points place nothing (:meth:`StreamMotion.odometry`): as
-the odometry of a pose-graph SLAM system, it never lets the stream's map break apart, and
-objects seen again correct its drift.
-Across segments nothing is known of the motion.
+segment, and so do a robot's frames across any gap its odometry measured. Within a segment
+a camera cannot turn or move arbitrarily fast (the motion prior: each tracked frame must be
+reachable from the previous one, each edge from its source keyframe), the gyroscope's
+rotation between two frames checks a relative pose's yaw, and the frames objects placed give
+the camera's velocity, which predicts where the next frame is; a robot's wheel odometry,
+where the detector attached it, predicts it better, and carries the camera where objects and
+depth points place nothing (:meth:`StreamMotion.odometry`): as the odometry of a pose-graph
+SLAM system, it never lets the stream's map break apart, and objects seen again correct its
+drift. Across segments nothing is known of the motion.
 """
 from __future__ import annotations
 
@@ -202,6 +202,7 @@ class StreamMotion:
     def plausible(self, rel: RelativePose | None, a: FrameObservations, b: FrameObservations) -> RelativePose | None:
         """``rel`` (T_a_b) between two frames of one stream segment if the motion prior and
         the sensors (:meth:`sensors_agree`) allow it."""
-        if rel is None or not self.reachable(rel.pose, a.stamp_ns, b.stamp_ns) or not self.sensors_agree(rel.pose, a, b):
+        if (rel is None or not self.reachable(rel.pose, a.stamp_ns, b.stamp_ns)
+                or not self.sensors_agree(rel.pose, a, b)):
             return None
         return rel

@@ -126,13 +126,13 @@ class PointTracking:
         if not (frame.stream and g.keyframes and prev is not None):
             return None
         ref = g.reference
-        predicted = g.predicted_pose(obs)                         # T_ref_frame
+        odometry = g.motion.carried(prev, ref, obs)               # a robot's, where it has odometry
+        predicted = odometry if odometry is not None else g.predicted_pose(obs)      # T_ref_frame
         if predicted is None:
             return None
         start = time.perf_counter()
         found = track_on_points(predicted, ref.observations, obs, g.matching)
         g.stats.tracking_s += time.perf_counter() - start
-        odometry = g.motion.carried(prev, ref, obs)
         full = found is not None and found.free == 0
         late = obs.stamp_ns - prev.last_verified_ns > g.config.keyframes.max_motion_edge_s * 1e9
         if (found is None or found.free > 1 or not full and late and odometry is None
