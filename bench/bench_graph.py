@@ -1,11 +1,12 @@
-"""Benchmark: how many of a bag's frames the node graph keeps up with, and where the CPU goes.
+"""Benchmark: how many of a bag's frames the node graph keeps up with, where the CPU goes, and
+the memory each node needs.
 
 Replays one bag through `rfm run` several times for each variant (``NAME=--param settings``,
 runs alternating so machine load falls on all alike) and reports medians: frames processed
 and localized (of all the bag's colour frames), ARE/ATE when the bag has ground truth, and
 the CPU seconds of each node's process (with --no-processes: of each thread, the detector's
 worker and each node's executor; in one process the nodes share one interpreter lock, so
-these say what the frames wait for).
+these say what the frames wait for), and each node's peak resident memory (VmHWM).
 
     ros_ws/env.sh python bench/bench_graph.py --bag bags/demo --runs 5 \\
         --variant "default=" --variant "IMU per sample=detector.imu_poll_period_s:=0" [--no-processes]
@@ -55,8 +56,8 @@ def main():
     mode = '--processes' if args.processes else 'one process'
     print(f'# {args.bag}, {frames} colour frames, {mode}, {args.runs} runs per variant (median [min-max])')
     print('| variant | frames processed | frames localized | ARE (deg) | ATE (cm) '
-          '| CPU s per process or thread (median) |')
-    print('|---|---|---|---|---|---|')
+          '| CPU s per process or thread (median) | peak memory MB (median) |')
+    print('|---|---|---|---|---|---|---|')
 
     def spread(values, fmt='{:.0f}'):
         values = [v for v in values if v == v]
@@ -70,10 +71,14 @@ def main():
         threads = sorted({t for s in runs for t in s.get('cpu_s_by_thread', {})})
         cpu = ', '.join(f'{t} {statistics.median(s["cpu_s_by_thread"].get(t, 0.0) for s in runs):.2f}'
                         for t in threads) or '-'
+        nodes = sorted({n for s in runs for n in s.get('peak_memory_mb', {})})
+        memory = {n: statistics.median(s['peak_memory_mb'].get(n, 0.0) for s in runs) for n in nodes}
+        memory = ', '.join([f'{n} {v:.0f}' for n, v in memory.items()]
+                           + ([f'all {sum(memory.values()):.0f}'] if len(memory) > 1 else [])) or '-'
         print(f'| {name} | {spread([100 * s["frames"] / frames for s in runs])}% '
               f'| {spread([100 * s["localized"] / frames for s in runs])}% '
               f'| {spread([lc.get("ARE_median", float("nan")) for lc in loc], "{:.2f}")} '
-              f'| {spread([100 * lc.get("ATE_median", float("nan")) for lc in loc], "{:.1f}")} | {cpu} |')
+              f'| {spread([100 * lc.get("ATE_median", float("nan")) for lc in loc], "{:.1f}")} | {cpu} | {memory} |')
 
 
 if __name__ == '__main__':

@@ -6,7 +6,7 @@ setup(
     name=package_name,
     version='0.1.0',
     packages=find_packages(exclude=['test', 'tests']),
-    package_data={'rfm_core.matching': ['weights/*.pt'], 'rfm_core.detection': ['weights/*.json', 'weights/*.pt']},
+    package_data={'rfm_core.matching': ['weights/*.npz'], 'rfm_core.detection': ['weights/*.json', 'weights/*.npz']},
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + package_name]),
         ('share/' + package_name, ['package.xml']),

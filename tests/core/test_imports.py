@@ -39,7 +39,7 @@ def _imports(path: Path, top_level_only: bool) -> set:
 
 MODULES = {_module(p): p for p in PACKAGE.rglob('*.py')}
 #: lowest first: data types, then I/O, the per-frame stages, the map, the pipelines, the offline tools
-LAYERS = (('rfm_core.settings', 'rfm_core.geometry', 'rfm_core.transforms', 'rfm_core.processes'),
+LAYERS = (('rfm_core.settings', 'rfm_core.geometry', 'rfm_core.transforms', 'rfm_core.processes', 'rfm_core.inference'),
           ('rfm_core.clouds', 'rfm_core.observations'),
           ('rfm_core.io',),
           ('rfm_core.detection', 'rfm_core.matching'), ('rfm_core.mapping',),

@@ -65,7 +65,7 @@ def test_training_learns_from_simulated_candidates(tmp_path):
     checkpoint it writes loads into the detector."""
     import torch
 
-    from rfm_core.training.box_refiner import checkpoint, refiner_samples, train_box_refiner, training_configs
+    from rfm_core.training.box_refiner import inference_net, refiner_samples, save, train_box_refiner, training_configs
 
     (item,) = training_configs([3001], frames_per_scene=4)
     data = refiner_samples(item)
@@ -74,17 +74,30 @@ def test_training_learns_from_simulated_candidates(tmp_path):
     assert np.all(data['label'][data['has_target']] >= 0)
     net, history = train_box_refiner(data, epochs=60, batch_size=32, lr=1e-2, width=32, log=lambda *_: None)
     assert history[-1][0] < 0.7 * history[0][0] and history[-1][1] < history[0][1], history
-    path = tmp_path / 'refiner.pt'
-    torch.save(checkpoint(net, {'command': 'test'}), path)
+    path = tmp_path / 'refiner.npz'
+    save(net, path, {'command': 'test'})
     det = DepthClustersDetector(DepthClustersConfig(box_refiner=str(path)))
     assert det.box_refiner.net.width == 32
+    # the detector's numpy network is the torch module that was trained
+    pts, glob = data['points'][:16].astype(np.float32), data['globals'][:16].astype(np.float32)
+    with torch.no_grad():
+        trained = net(torch.from_numpy(pts), torch.from_numpy(glob))
+    for ours, theirs in zip(det.box_refiner.net(pts, glob), trained):
+        np.testing.assert_allclose(ours, theirs.numpy(), atol=1e-4)
+    assert inference_net(net).width == 32
 
 
 def test_missing_or_foreign_weights_say_what_to_do(tmp_path):
-    import torch
+    from rfm_core.detection.box_refiner import DEFAULT_BOX_REFINER, parameter_shapes, save_box_refiner
 
     with pytest.raises(FileNotFoundError, match='train-box-refiner'):
-        BoxRefiner.load(tmp_path / 'none.pt')
-    torch.save({'state_dict': {}, 'classes': ['thing']}, tmp_path / 'other.pt')
+        BoxRefiner.load(tmp_path / 'none.npz')
+    save_box_refiner(8, {k: np.zeros(s, np.float32) for k, s in parameter_shapes(8, 3).items()},
+                     tmp_path / 'other.npz', {})
     with pytest.raises(ValueError, match='retrain'):
-        BoxRefiner.load(tmp_path / 'other.pt')
+        BoxRefiner.load(tmp_path / 'other.npz')
+    shipped = dict(np.load(DEFAULT_BOX_REFINER))
+    shipped['head.4.bias'] = shipped['head.4.bias'] * np.nan
+    np.savez(tmp_path / 'nan.npz', **shipped)
+    with pytest.raises(ValueError, match='head.4.bias is not finite'):
+        BoxRefiner.load(tmp_path / 'nan.npz')

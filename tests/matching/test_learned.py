@@ -8,13 +8,12 @@ import torch
 from rfm_core.evaluation.matching import evaluate_pairs
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.learned import (
-    LearnedMatcher, MatcherNetConfig, ObjectMatcherNet, batch_inputs, default_weights,
-    load_matcher_net, mutual_matches, save_matcher_net,
+    LearnedMatcher, MatcherNetConfig, batch_inputs, default_weights, load_matcher_net, mutual_matches,
 )
 from rfm_core.matching.factory import make_matcher
 from rfm_core.training.matcher import (
-    STRUCTURE_ID_BASE, LabelledFrame, TrainConfig, assign_object_ids, label_structure, labelled_pairs,
-    match_targets, scene_configs, train_matcher,
+    STRUCTURE_ID_BASE, LabelledFrame, ObjectMatcherNet, TrainConfig, assign_object_ids, batch_tensors,
+    inference_net, label_structure, labelled_pairs, match_targets, save, scene_configs, train_matcher,
 )
 from rfm_core.geometry import Pose4
 from rfm_core.observations import FrameObservations
@@ -33,12 +32,12 @@ def _frame(n, dim=8, seed=0, backend='test'):
 
 def test_assignment_contract_and_permutation_equivariance():
     torch.manual_seed(0)
-    net = ObjectMatcherNet(MatcherNetConfig(embedding_dim=8, dim=32, layers=2, heads=4)).eval()
+    module = ObjectMatcherNet(MatcherNetConfig(embedding_dim=8, dim=32, layers=2, heads=4)).eval()
+    net = inference_net(module)
     a, b = _frame(5, seed=1), _frame(7, seed=2)
-    with torch.no_grad():
-        la = net(*batch_inputs([a], [b]))[0].numpy()
-        perm = np.random.default_rng(3).permutation(7)
-        lp = net(*batch_inputs([a], [b.subset(perm)]))[0].numpy()
+    la = net(*batch_inputs([a], [b]))[0]
+    perm = np.random.default_rng(3).permutation(7)
+    lp = net(*batch_inputs([a], [b.subset(perm)]))[0]
     assert la.shape == (6, 8)
     assert np.all(la <= 1e-6)                                    # log-probabilities
     # the double softmax: each row's match probabilities sum to at most one
@@ -47,9 +46,12 @@ def test_assignment_contract_and_permutation_equivariance():
     np.testing.assert_allclose(lp[:-1, :-1], la[:-1, perm], atol=1e-5)
     np.testing.assert_allclose(lp[:-1, -1], la[:-1, -1], atol=1e-5)
     # padding a batch does not change a pair's result
-    with torch.no_grad():
-        batched = net(*batch_inputs([a, _frame(9, seed=4)], [b, _frame(3, seed=5)]))[0].numpy()
+    batched = net(*batch_inputs([a, _frame(9, seed=4)], [b, _frame(3, seed=5)]))[0]
     np.testing.assert_allclose(batched[:6, :8][:-1, :-1], la[:-1, :-1], atol=1e-5)
+    # the numpy network the nodes run is the torch module that was trained, padding included
+    with torch.no_grad():
+        trained = module(*batch_tensors([a, _frame(9, seed=4)], [b, _frame(3, seed=5)])).numpy()
+    np.testing.assert_allclose(batched[:6, :8], trained[0, :6, :8], atol=1e-4)
 
 
 def test_mutual_matches_need_both_directions_and_the_threshold():
@@ -64,24 +66,30 @@ def test_mutual_matches_need_both_directions_and_the_threshold():
     assert rows.tolist() == [0, 2]
 
 
-def test_checkpoint_round_trip_and_refusals(tmp_path):
-    net = ObjectMatcherNet(MatcherNetConfig(embedding_dim=8, dim=32, layers=1))
-    path = tmp_path / 'm.pt'
-    save_matcher_net(net, path, {'command': 'test'})
+def test_weights_round_trip_and_refusals(tmp_path):
+    module = ObjectMatcherNet(MatcherNetConfig(embedding_dim=8, dim=32, layers=1))
+    path = tmp_path / 'm.npz'
+    save(module, path, {'command': 'test'})
     loaded, meta = load_matcher_net(path)
     assert meta == {'command': 'test'}
     a, b = _frame(4, seed=1), _frame(6, seed=2)
-    with torch.no_grad():
-        np.testing.assert_allclose(loaded(*batch_inputs([a], [b])).numpy(),
-                                   net.eval()(*batch_inputs([a], [b])).numpy(), atol=2e-2)  # fp16
+    np.testing.assert_allclose(loaded(*batch_inputs([a], [b])), inference_net(module)(*batch_inputs([a], [b])),
+                               atol=2e-2)  # fp16
     with pytest.raises(FileNotFoundError, match='rfm train-matcher'):
-        load_matcher_net(tmp_path / 'missing.pt')
-    (tmp_path / 'junk.pt').write_bytes(b'not a checkpoint')
+        load_matcher_net(tmp_path / 'missing.npz')
+    (tmp_path / 'junk.npz').write_bytes(b'not a checkpoint')
     with pytest.raises(ValueError, match='cannot be read .* retrain it with .rfm train-matcher'):
-        load_matcher_net(tmp_path / 'junk.pt')
-    torch.save({'format': 'something-else'}, tmp_path / 'other.pt')
-    with pytest.raises(ValueError, match='not an rfm object-matcher'):
-        load_matcher_net(tmp_path / 'other.pt')
+        load_matcher_net(tmp_path / 'junk.npz')
+    arrays = dict(np.load(path))
+    for name, change, reason in (('other', {'__meta__': np.frombuffer(b'{"format": "x", "version": 2}', np.uint8)},
+                                  'not an rfm-object-matcher'),
+                                 ('nan', {'final.bias': np.full(32, np.nan, np.float16)}, 'not finite'),
+                                 ('shape', {'final.bias': np.zeros(31, np.float16)}, 'final.bias has shape'),
+                                 ('extra', {'more.weight': np.zeros(3, np.float16)}, 'do not fit'),
+                                 ('text', {'final.bias': np.array(['a'] * 32)}, 'not finite floating')):
+        np.savez(tmp_path / f'{name}.npz', **(arrays | change))
+        with pytest.raises(ValueError, match=reason):
+            load_matcher_net(tmp_path / f'{name}.npz')
     # embeddings of the wrong size: a clear error, or the fallback
     matcher = LearnedMatcher(weights=path)
     with pytest.raises(ValueError, match='expects 8-d embeddings'):
@@ -141,7 +149,7 @@ def test_training_learns_to_match_held_out_pairs():
     test = labelled_pairs(scene_configs([3950, 3951], frames=12), specs, noise_seeds=(1,), gaps=(2,))[specs[0]]
     config = MatcherNetConfig(embedding_dim=train[0][0].observations.embeddings.shape[1], dim=64, layers=1)
     torch.manual_seed(0)
-    untrained = ObjectMatcherNet(config)
+    untrained = inference_net(ObjectMatcherNet(config))
     logs = []
     net = train_matcher(train, config, TrainConfig(epochs=10, batch_size=8, learning_rate=3e-3, drop_detections=0.0),
                         log=logs.append)
@@ -153,8 +161,8 @@ def test_training_learns_to_match_held_out_pairs():
             super().__init__()
             self._fixed = network
 
-    before = evaluate_pairs(test, Fixed(untrained.eval()))
-    after = evaluate_pairs(test, Fixed(net))
+    before = evaluate_pairs(test, Fixed(untrained))
+    after = evaluate_pairs(test, Fixed(inference_net(net)))
     assert after.f1 > 0.6 and after.f1 > before.f1 + 0.4 and after.match_precision > 0.8, (before, after)
 
 
@@ -184,7 +192,7 @@ def test_shipped_weights_beat_the_classical_matcher(spec):
     assert default_weights(spec) is not None, 'weights must ship in rfm_core/matching/weights'
     pairs = labelled_pairs(scene_configs(range(2000, 2006), frames=12), [spec], noise_seeds=(2,), gaps=(2,),
                            min_shared=3, visible=True)[spec]
-    learned = evaluate_pairs(pairs, LearnedMatcher(threads=1))
+    learned = evaluate_pairs(pairs, LearnedMatcher())
     classical = evaluate_pairs(pairs, ClassicalMatcher())
     assert learned.pairs >= 8
     assert learned.f1 > classical.f1, (learned, classical)
@@ -198,7 +206,7 @@ def test_batched_matching_equals_pair_by_pair():
                            gaps=(1, 2, 3), min_shared=2)['ground_truth:rgbd']
     query = pairs[0][0].observations
     others = [b.observations for _, b in pairs[:6]] + [query.subset([])]     # sizes differ; one empty
-    matcher = LearnedMatcher(threads=1)
+    matcher = LearnedMatcher()
     batched = matcher.match_many(query, others)
     assert len(batched) == len(others) and len(batched[-1]) == 0
     assert sum(len(m) for m in batched) > 0
@@ -212,16 +220,23 @@ def test_batched_matching_equals_pair_by_pair():
         np.testing.assert_array_equal(m.a, classical.match(query, b).a)
 
 
-def test_the_classical_matcher_never_loads_torch():
-    """Nodes started with matcher:=classical import neither the learned matcher nor torch."""
+def test_the_nodes_run_without_torch():
+    """torch costs a node process about 180 MB: the learned matcher and the box refiner run
+    in numpy, so neither a node nor its default models import it (only CuTR and training do)."""
     import subprocess
     import sys
     code = ('import sys\n'
-            'import rfm_matcher_node.matcher_node, rfm_mapper_node.mapper_node\n'
+            'import numpy as np\n'
+            'import rfm_detector_node.detector_node, rfm_matcher_node.matcher_node, rfm_mapper_node.mapper_node\n'
+            'from rfm_core.detection.box_refiner import BoxRefiner\n'
             'from rfm_core.matching.factory import make_matcher\n'
-            "make_matcher('classical')\n"
-            "assert 'torch' not in sys.modules, 'torch imported'\n"
-            "make_matcher('learned')\n"
-            "assert 'torch' in sys.modules\n")
+            'from rfm_core.matching.learned import default_weights, load_matcher_net\n'
+            "net, _ = load_matcher_net(default_weights('depth_clusters'))\n"
+            'e = np.ones((1, 3, net.config.embedding_dim), np.float32)\n'
+            'p, m = np.zeros((1, 3, 7), np.float32), np.ones((1, 3), bool)\n'
+            'assert np.isfinite(net(e, p, m, e, p, m)).all()\n'
+            "BoxRefiner.load('default')\n"
+            "make_matcher('learned'), make_matcher('classical')\n"
+            "assert 'torch' not in sys.modules, 'torch imported'\n")
     proc = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]

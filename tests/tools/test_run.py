@@ -62,6 +62,10 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     summary = json.loads((out / 'summary.json').read_text())
     assert summary['received'] >= 0.9 * 40 and summary['points_only'] == 0, summary
     assert summary['matcher_frames']['processed'] >= 0.9 * 40 and summary['cpu_s_by_thread'], summary
+    # each node's peak memory, without torch (about 180 MB a process with it)
+    memory = summary['peak_memory_mb']
+    assert set(memory) == ({'detector', 'matcher', 'mapper'} if processes else {'graph'}), memory
+    assert sum(memory.values()) < (700 if processes else 400), memory
     # the camera poses as published, each with its covariance, scored against the truth
     live = summary['accuracy']['localization']
     assert live['published'] >= 0.8 * 40 and live['published_gross'] == 0, live

@@ -394,7 +394,7 @@ def cmd_train_box_refiner(args) -> int:
 
     from rfm_core.detection.box_refiner import DEFAULT_BOX_REFINER  # noqa: PLC0415
     from rfm_core.training.box_refiner import (  # noqa: PLC0415
-        checkpoint, refiner_samples, train_box_refiner, training_configs)
+        refiner_samples, save, train_box_refiner, training_configs)
 
     torch.set_num_threads(max(1, args.threads))
     seeds = range(args.first_seed, args.first_seed + args.scenes)
@@ -425,10 +425,9 @@ def cmd_train_box_refiner(args) -> int:
     output.parent.mkdir(parents=True, exist_ok=True)
     command = ('rfm train-box-refiner ' + ' '.join(sys.argv[2:]) if sys.argv[1:2] == ['train-box-refiner']
                else 'rfm train-box-refiner (API)')
-    torch.save(checkpoint(net, {'command': command, 'scene_seeds': [seeds.start, seeds.stop - 1],
-                                'samples': n, 'epochs': args.epochs, 'final_losses': history[-1],
-                                'torch': str(torch.__version__), 'seconds': round(time.perf_counter() - start)}),
-               output)
+    save(net, output, {'command': command, 'scene_seeds': [seeds.start, seeds.stop - 1], 'samples': n,
+                       'epochs': args.epochs, 'final_losses': history[-1], 'torch': str(torch.__version__),
+                       'seconds': round(time.perf_counter() - start)})
     print(f'wrote {output} ({output.stat().st_size / 1e6:.2f} MB, {time.perf_counter() - start:.0f} s)')
     return 0
 
@@ -439,9 +438,9 @@ def cmd_train_matcher(args) -> int:
 
     import torch  # noqa: PLC0415
 
-    from rfm_core.matching.learned import MatcherNetConfig, WEIGHTS_DIR, save_matcher_net  # noqa: PLC0415
+    from rfm_core.matching.learned import MatcherNetConfig, WEIGHTS_DIR  # noqa: PLC0415
     from rfm_core.training.matcher import (  # noqa: PLC0415
-        TrainConfig, labelled_pairs, scene_configs, train_matcher)
+        TrainConfig, labelled_pairs, save, scene_configs, train_matcher)
 
     specs = ([f'ground_truth:{p}' for p in args.presets] if args.backend == 'ground_truth'
              else [args.backend])
@@ -460,7 +459,7 @@ def cmd_train_matcher(args) -> int:
     config = TrainConfig(epochs=args.epochs, batch_size=args.batch_size, learning_rate=args.lr,
                          seed=args.seed, threads=args.threads)
     net = train_matcher(data, MatcherNetConfig(embedding_dim=dim, layers=args.layers), config)
-    output = Path(args.output) if args.output else WEIGHTS_DIR / f'object_matcher_{args.backend}.pt'
+    output = Path(args.output) if args.output else WEIGHTS_DIR / f'object_matcher_{args.backend}.npz'
     output.parent.mkdir(parents=True, exist_ok=True)
     metadata = {'command': 'rfm train-matcher ' + ' '.join(sys.argv[2:]) if sys.argv[1:2] == ['train-matcher']
                 else 'rfm train-matcher (API)', 'backend': args.backend, 'inputs': specs,
@@ -469,7 +468,7 @@ def cmd_train_matcher(args) -> int:
                 'train': asdict(config),
                 'torch': torch.__version__,
                 'seconds': round(time.perf_counter() - start)}
-    save_matcher_net(net, output, metadata)
+    save(net, output, metadata)
     print(f'wrote {output} ({output.stat().st_size / 1e6:.1f} MB, {time.perf_counter() - start:.0f} s)')
     return 0
 

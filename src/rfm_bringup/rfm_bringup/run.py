@@ -237,6 +237,11 @@ class _InProcessGraph:
         seconds = {t.name: _cpu_seconds(f'/proc/self/task/{t.native_id}/stat') for t in threading.enumerate()}
         return {k: v for k, v in seconds.items() if v is not None}
 
+    def peak_memory_mb(self) -> dict:
+        """Peak resident memory of this process (all three nodes and the player; Linux only)."""
+        mb = _peak_memory_mb('/proc/self/status')
+        return {'graph': mb} if mb is not None else {}
+
     def save(self, path) -> bool:
         """Save the map once the nodes have stopped spinning: no callback changes the map
         while it is written (with --live input still arrives)."""
@@ -254,6 +259,17 @@ class _InProcessGraph:
         self._halt()
         for node in (self.detector, self.matcher, self.mapper):
             node.destroy_node()
+
+
+def _peak_memory_mb(status_path: str) -> float | None:
+    """Peak resident memory (VmHWM, MB) of a process from its /proc status file (None where
+    there is none)."""
+    try:
+        with open(status_path) as f:
+            line = next(line for line in f if line.startswith('VmHWM:'))
+        return round(int(line.split()[1]) / 1024, 1)
+    except (OSError, StopIteration, IndexError, ValueError):
+        return None
 
 
 def _cpu_seconds(stat_path: str) -> float | None:
@@ -383,6 +399,12 @@ class _ProcessGraph:
                                                                                  self.procs)}
         return {k: v for k, v in seconds.items() if v is not None}
 
+    def peak_memory_mb(self) -> dict:
+        """Peak resident memory of each node's process so far (Linux only, else empty)."""
+        mb = {name: _peak_memory_mb(f'/proc/{p.pid}/status') for name, p in zip(('detector', 'matcher', 'mapper'),
+                                                                                self.procs)}
+        return {k: v for k, v in mb.items() if v is not None}
+
     def save(self, path) -> bool:
         from rfm_msgs.srv import SaveMap  # noqa: PLC0415
         client = self.node.create_client(SaveMap, 'rfm/save_map')
@@ -506,7 +528,7 @@ def run_graph(args) -> int:
             sys.stderr.write('\n')
         cpu = graph.cpu_seconds() if graph is not None else {}     # while the threads run
         ok = graph.save(output / 'map.rfm') if graph is not None else False
-        final = dict(graph.progress(), cpu_s=cpu) if graph is not None else {}
+        final = dict(graph.progress(), cpu_s=cpu, peak_memory_mb=graph.peak_memory_mb()) if graph is not None else {}
         if recorder is not None:
             recorder.close()
         if graph is not None:
@@ -573,6 +595,7 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
                'dropped_by_reason': progress.get('dropped_by_reason', {}),
                'matcher_frames': progress.get('matcher_frames') or {},
                'lost_between_nodes': progress.get('lost', 0), 'cpu_s_by_thread': progress.get('cpu_s', {}),
+               'peak_memory_mb': progress.get('peak_memory_mb', {}),
                'relocalization': progress.get('relocalization') or {},
                'localized': len(mapper.frame_poses()), 'keyframes': len(mapper.keyframes),
                'registered': len(mapper.poses), 'edges': len(mapper.active_edges()),

@@ -20,22 +20,24 @@ Fragments other than an object's main part score low and fall below the detector
 threshold; non-maximum suppression over the published boxes (``nms_iou``) removes the
 overlaps that remain (with predicted boxes: fragments that predict the same box). Trained by ``rfm train-box-refiner``
 (:mod:`rfm_core.training.box_refiner`) on simulated scenes of training seeds; weights ship
-in ``weights/box_refiner.pt`` with the command that produced them.
+in ``weights/box_refiner.npz`` with the command that produced them (numpy runs them:
+:mod:`rfm_core.inference`).
 """
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
-import torch
-from torch import nn
 
 from rfm_core.geometry import iou_3d, wrap_angle
+from rfm_core.inference import linear, load_weights, relu, save_weights
 
-__all__ = ['CLASSES', 'NUM_POINTS', 'POINT_FEATURES', 'GLOBAL_FEATURES', 'DEFAULT_BOX_REFINER',
-           'BoxRefinerNet', 'BoxRefiner', 'candidate_inputs', 'encode_target', 'decode_boxes']
+__all__ = ['CLASSES', 'NUM_POINTS', 'POINT_FEATURES', 'GLOBAL_FEATURES', 'DEFAULT_BOX_REFINER', 'WEIGHTS_FORMAT',
+           'RefinerNet', 'BoxRefiner', 'candidate_inputs', 'encode_target', 'decode_boxes', 'parameter_shapes',
+           'save_box_refiner']
 
-DEFAULT_BOX_REFINER = Path(__file__).parent / 'weights' / 'box_refiner.pt'
+DEFAULT_BOX_REFINER = Path(__file__).parent / 'weights' / 'box_refiner.npz'
+WEIGHTS_FORMAT = 'rfm-box-refiner'
 CLASSES = ('bed', 'sofa', 'table', 'desk', 'cabinet', 'bookshelf', 'wardrobe', 'tv_stand', 'armchair',
            'nightstand', 'stool', 'bin', 'plant', 'chair', 'lamp', 'box', 'books', 'vase', 'monitor',
            'bowl', 'tv')
@@ -110,49 +112,60 @@ def decode_boxes(boxes, deltas) -> np.ndarray:
     return np.concatenate([centre, size, yaw[:, None]], 1)
 
 
-class BoxRefinerNet(nn.Module):
-    """PointNet over a cluster's points, joined with its global features."""
+def parameter_shapes(width: int, classes: int = len(CLASSES)) -> dict:
+    """{parameter name: shape} of the network (the names of the training module's state_dict)."""
+    layers = {'point_mlp.0': (64, POINT_FEATURES, 1), 'point_mlp.2': (width, 64, 1),
+              'point_mlp.4': (2 * width, width, 1), 'head.0': (2 * width, 2 * width + GLOBAL_FEATURES),
+              'head.2': (width, 2 * width), 'head.4': (1 + 8 + classes, width)}
+    return {k: v for name, shape in layers.items()
+            for k, v in ((f'{name}.weight', shape), (f'{name}.bias', shape[:1]))}
 
-    def __init__(self, width: int = 128, classes: int = len(CLASSES)):
-        super().__init__()
-        self.width, self.classes = width, classes
-        self.point_mlp = nn.Sequential(
-            nn.Conv1d(POINT_FEATURES, 64, 1), nn.ReLU(), nn.Conv1d(64, width, 1), nn.ReLU(),
-            nn.Conv1d(width, 2 * width, 1))
-        self.head = nn.Sequential(
-            nn.Linear(2 * width + GLOBAL_FEATURES, 2 * width), nn.ReLU(),
-            nn.Linear(2 * width, width), nn.ReLU(), nn.Linear(width, 1 + 8 + classes))
 
-    def forward(self, points: torch.Tensor, globals_: torch.Tensor):
+class RefinerNet:
+    """PointNet over a cluster's points (a shared MLP, max-pooled), joined with its global
+    features; numpy forward pass of the training module's parameters."""
+
+    def __init__(self, width: int, params: dict):
+        self.width = int(width)
+        self.params = params
+
+    def __call__(self, points: np.ndarray, globals_: np.ndarray):
         """points (N, P, POINT_FEATURES), globals (N, GLOBAL_FEATURES) -> objectness logit (N,),
         box deltas (N, 8), class logits (N, classes)."""
-        feat = self.point_mlp(points.transpose(1, 2)).amax(dim=2)
-        out = self.head(torch.cat([feat, globals_], 1))
+        p = self.params
+        feat = linear(relu(linear(relu(linear(points, p, 'point_mlp.0')), p, 'point_mlp.2')), p, 'point_mlp.4')
+        x = np.concatenate([feat.max(axis=1), globals_], 1)
+        out = linear(relu(linear(relu(linear(x, p, 'head.0')), p, 'head.2')), p, 'head.4')
         return out[:, 0], out[:, 1:9], out[:, 9:]
+
+
+def save_box_refiner(width: int, params: dict, path, metadata: dict) -> None:
+    """Write the refiner's parameters ({name: array}) with its description and ``metadata``."""
+    save_weights(path, params, {'format': WEIGHTS_FORMAT, 'version': 2, 'width': int(width), 'classes': list(CLASSES),
+                                'num_points': NUM_POINTS, 'metadata': metadata})
 
 
 class BoxRefiner:
     """Refines one frame's candidates: ``refine(candidates) -> (boxes, scores, labels)``."""
 
-    def __init__(self, net: BoxRefinerNet, nms_iou: float = 0.3, num_points: int = NUM_POINTS):
-        self.net = net.eval()
+    def __init__(self, net: RefinerNet, nms_iou: float = 0.3, num_points: int = NUM_POINTS):
+        self.net = net
         self.nms_iou = float(nms_iou)
         self.num_points = int(num_points)
 
     @classmethod
     def load(cls, path='default', nms_iou: float = 0.3) -> 'BoxRefiner':
         path = DEFAULT_BOX_REFINER if path in ('default', None) else Path(path)
-        if not Path(path).is_file():
-            raise FileNotFoundError(f'box refiner weights {path} not found: train them with '
-                                    "rfm train-box-refiner, or set depth_clusters.box_refiner:='' for "
-                                    'the heuristic boxes')
-        ckpt = torch.load(path, map_location='cpu', weights_only=True)
-        if list(ckpt.get('classes', [])) != list(CLASSES) or ckpt.get('num_points') is None:
-            raise ValueError(f'{path}: not a box refiner checkpoint of this version (classes '
-                             f'{ckpt.get("classes")}); retrain with rfm train-box-refiner')
-        net = BoxRefinerNet(width=int(ckpt['width']))
-        net.load_state_dict(ckpt['state_dict'])
-        return cls(net, nms_iou, int(ckpt['num_points']))
+
+        def shapes(meta):
+            if list(meta['classes']) != list(CLASSES):
+                raise ValueError(f'classes {meta["classes"]} are not this version\'s')
+            return parameter_shapes(int(meta['width']))
+        params, meta = load_weights(path, WEIGHTS_FORMAT, 2, shapes, 'rfm train-box-refiner')
+        num_points = meta.get('num_points')
+        if not isinstance(num_points, int) or not 0 < num_points <= 4096:
+            raise ValueError(f'{path}: num_points {num_points!r} is not a point count; retrain with rfm train-box-refiner')
+        return cls(RefinerNet(int(meta['width']), params), nms_iou, num_points)
 
     def refine(self, found):
         """(boxes (N, 7), objectness (N,), labels) for the candidates of one frame."""
@@ -160,10 +173,9 @@ class BoxRefiner:
         if not n:
             return np.zeros((0, 7)), np.zeros(0), []
         pts, glob = candidate_inputs(found, self.num_points)
-        with torch.inference_mode():
-            logit, deltas, cls_logits = self.net(torch.from_numpy(pts), torch.from_numpy(glob))
-        boxes = decode_boxes(np.array([c.box for c in found.items]), deltas.numpy())
-        scores = torch.sigmoid(logit).numpy().astype(np.float64)
+        logit, deltas, cls_logits = self.net(pts, glob)
+        boxes = decode_boxes(np.array([c.box for c in found.items]), deltas)
+        scores = 1.0 / (1.0 + np.exp(-logit.astype(np.float64)))
         labels = [CLASSES[k] for k in cls_logits.argmax(1).tolist()]
         return boxes, scores, labels
 

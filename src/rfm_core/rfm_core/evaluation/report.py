@@ -303,7 +303,10 @@ def write_report(path, summary: dict) -> Path:
                 f'95th percentile {r["p95_ms"]:.0f} ms'] if (r := s.get('relocalization') or {}).get('queries') else []),
              f'- processing time: {s.get("wall_s", 0):.1f} s for {s.get("bag_s", 0):.1f} s of data '
              f'({s.get("realtime", 0):.2f}x real time; from the first frame detected until the last change '
-             f'of the graph; 0.2 s polling)', '']
+             f'of the graph; 0.2 s polling)',
+             *([f'- peak resident memory: ' + ', '.join(f'{k} {v:.0f} MB' for k, v in mem.items())
+                + (f' ({sum(mem.values()):.0f} MB in all)' if len(mem) > 1 else '')]
+               if (mem := s.get('peak_memory_mb')) else []), '']
     if s.get('latency_ms'):
         lines += ['## Per-stage latency (median, ms)', '', '| stage | ms |', '|---|---|']
         lines += [f'| {k} | {v:.1f} |' for k, v in s['latency_ms'].items()] + ['']

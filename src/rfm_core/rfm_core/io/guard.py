@@ -7,6 +7,8 @@ from __future__ import annotations
 import functools
 from typing import Callable
 
+from rfm_core.processes import limit_blas_threads
+
 __all__ = ['guarded', 'decoded', 'GuardedCallbacks']
 
 
@@ -33,9 +35,14 @@ class GuardedCallbacks:
     """A mixin for a node (``class N(GuardedCallbacks, Node)``): every subscription, timer and
     service it creates runs :func:`guarded`; an unexpected error is counted
     (``unexpected_errors``, for the node's diagnostics or status), logged (throttled) and
-    the node goes on. A node that reports elsewhere too overrides :meth:`callback_failed`."""
+    the node goes on. A node that reports elsewhere too overrides :meth:`callback_failed`.
+    Its process's math libraries run on one thread (:func:`~rfm_core.processes.limit_blas_threads`)."""
 
     unexpected_errors = 0
+
+    def __init__(self, *args, **kwargs):
+        limit_blas_threads()
+        super().__init__(*args, **kwargs)
 
     def create_subscription(self, msg_type, topic, callback, *args, **kwargs):
         return super().create_subscription(msg_type, topic, guarded(callback, self.callback_failed), *args, **kwargs)

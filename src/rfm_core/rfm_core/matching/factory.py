@@ -1,9 +1,9 @@
-"""The object matcher by name, importing torch only for the learned one (nodes started with
-``matcher:=classical`` never load it)."""
+"""The object matcher by name (the learned one loads its weights on first use)."""
 from __future__ import annotations
 
 from rfm_core.matching.classical import ClassicalMatcher
 from rfm_core.matching.config import MatchingConfig
+from rfm_core.matching.learned import LearnedMatcher
 
 __all__ = ['make_matcher']
 
@@ -14,7 +14,5 @@ def make_matcher(kind: str, config: MatchingConfig | None = None, weights=None, 
     if kind == 'classical':
         return ClassicalMatcher(config)
     if kind == 'learned':
-        from rfm_core.matching.learned import LearnedMatcher  # noqa: PLC0415 - torch
-        return LearnedMatcher(config, weights=weights or None, threads=1,
-                              fallback=ClassicalMatcher(config), on_fallback=on_fallback)
+        return LearnedMatcher(config, weights=weights or None, fallback=ClassicalMatcher(config), on_fallback=on_fallback)
     raise ValueError(f"unknown matcher {kind!r}; choose 'learned' or 'classical'")

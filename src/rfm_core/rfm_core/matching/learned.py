@@ -19,18 +19,17 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
-import torch.nn.functional as F
-from torch import nn
 
+from rfm_core.inference import attention, gelu, layer_norm, linear, load_weights, log_sigmoid, log_softmax, save_weights
 from rfm_core.matching.classical import ObjectMatches
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.observations import FrameObservations
 
-__all__ = ['MatcherNetConfig', 'ObjectMatcherNet', 'LearnedMatcher', 'box_features',
-           'WEIGHTS_DIR', 'default_weights', 'load_matcher_net', 'save_matcher_net']
+__all__ = ['MatcherNetConfig', 'MatcherNet', 'LearnedMatcher', 'box_features', 'batch_inputs', 'parameter_shapes',
+           'WEIGHTS_DIR', 'WEIGHTS_FORMAT', 'default_weights', 'load_matcher_net', 'save_matcher_net']
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / 'weights'
+WEIGHTS_FORMAT = 'rfm-object-matcher'
 POSITION_FEATURES = 7
 
 
@@ -51,96 +50,79 @@ def box_features(boxes: np.ndarray, scores: np.ndarray) -> np.ndarray:
                  np.asarray(scores, np.float32).reshape(-1, 1)].astype(np.float32)
 
 
-class _Attention(nn.Module):
-    """Multi-head attention over padded token sets (mask: True = a real token)."""
-
-    def __init__(self, dim: int, heads: int):
-        super().__init__()
-        self.heads = heads
-
-    def forward(self, q, k, v, key_mask):
-        b, n, d = q.shape
-        h = self.heads
-        q, k, v = (t.reshape(b, -1, h, d // h).transpose(1, 2) for t in (q, k, v))
-        mask = key_mask[:, None, None, :]
-        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
-        return out.transpose(1, 2).reshape(b, n, d)
-
-
-def _ffn(dim: int) -> nn.Sequential:
-    return nn.Sequential(nn.Linear(2 * dim, dim), nn.LayerNorm(dim), nn.GELU(), nn.Linear(dim, dim))
-
-
-class _SelfBlock(nn.Module):
-    def __init__(self, dim: int, heads: int):
-        super().__init__()
-        self.qkv = nn.Linear(dim, 3 * dim)
-        self.attention = _Attention(dim, heads)
-        self.out = nn.Linear(dim, dim)
-        self.ffn = _ffn(dim)
-
-    def forward(self, x, mask):
-        q, k, v = self.qkv(x).chunk(3, dim=-1)
-        message = self.out(self.attention(q, k, v, mask))
-        return x + self.ffn(torch.cat([x, message], -1))
+def parameter_shapes(config: MatcherNetConfig) -> dict:
+    """{parameter name: shape} of the network (the names of the training module's state_dict)."""
+    d = config.dim
+    shapes = {'embed.weight': (d, config.embedding_dim), 'embed.bias': (d,),
+              'position.0.weight': (64, POSITION_FEATURES), 'position.0.bias': (64,),
+              'position.2.weight': (64, 64), 'position.2.bias': (64,),
+              'position.4.weight': (d, 64), 'position.4.bias': (d,),
+              'final.weight': (d, d), 'final.bias': (d,), 'matchability.weight': (1, d), 'matchability.bias': (1,)}
+    for i in range(config.layers):
+        for block, projections in ((f'self_blocks.{i}', {'qkv': 3 * d, 'out': d}),
+                                   (f'cross_blocks.{i}', {'qk': d, 'v': d, 'out': d})):
+            for name, rows in projections.items():
+                shapes |= {f'{block}.{name}.weight': (rows, d), f'{block}.{name}.bias': (rows,)}
+            shapes |= {f'{block}.ffn.0.weight': (d, 2 * d), f'{block}.ffn.0.bias': (d,),
+                       f'{block}.ffn.1.weight': (d,), f'{block}.ffn.1.bias': (d,),
+                       f'{block}.ffn.3.weight': (d, d), f'{block}.ffn.3.bias': (d,)}
+    return shapes
 
 
-class _CrossBlock(nn.Module):
-    """LightGlue's bidirectional cross-attention: shared query/key projection."""
+class MatcherNet:
+    """The network's forward pass in numpy (float32), from its parameters.
 
-    def __init__(self, dim: int, heads: int):
-        super().__init__()
-        self.qk = nn.Linear(dim, dim)
-        self.v = nn.Linear(dim, dim)
-        self.attention = _Attention(dim, heads)
-        self.out = nn.Linear(dim, dim)
-        self.ffn = _ffn(dim)
+    Each block: self-attention within a frame, then LightGlue's bidirectional
+    cross-attention (a shared query/key projection) between the frames; each message is
+    merged by a feed-forward net of [token, message] (Linear, LayerNorm, GELU, Linear).
+    """
 
-    def forward(self, x0, x1, mask0, mask1):
-        qk0, qk1 = self.qk(x0), self.qk(x1)
-        v0, v1 = self.v(x0), self.v(x1)
-        m0 = self.out(self.attention(qk0, qk1, v1, mask1))
-        m1 = self.out(self.attention(qk1, qk0, v0, mask0))
-        return x0 + self.ffn(torch.cat([x0, m0], -1)), x1 + self.ffn(torch.cat([x1, m1], -1))
-
-
-class ObjectMatcherNet(nn.Module):
-    def __init__(self, config: MatcherNetConfig):
-        super().__init__()
+    def __init__(self, config: MatcherNetConfig, params: dict):
         self.config = config
-        d = config.dim
-        self.embed = nn.Linear(config.embedding_dim, d)
-        self.position = nn.Sequential(nn.Linear(POSITION_FEATURES, 64), nn.GELU(),
-                                      nn.Linear(64, 64), nn.GELU(), nn.Linear(64, d))
-        self.self_blocks = nn.ModuleList(_SelfBlock(d, config.heads) for _ in range(config.layers))
-        self.cross_blocks = nn.ModuleList(_CrossBlock(d, config.heads) for _ in range(config.layers))
-        self.final = nn.Linear(d, d)
-        self.matchability = nn.Linear(d, 1)
+        self.params = params
 
-    def forward(self, emb0, pos0, mask0, emb1, pos1, mask1) -> torch.Tensor:
+    def _ffn(self, block: str, x, message):
+        p = self.params
+        h = gelu(layer_norm(linear(np.concatenate([x, message], -1), p, f'{block}.ffn.0'), p, f'{block}.ffn.1'))
+        return x + linear(h, p, f'{block}.ffn.3')
+
+    def _tokens(self, emb, pos):
+        p = self.params
+        position = linear(gelu(linear(gelu(linear(pos, p, 'position.0')), p, 'position.2')), p, 'position.4')
+        return linear(emb, p, 'embed') + position
+
+    def __call__(self, emb0, pos0, mask0, emb1, pos1, mask1) -> np.ndarray:
         """Log-assignment (B, N+1, M+1) of padded token sets (masks: True = real)."""
-        x0 = self.embed(emb0) + self.position(pos0)
-        x1 = self.embed(emb1) + self.position(pos1)
-        for self_block, cross_block in zip(self.self_blocks, self.cross_blocks):
-            x0, x1 = self_block(x0, mask0), self_block(x1, mask1)
-            x0, x1 = cross_block(x0, x1, mask0, mask1)
+        p, heads = self.params, self.config.heads
+        x0, x1 = self._tokens(emb0, pos0), self._tokens(emb1, pos1)
+        for i in range(self.config.layers):
+            block = f'self_blocks.{i}'
+            updated = []
+            for x, mask in ((x0, mask0), (x1, mask1)):
+                q, k, v = np.split(linear(x, p, f'{block}.qkv'), 3, axis=-1)
+                updated.append(self._ffn(block, x, linear(attention(q, k, v, mask, heads), p, f'{block}.out')))
+            x0, x1 = updated
+            block = f'cross_blocks.{i}'
+            qk0, qk1 = linear(x0, p, f'{block}.qk'), linear(x1, p, f'{block}.qk')
+            v0, v1 = linear(x0, p, f'{block}.v'), linear(x1, p, f'{block}.v')
+            m0 = linear(attention(qk0, qk1, v1, mask1, heads), p, f'{block}.out')
+            m1 = linear(attention(qk1, qk0, v0, mask0, heads), p, f'{block}.out')
+            x0, x1 = self._ffn(block, x0, m0), self._ffn(block, x1, m1)
         return self._log_assignment(x0, x1, mask0, mask1)
 
     def _log_assignment(self, x0, x1, mask0, mask1):
-        d = x0.shape[-1]
-        m0, m1 = self.final(x0) / d ** 0.25, self.final(x1) / d ** 0.25
-        sim = m0 @ m1.transpose(1, 2)                                   # (B, N, M)
+        p, d = self.params, x0.shape[-1]
+        m0, m1 = linear(x0, p, 'final') / d ** 0.25, linear(x1, p, 'final') / d ** 0.25
+        sim = m0 @ m1.transpose(0, 2, 1)                                 # (B, N, M)
         pair = mask0[:, :, None] & mask1[:, None, :]
-        very_negative = torch.finfo(sim.dtype).min / 4
-        sim = sim.masked_fill(~pair, very_negative)
-        z0, z1 = self.matchability(x0), self.matchability(x1)          # (B, N, 1), (B, M, 1)
-        scores = (F.log_softmax(sim, 2) + F.log_softmax(sim, 1)
-                  + F.logsigmoid(z0) + F.logsigmoid(z1).transpose(1, 2))
+        sim = np.where(pair, sim, np.finfo(np.float32).min / 4)
+        z0, z1 = linear(x0, p, 'matchability'), linear(x1, p, 'matchability')     # (B, N, 1), (B, M, 1)
+        scores = log_softmax(sim, 2) + log_softmax(sim, 1) + log_sigmoid(z0) + log_sigmoid(z1).transpose(0, 2, 1)
         b, n, m = sim.shape
-        out = sim.new_full((b, n + 1, m + 1), 0.0)
+        out = np.zeros((b, n + 1, m + 1), np.float32)
         out[:, :n, :m] = scores
-        out[:, :n, m] = F.logsigmoid(-z0[..., 0])
-        out[:, n, :m] = F.logsigmoid(-z1[..., 0])
+        out[:, :n, m] = log_sigmoid(-z0[..., 0])
+        out[:, n, :m] = log_sigmoid(-z1[..., 0])
         return out
 
 
@@ -151,7 +133,7 @@ def _padded(items, width):
     for i, x in enumerate(items):
         out[i, :len(x)] = x
         mask[i, :len(x)] = True
-    return torch.from_numpy(out), torch.from_numpy(mask)
+    return out, mask
 
 
 def batch_inputs(frames_a, frames_b):
@@ -176,34 +158,21 @@ def mutual_matches(log_assignment: np.ndarray, threshold: float):
     return rows[keep], best_col[keep], p[rows[keep], best_col[keep]]
 
 
-def save_matcher_net(net: ObjectMatcherNet, path, metadata: dict | None = None) -> None:
-    """Half-precision state dict plus the config and training metadata (a few MB)."""
-    state = {k: v.detach().to(torch.float16) for k, v in net.state_dict().items()}
-    path = Path(path)
-    tmp = path.with_suffix(path.suffix + '.tmp')
-    torch.save({'format': 'rfm-object-matcher', 'version': 1, 'config': asdict(net.config),
-                'metadata': json.dumps(metadata or {}), 'state_dict': state}, tmp)
-    tmp.replace(path)
+def save_matcher_net(config: MatcherNetConfig, params: dict, path, metadata: dict | None = None) -> None:
+    """Half-precision parameters ({name: array}) plus the config and training metadata (a few MB)."""
+    save_weights(path, {k: np.asarray(v, np.float16) for k, v in params.items()},
+                 {'format': WEIGHTS_FORMAT, 'version': 2, 'config': asdict(config), 'metadata': metadata or {}})
 
 
-def load_matcher_net(path) -> tuple[ObjectMatcherNet, dict]:
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f'object matcher weights not found: {path} '
-                                f'(train them with `rfm train-matcher`)')
-    try:
-        blob = torch.load(path, map_location='cpu', weights_only=True)
-    except Exception as exc:  # noqa: BLE001 - torch raises several kinds for a damaged file
-        raise ValueError(f'{path} cannot be read as an rfm object-matcher checkpoint ({exc.__class__.__name__}); '
-                         'retrain it with `rfm train-matcher` or pass another file') from exc
-    if not isinstance(blob, dict) or blob.get('format') != 'rfm-object-matcher':
-        raise ValueError(f'{path} is not an rfm object-matcher checkpoint')
-    if blob.get('version') != 1:
-        raise ValueError(f'{path}: unsupported object-matcher checkpoint version {blob.get("version")}')
-    net = ObjectMatcherNet(MatcherNetConfig(**blob['config']))
-    net.load_state_dict({k: v.float() for k, v in blob['state_dict'].items()}, strict=True)
-    net.eval()
-    return net, json.loads(blob.get('metadata') or '{}')
+def load_matcher_net(path) -> tuple[MatcherNet, dict]:
+    """(network, training metadata) of a weights file written by :func:`save_matcher_net`."""
+    def shapes(meta):
+        return parameter_shapes(MatcherNetConfig(**meta['config']))
+    params, meta = load_weights(path, WEIGHTS_FORMAT, 2, shapes, 'rfm train-matcher')
+    config = MatcherNetConfig(**meta['config'])
+    if config.dim % config.heads:
+        raise ValueError(f'{path}: {config.dim}-wide tokens do not split into {config.heads} heads')
+    return MatcherNet(config, params), meta.get('metadata') or {}
 
 
 def default_weights(backend: str) -> Path | None:
@@ -213,7 +182,7 @@ def default_weights(backend: str) -> Path | None:
     family = backend.split(':', 1)[0]
     if not (0 < len(family) <= 64 and family.replace('_', '').isalnum() and family.isascii() and family.islower()):
         return None
-    path = WEIGHTS_DIR / f'object_matcher_{family}.pt'
+    path = WEIGHTS_DIR / f'object_matcher_{family}.npz'
     return path if path.is_file() else None
 
 
@@ -227,17 +196,15 @@ class LearnedMatcher:
     raise ValueError saying what to do.
     """
 
-    def __init__(self, config: MatchingConfig | None = None, weights=None, threads: int | None = None,
-                 fallback=None, on_fallback=None):
+    def __init__(self, config: MatchingConfig | None = None, weights=None, fallback=None, on_fallback=None):
         self.config = config or MatchingConfig()
         self._fixed = load_matcher_net(weights)[0] if weights else None
         self._by_backend: dict = {}
-        self.threads = threads
         self.fallback = fallback
         self.on_fallback = on_fallback
         self._reported: set = set()
 
-    def network(self, backend: str) -> ObjectMatcherNet:
+    def network(self, backend: str) -> MatcherNet:
         if self._fixed is not None:
             return self._fixed
         family = backend.split(':', 1)[0]
@@ -262,15 +229,7 @@ class LearnedMatcher:
                 raise ValueError(f'object matcher expects {dim}-d embeddings, got {a.embeddings.shape[1]} '
                                  f'and {b.embeddings.shape[1]} (detector {a.backend!r}); pass weights '
                                  f'trained for this detector as matcher_weights')
-        previous = torch.get_num_threads()
-        if self.threads:
-            torch.set_num_threads(self.threads)
-        try:
-            with torch.inference_mode():
-                out = net(*batch_inputs([a] * len(others), list(others))).numpy()
-        finally:
-            if self.threads:
-                torch.set_num_threads(previous)
+        out = net(*batch_inputs([a] * len(others), list(others)))
         # crop each pair's padding: rows 0..len(a)-1 plus the dustbin, same for columns
         rows = np.r_[np.arange(len(a)), out.shape[1] - 1]
         return [o[rows][:, np.r_[np.arange(len(b)), out.shape[2] - 1]] for o, b in zip(out, others)]

@@ -10,17 +10,19 @@ ground truth lists as visible, and the cluster is that object's largest in the f
 from __future__ import annotations
 
 import time
+
 import numpy as np
 import torch
 import torch.nn.functional as F
+from torch import nn
 
-from rfm_core.detection.box_refiner import (CLASSES, NUM_POINTS, BoxRefinerNet, candidate_inputs,
-                                            encode_target)
+from rfm_core.detection.box_refiner import (CLASSES, GLOBAL_FEATURES, POINT_FEATURES, RefinerNet, candidate_inputs,
+                                            encode_target, save_box_refiner)
 from rfm_core.detection.depth_clusters import DepthClustersConfig, DepthClustersDetector
 from rfm_core.evaluation.detection import express_in
 from rfm_core.sim.capture import Capture
 
-__all__ = ['training_configs', 'refiner_samples', 'train_box_refiner']
+__all__ = ['training_configs', 'refiner_samples', 'train_box_refiner', 'BoxRefinerNet', 'save', 'inference_net']
 
 MIN_SHARE = 0.5       #: a positive: its object owns at least this share of the cluster's points
 TARGET_SHARE = 0.3    #: a box target (and class) from the object owning at least this share
@@ -97,6 +99,27 @@ def _mirror(points, globals_, target):
     return points, globals_, target
 
 
+class BoxRefinerNet(nn.Module):
+    """The refiner (:class:`~rfm_core.detection.box_refiner.RefinerNet`) as a torch module to train."""
+
+    def __init__(self, width: int = 128, classes: int = len(CLASSES)):
+        super().__init__()
+        self.width, self.classes = width, classes
+        self.point_mlp = nn.Sequential(
+            nn.Conv1d(POINT_FEATURES, 64, 1), nn.ReLU(), nn.Conv1d(64, width, 1), nn.ReLU(),
+            nn.Conv1d(width, 2 * width, 1))
+        self.head = nn.Sequential(
+            nn.Linear(2 * width + GLOBAL_FEATURES, 2 * width), nn.ReLU(),
+            nn.Linear(2 * width, width), nn.ReLU(), nn.Linear(width, 1 + 8 + classes))
+
+    def forward(self, points: torch.Tensor, globals_: torch.Tensor):
+        """points (N, P, POINT_FEATURES), globals (N, GLOBAL_FEATURES) -> objectness logit (N,),
+        box deltas (N, 8), class logits (N, classes)."""
+        feat = self.point_mlp(points.transpose(1, 2)).amax(dim=2)
+        out = self.head(torch.cat([feat, globals_], 1))
+        return out[:, 0], out[:, 1:9], out[:, 9:]
+
+
 def train_box_refiner(data: dict, epochs: int = 30, batch_size: int = 256, lr: float = 2e-3,
                       width: int = 128, seed: int = 0, log=print) -> tuple:
     """Train on ``data`` (concatenated :func:`refiner_samples`); returns (net, history)."""
@@ -141,7 +164,15 @@ def train_box_refiner(data: dict, epochs: int = 30, batch_size: int = 256, lr: f
     return net.eval(), history
 
 
-def checkpoint(net: BoxRefinerNet, metadata: dict) -> dict:
-    return {'state_dict': net.state_dict(), 'width': net.width, 'classes': list(CLASSES),
-            'num_points': NUM_POINTS, **metadata}
+def _parameters(net: BoxRefinerNet) -> dict:
+    return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in net.state_dict().items()}
 
+
+def save(net: BoxRefinerNet, path, metadata: dict) -> None:
+    """Write ``net``'s weights for the detector to load (:meth:`BoxRefiner.load`)."""
+    save_box_refiner(net.width, _parameters(net), path, metadata)
+
+
+def inference_net(net: BoxRefinerNet) -> RefinerNet:
+    """The numpy network with ``net``'s parameters (what the detector runs)."""
+    return RefinerNet(net.width, _parameters(net))

@@ -20,16 +20,19 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from scipy.optimize import linear_sum_assignment
+from torch import nn
 
 from rfm_core.detection import detector_for_spec
 from rfm_core.geometry import Pose4, iou_3d
-from rfm_core.matching.learned import MatcherNetConfig, ObjectMatcherNet, batch_inputs
+from rfm_core.matching.learned import POSITION_FEATURES, MatcherNet, MatcherNetConfig, batch_inputs, save_matcher_net
 from rfm_core.observations import FrameObservations
 from rfm_core.sim.capture import Capture, CaptureConfig
 
 __all__ = ['LabelledFrame', 'assign_object_ids', 'label_structure', 'STRUCTURE_ID_BASE', 'labelled_capture',
-           'frame_pairs', 'scene_configs', 'labelled_pairs', 'TrainConfig', 'train_matcher', 'match_targets']
+           'frame_pairs', 'scene_configs', 'labelled_pairs', 'TrainConfig', 'train_matcher', 'match_targets',
+           'ObjectMatcherNet', 'batch_tensors', 'inference_net', 'save']
 
 
 @dataclass
@@ -210,6 +213,121 @@ def _loss(log_assignment: torch.Tensor, targets, balance: float) -> torch.Tensor
     return loss
 
 
+class _Attention(nn.Module):
+    """Multi-head attention over padded token sets (mask: True = a real token)."""
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.heads = heads
+
+    def forward(self, q, k, v, key_mask):
+        b, n, d = q.shape
+        h = self.heads
+        q, k, v = (t.reshape(b, -1, h, d // h).transpose(1, 2) for t in (q, k, v))
+        mask = key_mask[:, None, None, :]
+        out = F.scaled_dot_product_attention(q, k, v, attn_mask=mask)
+        return out.transpose(1, 2).reshape(b, n, d)
+
+
+def _ffn(dim: int) -> nn.Sequential:
+    return nn.Sequential(nn.Linear(2 * dim, dim), nn.LayerNorm(dim), nn.GELU(), nn.Linear(dim, dim))
+
+
+class _SelfBlock(nn.Module):
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.qkv = nn.Linear(dim, 3 * dim)
+        self.attention = _Attention(dim, heads)
+        self.out = nn.Linear(dim, dim)
+        self.ffn = _ffn(dim)
+
+    def forward(self, x, mask):
+        q, k, v = self.qkv(x).chunk(3, dim=-1)
+        message = self.out(self.attention(q, k, v, mask))
+        return x + self.ffn(torch.cat([x, message], -1))
+
+
+class _CrossBlock(nn.Module):
+    """LightGlue's bidirectional cross-attention: shared query/key projection."""
+
+    def __init__(self, dim: int, heads: int):
+        super().__init__()
+        self.qk = nn.Linear(dim, dim)
+        self.v = nn.Linear(dim, dim)
+        self.attention = _Attention(dim, heads)
+        self.out = nn.Linear(dim, dim)
+        self.ffn = _ffn(dim)
+
+    def forward(self, x0, x1, mask0, mask1):
+        qk0, qk1 = self.qk(x0), self.qk(x1)
+        v0, v1 = self.v(x0), self.v(x1)
+        m0 = self.out(self.attention(qk0, qk1, v1, mask1))
+        m1 = self.out(self.attention(qk1, qk0, v0, mask0))
+        return x0 + self.ffn(torch.cat([x0, m0], -1)), x1 + self.ffn(torch.cat([x1, m1], -1))
+
+
+class ObjectMatcherNet(nn.Module):
+    """The learned matcher (:class:`~rfm_core.matching.learned.MatcherNet`) as a torch module
+    to train; :func:`inference_net` hands its parameters to the numpy network the nodes run."""
+
+    def __init__(self, config: MatcherNetConfig):
+        super().__init__()
+        self.config = config
+        d = config.dim
+        self.embed = nn.Linear(config.embedding_dim, d)
+        self.position = nn.Sequential(nn.Linear(POSITION_FEATURES, 64), nn.GELU(),
+                                      nn.Linear(64, 64), nn.GELU(), nn.Linear(64, d))
+        self.self_blocks = nn.ModuleList(_SelfBlock(d, config.heads) for _ in range(config.layers))
+        self.cross_blocks = nn.ModuleList(_CrossBlock(d, config.heads) for _ in range(config.layers))
+        self.final = nn.Linear(d, d)
+        self.matchability = nn.Linear(d, 1)
+
+    def forward(self, emb0, pos0, mask0, emb1, pos1, mask1) -> torch.Tensor:
+        """Log-assignment (B, N+1, M+1) of padded token sets (masks: True = real)."""
+        x0 = self.embed(emb0) + self.position(pos0)
+        x1 = self.embed(emb1) + self.position(pos1)
+        for self_block, cross_block in zip(self.self_blocks, self.cross_blocks):
+            x0, x1 = self_block(x0, mask0), self_block(x1, mask1)
+            x0, x1 = cross_block(x0, x1, mask0, mask1)
+        return self._log_assignment(x0, x1, mask0, mask1)
+
+    def _log_assignment(self, x0, x1, mask0, mask1):
+        d = x0.shape[-1]
+        m0, m1 = self.final(x0) / d ** 0.25, self.final(x1) / d ** 0.25
+        sim = m0 @ m1.transpose(1, 2)                                   # (B, N, M)
+        pair = mask0[:, :, None] & mask1[:, None, :]
+        very_negative = torch.finfo(sim.dtype).min / 4
+        sim = sim.masked_fill(~pair, very_negative)
+        z0, z1 = self.matchability(x0), self.matchability(x1)          # (B, N, 1), (B, M, 1)
+        scores = (F.log_softmax(sim, 2) + F.log_softmax(sim, 1)
+                  + F.logsigmoid(z0) + F.logsigmoid(z1).transpose(1, 2))
+        b, n, m = sim.shape
+        out = sim.new_full((b, n + 1, m + 1), 0.0)
+        out[:, :n, :m] = scores
+        out[:, :n, m] = F.logsigmoid(-z0[..., 0])
+        out[:, n, :m] = F.logsigmoid(-z1[..., 0])
+        return out
+
+
+def batch_tensors(frames_a, frames_b):
+    """:func:`~rfm_core.matching.learned.batch_inputs` as tensors."""
+    return tuple(torch.from_numpy(x) for x in batch_inputs(frames_a, frames_b))
+
+
+def _parameters(net: ObjectMatcherNet) -> dict:
+    return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in net.state_dict().items()}
+
+
+def inference_net(net: ObjectMatcherNet) -> MatcherNet:
+    """The numpy network with ``net``'s parameters (what the nodes run)."""
+    return MatcherNet(net.config, _parameters(net))
+
+
+def save(net: ObjectMatcherNet, path, metadata: dict) -> None:
+    """Write ``net``'s weights for the matcher to load (:func:`~rfm_core.matching.learned.load_matcher_net`)."""
+    save_matcher_net(net.config, _parameters(net), path, metadata)
+
+
 def train_matcher(pairs, net_config: MatcherNetConfig, config: TrainConfig = TrainConfig(),
                   log=print) -> ObjectMatcherNet:
     """Train on [(LabelledFrame, LabelledFrame), ...]; both orders of each pair are used."""
@@ -244,7 +362,7 @@ def train_matcher(pairs, net_config: MatcherNetConfig, config: TrainConfig = Tra
                 targets.append(match_targets(a.object_ids, b.object_ids))
             if not batch_a:
                 continue
-            la = net(*batch_inputs(batch_a, batch_b))
+            la = net(*batch_tensors(batch_a, batch_b))
             loss = _loss(la, targets, config.balance)
             opt.zero_grad()
             loss.backward()
