@@ -12,7 +12,7 @@ help:
 	@echo "make test   - set up everything and run the test suite"
 	@echo "make test-fast - the suite without the tests marked slow (whole-graph runs, training; ~1 min)"
 	@echo "make fuzz   - 10,000 hostile messages and service calls into the three nodes, 5,000 mutated map files"
-	@echo "make soak   - 10 min of a camera walking round one room, replayed through the graph: growth and memory (bench/soak.py)"
+	@echo "make soak   - an hour of a camera walking round one room, replayed through the graph: growth, memory, autosave time (bench/soak.py)"
 	@echo "make setup  - only create .venv and build the ROS workspace (idempotent)"
 	@echo "make bench  - the benchmark suite in bench/ (bench/README.md; ~25 min)"
 	@echo "make clean  - remove .venv and ros_ws/build|install|log"

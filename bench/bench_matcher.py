@@ -52,7 +52,7 @@ def main():
     print(f'\nper pair ({statistics.median(len(s) for s in stream):.0f} detections per frame, one thread):')
     print('| matcher | match (ms) | match + relative pose (ms) |')
     print('|---|---|---|')
-    for name, matcher in (('classical', ClassicalMatcher()), ('learned', LearnedMatcher(threads=1))):
+    for name, matcher in (('classical', ClassicalMatcher()), ('learned', LearnedMatcher())):
         matcher.match(stream[1], stream[0])                      # load weights, warm up
         match_times, pair_times = [], []
         for a, b in zip(stream[:-1], stream[1:]):
@@ -63,7 +63,7 @@ def main():
             match_times.append(mid - start)
             pair_times.append(time.perf_counter() - start)
         print(f'| {name} | {1e3 * statistics.median(match_times):.1f} | {1e3 * statistics.median(pair_times):.1f} |')
-    learned = LearnedMatcher(threads=1)
+    learned = LearnedMatcher()
     single, batched = [], []
     for i in range(8, len(stream)):
         query, candidates = stream[i], stream[i - 8:i - 1]

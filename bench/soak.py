@@ -1,16 +1,17 @@
 """Soak: a long capture walking around one room again and again, replayed through the node
-graph; does the map stop growing once the room is seen?
+graph; does anything keep growing once the room is seen?
 
-    ros_ws/env.sh python bench/soak.py [--minutes 10] [--fps 5] [--seed 7000] [--work /tmp/soak]
+    ros_ws/env.sh python bench/soak.py [--minutes 60] [--fps 5] [--seed 7000] [--work /tmp/soak]
                                        [--param NODE.NAME:=VALUE ...]
 
 Renders a handheld capture (the simulator's walk is a loop around the room at ~0.35 m/s,
 so a long capture goes round many times; furniture made of parts, clutter), replays it with
 `rfm run --processes` in real time and samples every 10 s: keyframes, registered keyframes,
-objects and frames localized (rfm/status), and each node's resident memory (VmRSS). Writes
-``soak.json`` and ``soak.png`` (growth over time, loop boundaries marked) to the work folder
-and prints the growth of keyframes and objects after the first loop (the issue's bounds:
-<= 10% and <= 5%). `make soak` runs it with the defaults.
+objects, frames localized and the latest autosave's wall time (rfm/status; the mapper
+autosaves every 10 new keyframes, culled ones included), and each node's resident memory
+(VmRSS). Writes ``soak.json`` and ``soak.png`` (growth over time, loop boundaries marked)
+to the work folder and prints the growth after the first loop of keyframes, objects,
+memory and autosave time. `make soak` runs it with the defaults (an hour of camera time).
 """
 from __future__ import annotations
 
@@ -59,7 +60,7 @@ def _loops(truth_poses: dict) -> tuple[float, list]:
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument('--minutes', type=float, default=10.0, help='camera time (real-time replay)')
+    parser.add_argument('--minutes', type=float, default=60.0, help='camera time (real-time replay)')
     parser.add_argument('--fps', type=float, default=5.0)
     parser.add_argument('--seed', type=int, default=7000)
     parser.add_argument('--work', type=Path, default=Path('/tmp/rfm_soak'))
@@ -101,9 +102,11 @@ def main() -> int:
             if start is not None and now - last >= 10.0:
                 last = now
                 samples.append({'t': now - start, 'keyframes': s.num_keyframes, 'registered': s.num_registered,
-                                'objects': s.num_objects, 'frames': s.num_frames, 'rss_mb': _rss_mb()})
+                                'objects': s.num_objects, 'frames': s.num_frames, 'saves': s.num_saves,
+                                'save_s': s.save_seconds, 'rss_mb': _rss_mb()})
                 print(f"[soak] {samples[-1]['t']:6.0f} s  keyframes {s.num_keyframes:4d}  registered "
-                      f"{s.num_registered:4d}  objects {s.num_objects:4d}  frames {s.num_frames:5d}  RSS "
+                      f"{s.num_registered:4d}  objects {s.num_objects:4d}  frames {s.num_frames:5d}  saves "
+                      f"{s.num_saves:4d} (latest {1e3 * s.save_seconds:.0f} ms)  RSS "
                       + ' '.join(f'{k} {v:.0f} MB' for k, v in sorted(samples[-1]['rss_mb'].items())), flush=True)
     finally:
         node.destroy_node()
@@ -114,16 +117,26 @@ def main() -> int:
     after = [s for s in samples if loop_ends and s['t'] >= loop_ends[0]]
     growth = {}
     if after:
+        # counts: the first sample after the first loop against the last; memory and autosave
+        # time: the median of the first and of the last 10% of the samples after it
         first, end = after[0], samples[-1]
         growth = {k: (end[k] - first[k]) / max(first[k], 1) for k in ('keyframes', 'objects')}
+        tenth = max(1, len(after) // 10)
+        for key, value in (('rss_mb', lambda x: sum(x['rss_mb'].values())), ('save_s', lambda x: x['save_s'])):
+            early, late = (float(np.median([value(x) for x in part])) for part in (after[:tenth], after[-tenth:]))
+            growth[key] = (late - early) / max(early, 1e-9)
+            growth[key + '_first_last'] = (early, late)
     result = {'minutes': args.minutes, 'fps': args.fps, 'seed': args.seed, 'loops': loops, 'loop_ends_s': loop_ends,
               'samples': samples, 'growth_after_first_loop': growth, 'summary': summary, 'params': args.param}
     (args.work / 'soak.json').write_text(json.dumps(result, indent=1, default=float))
     _plot(args.work / 'soak.png', samples, loop_ends, summary)
     acc = summary.get('accuracy') or {}
     loc = acc.get('localization', {})
-    print(f"[soak] {loops:.1f} loops; after the first: keyframes +{100 * growth.get('keyframes', 0):.0f}%, objects "
-          f"+{100 * growth.get('objects', 0):.0f}%; final {summary['keyframes']} keyframes ({summary['registered']} "
+    print(f"[soak] {loops:.1f} loops; after the first: keyframes {100 * growth.get('keyframes', 0):+.0f}%, objects "
+          f"{100 * growth.get('objects', 0):+.0f}%, memory of the three nodes "
+          f"{100 * growth.get('rss_mb', 0):+.0f}% ({'%.0f -> %.0f MB' % growth.get('rss_mb_first_last', (0, 0))}), "
+          f"autosave time {100 * growth.get('save_s', 0):+.0f}% "
+          f"({'%.3f -> %.3f s' % growth.get('save_s_first_last', (0, 0))}); final {summary['keyframes']} keyframes ({summary['registered']} "
           f"registered), {summary['objects']} objects; ARE {loc.get('ARE_median', float('nan')):.2f} deg, ATE "
           f"{100 * loc.get('ATE_median', float('nan')):.1f} cm, {100 * loc.get('registered', 0):.0f}% localized; "
           f"{args.work / 'soak.png'}")
@@ -135,7 +148,7 @@ def _plot(path: Path, samples: list, loop_ends: list, summary: dict) -> None:
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt  # noqa: PLC0415
     t = [s['t'] for s in samples]
-    fig, (ax, mem) = plt.subplots(2, 1, figsize=(8, 7), sharex=True)
+    fig, (ax, mem, save) = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
     for key in ('keyframes', 'registered', 'objects'):
         ax.plot(t, [s[key] for s in samples], label=key)
     ax.set_ylabel('count')
@@ -143,9 +156,12 @@ def _plot(path: Path, samples: list, loop_ends: list, summary: dict) -> None:
     for node in NODES:
         mem.plot(t, [s['rss_mb'].get(node, np.nan) for s in samples], label=node)
     mem.set_ylabel('resident memory (MB)')
-    mem.set_xlabel('time since the first frame (s)')
     mem.legend()
-    for a in (ax, mem):
+    save.plot(t, [1e3 * s['save_s'] for s in samples], label='latest autosave')
+    save.set_ylabel('autosave wall time (ms)')
+    save.set_xlabel('time since the first frame (s)')
+    save.legend()
+    for a in (ax, mem, save):
         for end in loop_ends:
             a.axvline(end, color='grey', lw=0.5)
     ax.set_title(f"soak: {len(loop_ends)} loops (grey), {summary.get('frames', 0)} frames")

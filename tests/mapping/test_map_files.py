@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from rfm_core.evaluation.pipeline import run_capture
+from rfm_core.geometry import Pose4
 from rfm_core.mapping.map_io import MapFileError, load_map, save_map
 from rfm_core.mapping.mapper import Mapper
 from rfm_core.sim.capture import CaptureConfig
@@ -245,3 +246,71 @@ def test_mutated_map_files_are_refused_or_load_into_a_working_map(saved, tmp_pat
         assert all(np.isfinite(p.yaw) and np.all(np.isfinite(p.t)) for p in mapper.poses.values()), (i, what)
         load_map(mapper, saved)                               # back to the good map
     assert refused > 0
+
+
+def test_an_autosave_appends_the_frames_logged_since_the_last_one(tmp_path):
+    """A node's map file keeps its frame log beside it and each autosave appends the new
+    frames: what an autosave writes does not grow with how long the run has been (#54 row 7)."""
+    from rfm_core.mapping.frame_log import ROW
+    from rfm_core.observations import FrameTrack
+
+    mapped = run_capture(CaptureConfig(seed=41, frames=30, fps=5), 'ground_truth:rgbd', noise_seed=1).mapper
+    path = tmp_path / 'room.rfm'
+    track = next(iter(mapped.frames.rows()))
+
+    def log(count):                       # frames of a camera that stays by the first logged one
+        for i in range(count):
+            mapped.add_frame(FrameTrack(int(mapped.frames.rows()[-1]['stamps']) + 1, 'camera', track['gravity'],
+                                        int(track['keyframes']), int(track['keyframe_stamps']),
+                                        Pose4(float(track['poses'][0]), track['poses'][1:]), num_inliers=3))
+
+    save_map(mapped, path, frames_beside=True)
+    (side,) = tmp_path.glob('room.rfm.*.frames')
+    sizes = [(path.stat().st_size, side.stat().st_size)]
+    for _ in range(2):
+        log(5000)
+        save_map(mapped, path, frames_beside=True)
+        sizes.append((path.stat().st_size, side.stat().st_size))
+    assert [p.name for p in tmp_path.glob('room.rfm.*.frames')] == [side.name]        # one file, appended to
+    assert max(abs(s[0] - sizes[0][0]) for s in sizes) < 2000, sizes                   # the map file: the same
+    assert [b - a for (_, a), (_, b) in zip(sizes, sizes[1:])] == [5000 * ROW.itemsize] * 2
+    loaded = Mapper()
+    load_map(loaded, path)
+    assert len(loaded.frames) == len(mapped.frames)
+    np.testing.assert_array_equal(loaded.frames.rows(), mapped.frames.rows())
+    assert loaded.frame_poses().keys() == mapped.frame_poses().keys()
+    # rows appended by a save that failed later are not the map's; a self-contained copy holds them all
+    with open(side, 'ab') as f:
+        f.write(mapped.frames.rows()[:3].tobytes())
+    load_map(loaded, path)
+    assert len(loaded.frames) == len(mapped.frames)
+    copy = save_map(mapped, tmp_path / 'copy.rfm')
+    assert not list(tmp_path.glob('copy.rfm.*.frames')) and 'frame_stamps' in _arrays(copy)
+    # a frame log that went missing or is another map's: refused with the reason, the map kept
+    moved = side.rename(tmp_path / 'elsewhere')
+    with pytest.raises(MapFileError, match='copy both'):
+        load_map(loaded, path)
+    moved.rename(side)
+    head = side.read_bytes()
+    side.write_bytes(head[:8] + bytes(8) + head[16:])
+    with pytest.raises(MapFileError, match='not the frame file'):
+        load_map(loaded, path)
+    side.write_bytes(head[:16 + 10 * ROW.itemsize])
+    with pytest.raises(MapFileError, match='fewer frames'):
+        load_map(loaded, path)
+    side.write_bytes(head)
+    good = _arrays(path)
+    for name in ('../' + side.name, '/etc/passwd', 7, side.name.replace('.frames', '.other'), None):
+        with pytest.raises(MapFileError, match='frame file name'):
+            load_map(loaded, _write(tmp_path / 'crafted.npz', _with_header(good, frames_file=name)))
+    with pytest.raises(MapFileError, match='fewer frames'):
+        load_map(loaded, _write(tmp_path / 'crafted.npz', _with_header(good, frames=2 ** 61)))
+    with pytest.raises(MapFileError, match='both inside and beside'):
+        load_map(loaded, _write(tmp_path / 'crafted.npz', dict(_arrays(copy), header=good['header'])))
+    assert len(loaded.frames) == len(mapped.frames)
+    # the next autosave, from a log that did not write that file: a new file, the old one removed
+    load_map(loaded, path)
+    save_map(loaded, path, frames_beside=True)
+    (new,) = tmp_path.glob('room.rfm.*.frames')
+    assert new.name != side.name
+    np.testing.assert_array_equal(np.fromfile(new, ROW, offset=16), mapped.frames.rows())

@@ -70,8 +70,8 @@ class MapFiles:
 @dataclass(frozen=True)
 class Autosave:
     """Save every ``every_n`` new keyframes (0: never) or, once the map is larger, when it has
-    grown by ``growth`` since the last save: a save rewrites the whole map, so the total cost
-    of autosaving stays linear in the map's size."""
+    grown by ``growth`` since the last save: a save rewrites the whole map (its frame log is
+    appended to), so the total cost of autosaving stays linear in the map's size."""
 
     every_n: int
     growth: float
@@ -131,6 +131,8 @@ class MapStatus:
     num_relocalized: int
     relocalize_seconds_median: float
     relocalize_seconds_p95: float
+    num_saves: int
+    save_seconds: float
     message: str
 
 
@@ -170,6 +172,7 @@ class MapperCore:
                                   idle_full_solve_s=config.idle_full_solve_s, warn=self.warn, clock=clock)
         self.session.mode = config.mode
         self.num_objects = 0                  # objects in the last object map built
+        self.num_saves, self.save_seconds = 0, 0.0      # map saves written, the latest one's wall time
         self._republish = False               # a map loaded or cleared: publish it all at the next tick
         self._log: list = []                  # lines for the next tick's log
         self._sequences: dict = {}            # delivery checks of the matcher's numbered topics
@@ -354,7 +357,8 @@ class MapperCore:
                          len(mp.measurements()) - active, self.num_objects, mp.num_components(),
                          mp.averager.frame_changes, len(mp.frames),
                          self.num_lost, float(mp.last_update_seconds), latency['queries'], latency['relocalized'],
-                         latency['median_ms'] / 1e3, latency['p95_ms'] / 1e3, self.session.message)
+                         latency['median_ms'] / 1e3, latency['p95_ms'] / 1e3, self.num_saves, self.save_seconds,
+                         self.session.message)
 
     # ------------------------------------------------------------------ services
     # Each answers with the service response's fields (success, message, ...).
@@ -364,17 +368,21 @@ class MapperCore:
         return self.session.relocalize(obs)
 
     def save(self, requested: str = '') -> dict:
-        """Save the map to the file a request names (empty: the map file): success, message, path."""
+        """Save the map to the file a request names (empty: the map file, whose frame log is
+        kept beside it and appended to, so that autosaving costs the same all day): success,
+        message, path."""
         try:
             path = self.files.resolve(requested)
         except ValueError as exc:
             return dict(success=False, message=f'not saved: {exc}', path='')
+        start = time.perf_counter()
         try:
-            written = self.session.save(path)
+            written = self.session.save(path, frames_beside=not requested)
         except (OSError, ValueError) as exc:
             self.session.message = f'saving the map to {path} failed: {exc}'
             self.warn(self.session.message)
             return dict(success=False, message=self.session.message, path='')
+        self.num_saves, self.save_seconds = self.num_saves + 1, time.perf_counter() - start
         return dict(success=True, message=f'saved {len(self.mapper.keyframes)} keyframes to {written}', path=written)
 
     def load(self, requested: str = '') -> dict:

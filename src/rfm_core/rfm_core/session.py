@@ -405,9 +405,10 @@ class MapSession:
 
     # ------------------------------------------------------------------ the map
 
-    def save(self, path) -> str:
-        """Write the map atomically (OSError / ValueError on failure); the path written."""
-        written = save_map(self.mapper, path)
+    def save(self, path, frames_beside: bool = False) -> str:
+        """Write the map atomically (OSError / ValueError on failure); the path written. With
+        ``frames_beside`` the frame log is appended to a file beside it (:func:`save_map`)."""
+        written = save_map(self.mapper, path, frames_beside)
         self.since_save = 0
         return str(written)
 

@@ -2,9 +2,12 @@
 
 Keyframes carry the map; every other processed frame is localized relative to a keyframe
 (tracking, :mod:`rfm_core.matching.view_graph`) or relocalized against the map. The log
-keeps each frame's pose relative to its keyframe, so its camera pose always follows the
-keyframe's current (re-averaged) pose. Arrays grow by doubling: about 80 bytes a frame,
-30 MB for an hour at 30 Hz.
+keeps each frame's pose relative to the keyframe it was localized against, so its camera
+pose always follows the keyframe's current (re-averaged) pose. A row never changes once
+logged: a frame whose keyframe was culled is placed through the keyframe that carries it
+(the mapper's ``merged``), so culling costs nothing here and a map file's frame log can
+grow by appending (:mod:`rfm_core.mapping.map_io`). Rows are :data:`ROW` records (86
+bytes a frame: 37 MB for 8 hours at 15 Hz), in an array that grows by doubling.
 """
 from __future__ import annotations
 
@@ -13,12 +16,11 @@ import numpy as np
 from rfm_core.geometry import Pose4, gravity_aligned_rotation
 from rfm_core.observations import FrameTrack
 
-__all__ = ['FrameLog', 'camera_to_map', 'pose_from_camera']
+__all__ = ['FrameLog', 'ROW', 'camera_to_map', 'pose_from_camera']
 
-_FIELDS = {'stamps': ((), np.int64), 'keyframes': ((), np.int64), 'keyframe_stamps': ((), np.int64),
-           'poses': ((4,), np.float64),
-           'gravity': ((3,), np.float64), 'inliers': ((), np.int32), 'is_keyframe': ((), bool),
-           'continuous': ((), bool)}
+#: one logged frame (little-endian, packed: the layout of a map's frame file)
+ROW = np.dtype([('stamps', '<i8'), ('keyframes', '<i8'), ('keyframe_stamps', '<i8'), ('poses', '<f8', (4,)),
+                ('gravity', '<f8', (3,)), ('inliers', '<i4'), ('is_keyframe', '?'), ('continuous', '?')])
 
 
 class FrameLog:
@@ -29,60 +31,68 @@ class FrameLog:
 
     def clear(self) -> None:
         self._n = 0
-        self._data = {k: np.zeros((16, *shape), dtype) for k, (shape, dtype) in _FIELDS.items()}
+        self._rows = np.zeros(16, ROW)
+        self.written: dict = {}          # map_io's record of what this log appended where
 
     def __len__(self) -> int:
         return self._n
 
     def add(self, track: FrameTrack) -> None:
-        if self._n == len(self._data['stamps']):
-            self._data = {k: np.concatenate([v, np.zeros_like(v)]) for k, v in self._data.items()}
-        i = self._n
-        d = self._data
-        d['stamps'][i], d['keyframes'][i] = track.stamp_ns, track.keyframe_id
-        d['keyframe_stamps'][i] = track.keyframe_stamp_ns
-        d['poses'][i] = (track.pose.yaw, *track.pose.t)
-        d['gravity'][i] = track.gravity_cam
-        d['inliers'][i], d['is_keyframe'][i], d['continuous'][i] = (
-            track.num_inliers, track.is_keyframe, track.continuous)
+        if self._n == len(self._rows):
+            self._rows = np.concatenate([self._rows, np.zeros_like(self._rows)])
+        self._rows[self._n] = (track.stamp_ns, track.keyframe_id, track.keyframe_stamp_ns,
+                               (track.pose.yaw, *track.pose.t), track.gravity_cam, track.num_inliers,
+                               track.is_keyframe, track.continuous)
         self._n += 1
 
-    def merge(self, keyframe_id: int, keyframe_stamp_ns: int, into: int, into_stamp_ns: int, t_into_keyframe: Pose4):
-        """Frames localized against a keyframe culled from the map, now against the keyframe
-        ``into`` it was merged into (``t_into_keyframe``: T_into_keyframe)."""
-        d = self.arrays()
-        rows = np.flatnonzero((d['keyframes'] == keyframe_id) & (d['keyframe_stamps'] == keyframe_stamp_ns))
-        for i in rows:
-            yaw, *t = d['poses'][i]
-            p = t_into_keyframe @ Pose4(yaw, t)
-            d['poses'][i] = (p.yaw, *p.t)
-        d['keyframes'][rows], d['keyframe_stamps'][rows], d['is_keyframe'][rows] = into, into_stamp_ns, False
+    def rows(self, start: int = 0) -> np.ndarray:
+        """The rows from ``start`` on (a view of :data:`ROW` records)."""
+        return self._rows[start:self._n]
 
     def arrays(self) -> dict:
         """The log as arrays (views, length ``len(self)``), keyed as in the map file."""
-        return {k: v[:self._n] for k, v in self._data.items()}
+        rows = self.rows()
+        return {k: rows[k] for k in ROW.names}
 
     def restore(self, arrays: dict) -> None:
         """Replace the log by ``arrays`` (as from :meth:`arrays`; validated by the caller)."""
         n = len(arrays['stamps'])
-        self._n = 0
-        self._data = {k: np.zeros((max(16, n), *shape), dtype) for k, (shape, dtype) in _FIELDS.items()}
-        for k in _FIELDS:
-            self._data[k][:n] = arrays[k]
+        self.clear()
+        self._rows = np.zeros(max(16, n), ROW)
+        for k in ROW.names:
+            self._rows[k][:n] = arrays[k]
         self._n = n
 
-    def camera_poses(self, keyframe_poses: dict, keyframe_stamps: dict) -> dict:
-        """{stamp_ns: 4x4 camera optical frame -> map} of the frames whose keyframe has a pose
-        in ``keyframe_poses`` ({id: Pose4 T_k_map}) and the stamp it was localized against
-        (``keyframe_stamps``: {id: stamp_ns}; another keyframe under a reused id is not it)."""
-        d = self.arrays()
+    @staticmethod
+    def keyframe_of(keyframe_id: int, keyframe_stamp_ns: int, keyframe_stamps: dict, merged: dict):
+        """(the keyframe now carrying frames localized against ``keyframe_id`` at that stamp,
+        T_carrier_keyframe or None for itself), or None for a keyframe no longer in the map."""
+        if keyframe_stamps.get(keyframe_id) == keyframe_stamp_ns:
+            return keyframe_id, None
+        m = merged.get(keyframe_id)
+        if m is not None and m.stamp_ns == keyframe_stamp_ns:
+            return m.into, m.pose
+        return None
+
+    def camera_poses(self, keyframe_poses: dict, keyframe_stamps: dict, merged: dict | None = None) -> dict:
+        """{stamp_ns: 4x4 camera optical frame -> map} of the frames whose keyframe, or the
+        keyframe it was culled into (``merged``: {culled id: Merged}), has a pose in
+        ``keyframe_poses`` ({id: Pose4 T_k_map}); ``keyframe_stamps`` ({id: stamp_ns}) tells a
+        keyframe from another under a reused id."""
+        rows = self.rows()
+        merged = merged or {}
+        carriers: dict = {}
         out = {}
-        for i in range(self._n):
-            k = int(d['keyframes'][i])
-            p = keyframe_poses.get(k)
-            if p is not None and keyframe_stamps.get(k) == int(d['keyframe_stamps'][i]):
-                yaw, *t = d['poses'][i]
-                out[int(d['stamps'][i])] = camera_to_map(Pose4(yaw, t).inverse() @ p, d['gravity'][i])
+        for row in rows:
+            key = (int(row['keyframes']), int(row['keyframe_stamps']))
+            if key not in carriers:
+                carriers[key] = self.keyframe_of(*key, keyframe_stamps, merged)
+            carrier = carriers[key]
+            if carrier is None or carrier[0] not in keyframe_poses:
+                continue
+            yaw, *t = row['poses']
+            t_k_frame = Pose4(yaw, t) if carrier[1] is None else carrier[1] @ Pose4(yaw, t)
+            out[int(row['stamps'])] = camera_to_map(t_k_frame.inverse() @ keyframe_poses[carrier[0]], row['gravity'])
         return out
 
 

@@ -79,7 +79,7 @@ class MapIndex:
         self._embeddings = None
         self._cameras = None                    # every registered keyframe's camera (_camera_table)
         self._clouds: dict = {}                 # tile (None: the whole map) -> MapCloud
-        self._lifted = None
+        self._cloud_table = None
         self._floor_table = None                # the registered keyframes' floors (_floors)
 
     # ------------------------------------------------------------------ keyframes
@@ -134,14 +134,14 @@ class MapIndex:
         most :data:`CLOUD_MAX_POINTS` points (built once per map revision); else those of the
         :data:`CLOUD_TILE_M` square holding ``centre`` (the keyframes whose camera is within
         :data:`CLOUD_REACH_M` of it; built when first needed, the latest :data:`CLOUD_CACHE` kept)."""
-        if self._lifted is None:
+        if self._cloud_table is None:                      # (keyframe ids with points, their camera centres, points)
             ids, centres, _, _, points = self._camera_table()
-            lifted = [self.poses[ids[i]].inverse().transform_points(np.asarray(self.keyframes[ids[i]].cloud, float))
-                      .astype(np.float32) for i in np.flatnonzero(points)]
-            self._lifted = (lifted, centres[points], sum(len(c) for c in lifted))
-        clouds, centres, points = self._lifted
+            chosen = np.flatnonzero(points)
+            self._cloud_table = ([ids[i] for i in chosen], centres[points],
+                                 sum(len(self.keyframes[ids[i]].cloud) for i in chosen))
+        ids, centres, points = self._cloud_table
         if points <= CLOUD_MAX_POINTS:
-            key, chosen = None, range(len(clouds))
+            key, chosen = None, range(len(ids))
         else:
             key = tuple(np.floor(np.asarray(centre, float)[:2] / CLOUD_TILE_M).astype(int))
             middle = (np.array(key) + 0.5) * CLOUD_TILE_M
@@ -150,7 +150,9 @@ class MapIndex:
         if key not in self._clouds:
             if len(self._clouds) >= CLOUD_CACHE:
                 self._clouds.pop(next(iter(self._clouds)))
-            self._clouds[key] = MapCloud([clouds[i] for i in chosen])
+            # lifted into the map when a tile is built: what is kept is at most CLOUD_CACHE tiles' points
+            self._clouds[key] = MapCloud([self.poses[ids[i]].inverse().transform_points(
+                np.asarray(self.keyframes[ids[i]].cloud, float)).astype(np.float32) for i in chosen])
         return self._clouds[key]
 
     def _floors(self):

@@ -11,6 +11,14 @@ map (which kept keyframe carries each, and the views they add to objects). Objec
 are derived data and are rebuilt on load. Files written before the configuration and the
 frames were stored load with the loading mapper's configuration and no frames.
 
+The frame log grows with every frame for as long as the camera runs. A self-contained map
+file holds it; the map a node autosaves (``save_map(..., frames_beside=True)``) keeps it in a
+file beside it instead, ``<map file>.<token>.frames`` (a 16-byte head, then
+:data:`~rfm_core.mapping.frame_log.ROW` records), to which each autosave appends the frames
+logged since the last one: an autosave costs what the map holds, not how long the run has
+been. The map file names its frame file and the number of rows that belong to it; rows
+appended after that (a save that failed half way) are ignored.
+
 Writing goes to a temporary file in the same directory, is flushed to disk, then renamed
 over the target: a crash leaves either the old file or the new one, never half of one.
 Loading checks everything before touching the mapper: a corrupt or wrong-version file
@@ -21,14 +29,17 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
+import secrets
 import tempfile
 import zipfile
+from glob import escape as glob_escape
 from pathlib import Path
 
 import numpy as np
 
 from rfm_core.geometry import Pose4
-from rfm_core.mapping.frame_log import FrameLog
+from rfm_core.mapping.frame_log import ROW, FrameLog
 from rfm_core.mapping.culling import Merged
 from rfm_core.mapping.mapper import Mapper, MapperConfig
 from rfm_core.observations import EdgeRecord
@@ -51,6 +62,10 @@ _HEADER_COUNTS = ('keyframes', 'edges', 'registered', 'frames', 'revision')
 _UNMEASURED = ('kf_camera_height',)
 #: header fields that list strings
 _HEADER_STRINGS = ('kf_frame_ids', 'kf_backends', 'det_labels')
+#: a frame file's head: this, then its 8-byte token (also in its name)
+_FRAMES_MAGIC = b'RFMFRM01'
+_FRAMES_HEAD = 16
+_FRAMES_NAME = re.compile(r'[^/\\]+\.([0-9a-f]{16})\.frames')
 
 
 class MapFileError(ValueError):
@@ -173,11 +188,86 @@ def _parse_culled(data: dict, keyframes: dict) -> tuple[dict, dict, dict]:
     return merged, carried, origins
 
 
-def save_map(mapper: Mapper, path) -> Path:
+def _check_rows(rows: np.ndarray, where) -> None:
+    """MapFileError for frame log rows that loading would refuse."""
+    if not (np.all(np.isfinite(rows['poses'])) and np.all(np.isfinite(rows['gravity']))
+            and np.all(np.linalg.norm(rows['gravity'], axis=1) > 0.5)):
+        raise MapFileError(f'not saved to {where}, the frame log is not valid (a non-finite pose or gravity)')
+
+
+def _write_frames(log: FrameLog, path: Path) -> str:
+    """Bring the frame file beside ``path`` up to ``log``; its name. Appends the rows logged
+    since this log last wrote there when that file is as it left it; else writes a new file
+    (a new name: the map file on disk keeps naming the old one until it is replaced)."""
+    state = log.written.get(str(path))
+    if state is not None:
+        name, written = state
+        try:
+            intact = written <= len(log) and path.with_name(name).stat().st_size == _FRAMES_HEAD + written * ROW.itemsize
+        except OSError:
+            intact = False
+        if intact:
+            rows = log.rows(written)
+            _check_rows(rows, path)
+            with open(path.with_name(name), 'ab') as f:
+                f.write(rows.tobytes())
+                f.flush()
+                os.fsync(f.fileno())
+            log.written[str(path)] = (name, len(log))
+            return name
+    rows = log.rows()
+    _check_rows(rows, path)
+    token = secrets.token_hex(8)
+    name = f'{path.name}.{token}.frames'
+    tmp = path.with_name(name + '.tmp')
+    try:
+        with open(tmp, 'wb') as f:
+            f.write(_FRAMES_MAGIC + bytes.fromhex(token) + rows.tobytes())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path.with_name(name))
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    log.written[str(path)] = (name, len(log))
+    return name
+
+
+def _read_frames(path: Path, name, count: int, load: bool) -> dict:
+    """The frame log rows a map file at ``path`` keeps beside it (``name``: its frame file,
+    ``count`` rows), as the map's frame arrays (``load``), or {} once the file is checked to
+    hold them."""
+    if not isinstance(name, str) or not (match := _FRAMES_NAME.fullmatch(name)):
+        raise MapFileError(f'{path}: inconsistent map file (frame file name {name!r})')
+    side = path.with_name(name)
+    try:
+        with open(side, 'rb') as f:
+            head = f.read(_FRAMES_HEAD)
+            size = os.fstat(f.fileno()).st_size
+            if head != _FRAMES_MAGIC + bytes.fromhex(match.group(1)):
+                raise MapFileError(f'{side} is not the frame file of {path}')
+            if size < _FRAMES_HEAD + count * ROW.itemsize:
+                raise MapFileError(f'{side} holds fewer frames than {path} says ({count})')
+            rows = np.fromfile(f, ROW, count=count) if load else None
+    except OSError as exc:
+        raise MapFileError(f'{path}: its frame log {side.name} cannot be read ({exc.strerror or exc}); '
+                           'a map saved by a node keeps it beside the map file: copy both') from None
+    return {} if rows is None else {f'frame_{k}': np.ascontiguousarray(rows[k]) for k in ROW.names}
+
+
+def _remove_stale_frames(path: Path, keep: str | None) -> None:
+    """Frame files beside ``path`` that its map file no longer names."""
+    for side in path.parent.glob(glob_escape(path.name) + '.*.frames'):
+        if side.name != keep and _FRAMES_NAME.fullmatch(side.name):
+            side.unlink(missing_ok=True)
+
+
+def save_map(mapper: Mapper, path, frames_beside: bool = False) -> Path:
     """Write the mapper's map to ``path`` atomically, read back and validated before it
     replaces the file there: MapFileError (the file there kept) for a map that loading would
     refuse (a non-finite value in memory must not become the autosave the next start cannot
-    load). Returns the path."""
+    load). With ``frames_beside`` the frame log goes to a file beside it, by appending (see
+    the module's notes): what a node's autosave does. Returns the path."""
     path = Path(path).expanduser()
     path.parent.mkdir(parents=True, exist_ok=True)
     arrays, lists = _keyframe_arrays(mapper)
@@ -187,10 +277,13 @@ def save_map(mapper: Mapper, path) -> Path:
     pose_ids = sorted(poses)
     arrays['pose_ids'] = np.array(pose_ids, np.int64)
     arrays['pose_values'] = np.array([[poses[k].yaw, *poses[k].t] for k in pose_ids], float).reshape(-1, 4)
-    arrays.update({f'frame_{k}': v for k, v in mapper.frames.arrays().items()})
     header = {'format': FORMAT, 'version': VERSION, 'keyframes': len(mapper.keyframes),
               'edges': len(arrays['edge_ids']), 'registered': len(pose_ids), 'posed': mapper.config.posed,
               'frames': len(mapper.frames), 'revision': mapper.revision, 'config': mapper.config.to_dict(), **lists}
+    if frames_beside:
+        header['frames_file'] = _write_frames(mapper.frames, path)
+    else:
+        arrays.update({f'frame_{k}': v for k, v in mapper.frames.arrays().items()})
     buffer = io.BytesIO()
     np.savez_compressed(buffer, header=np.frombuffer(json.dumps(header).encode(), np.uint8), **arrays)
     fd, tmp = tempfile.mkstemp(prefix=path.name + '.', suffix='.tmp', dir=path.parent)
@@ -200,13 +293,14 @@ def save_map(mapper: Mapper, path) -> Path:
             f.flush()
             os.fsync(f.fileno())
         try:
-            read_map(tmp)
+            read_map(tmp, frames=not frames_beside)      # the appended rows were checked as written
         except MapFileError as exc:
             raise MapFileError(f'not saved to {path}, the map is not valid: {exc}') from None
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+    _remove_stale_frames(path, header.get('frames_file'))
     return path
 
 
@@ -241,20 +335,21 @@ def _load_arrays(path: Path) -> dict:
         raise MapFileError(f'{path} is not a readable rfm map file ({type(exc).__name__}: {exc})') from None
 
 
-def read_map(path) -> dict:
+def read_map(path, frames: bool = True) -> dict:
     """Read and validate a map file; returns {'header', 'keyframes', 'edges', 'poses', ...};
-    MapFileError saying why for any file that is not a consistent map."""
+    MapFileError saying why for any file that is not a consistent map. Without ``frames`` a
+    frame log kept beside the file is checked to be there, not read."""
     path = Path(path).expanduser()
     if not path.is_file():
         raise MapFileError(f'no map file at {path}')
     data = _load_arrays(path)
     try:
-        return _parse_map(path, data)
+        return _parse_map(path, data, frames)
     except (ValueError, TypeError, IndexError, KeyError, OverflowError, AttributeError) as exc:
         raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
 
 
-def _parse_map(path: Path, data: dict) -> dict:
+def _parse_map(path: Path, data: dict, load_frames: bool = True) -> dict:
     if 'header' not in data:
         raise MapFileError(f'{path} is not an rfm map file (no header)')
     try:
@@ -283,6 +378,11 @@ def _parse_map(path: Path, data: dict) -> dict:
         value = header.get(key, [])
         if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
             raise MapFileError(f'{path}: header field {key!r} must be a list of strings')
+    frame_keys = [f'frame_{k}' for k in ROW.names]
+    if 'frames_file' in header:
+        if any(k in data for k in frame_keys):
+            raise MapFileError(f'{path}: inconsistent map file (frames both inside and beside it)')
+        data.update(_read_frames(path, header['frames_file'], header.get('frames', 0), load_frames))
     floats = [k for k, v in data.items() if k != 'header' and v.dtype.kind in 'fc'
               and not np.all(np.isfinite(v) | (k in _UNMEASURED) & np.isnan(v))]
     if floats:
@@ -313,7 +413,6 @@ def _parse_map(path: Path, data: dict) -> dict:
         (np.all(np.isin(data['edge_ids'], data['kf_ids'])), 'edges reference unknown keyframes'),
         (np.all(np.isin(data['pose_ids'], data['kf_ids'])), 'poses reference unknown keyframes'),
     ]
-    frame_keys = [f'frame_{k}' for k in FrameLog().arrays()]
     if any(k in data for k in frame_keys):
         n_frames = len(data.get('frame_stamps', ()))
         checks += [
@@ -409,12 +508,12 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
         for e in content['edges']:
             fresh.add_edge(e)
         fresh.restore(content['poses'], [e for e, a in zip(content['edges'], content['edge_active']) if a])
+        fresh.merged, fresh.carried = content['merged'], content['carried']
         if content['frames']:
             fresh.restore_frames(content['frames'])
     except (ValueError, TypeError, IndexError, KeyError) as exc:
         raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
     fresh.origins = content['origins']
-    fresh.merged, fresh.carried = content['merged'], content['carried']
     fresh.averager.reference = set(content['poses'])      # the loaded map stays the map (a second session joins it)
     fresh._cull_due = set()                                # its keyframes are as they were saved
     fresh.revision = content['header'].get('revision', 0) + 1

@@ -242,7 +242,10 @@ class Mapper:
         keyframes frames of a stream were tracked against (:attr:`streamed`)."""
         self.frames.restore(arrays)
         log = self.frames.arrays()
-        self.streamed = set(log['keyframes'][log['continuous']].tolist()) & set(self.keyframes)
+        stamps = {k: f.stamp_ns for k, f in self.keyframes.items()}
+        streamed = zip(log['keyframes'][log['continuous']].tolist(), log['keyframe_stamps'][log['continuous']].tolist())
+        carriers = (self.frames.keyframe_of(k, s, stamps, self.merged) for k, s in set(streamed))
+        self.streamed = {c[0] for c in carriers if c is not None}
 
     def awaits_recovery(self, keyframe_id: int) -> bool:
         """Whether tracking recovery has yet to try this keyframe, which is outside the
@@ -353,7 +356,7 @@ class Mapper:
     def frame_poses(self) -> dict:
         """{stamp_ns: 4x4 camera-to-map} of every logged frame whose keyframe is registered,
         from the keyframes' current poses."""
-        return self.frames.camera_poses(self.poses, {k: f.stamp_ns for k, f in self.keyframes.items()})
+        return self.frames.camera_poses(self.poses, {k: f.stamp_ns for k, f in self.keyframes.items()}, self.merged)
 
     def set_keyframe_pose(self, keyframe_id: int, t_k_map: Pose4) -> None:
         """Posed mode: the keyframe's pose from outside."""
@@ -461,7 +464,6 @@ class Mapper:
                 self.streamed.add(m.into)
             self._descriptors.pop(k, None)
             self.recovery.tried.pop(k, None)
-            self.frames.merge(k, m.stamp_ns, m.into, self.keyframes[m.into].stamp_ns, m.pose)
         self.edges, self._pairs, self._averaged, self._edges_to = {}, {}, {}, {}
         reference = self.averager.reference    # a loaded map's keyframes, and those they were culled into
         self.averager = IncrementalAverager(self.config.averaging)
