@@ -8,6 +8,7 @@ from sim_frames import detected_frames
 
 from rfm_core.config import MapperNodeConfig
 from rfm_core.mapper_core import Autosave, MapFiles, MapperCore, Throttle, default_map_path
+from rfm_core.mapping.map_io import read_map
 from rfm_core.matching.view_graph import ViewGraphBuilder
 from rfm_core.observations import EdgeRecord
 from rfm_core.settings import with_values
@@ -46,6 +47,10 @@ def test_autosave_every_n_keyframes_then_by_growth():
     assert not autosave.due(9, 9) and autosave.due(10, 10)
     assert not autosave.due(40, 500) and autosave.due(50, 500)      # a large map: 10% of it
     assert not Autosave(every_n=0, growth=0.1).due(1000, 1000)
+    # a map that stopped growing: its frames after a while, never with none to save
+    timed = Autosave(every_n=10, growth=0.1, period_s=60.0)
+    assert timed.due(0, 30, unsaved_frames=5, waited_s=60.0) and not timed.due(0, 30, 5, 59.0)
+    assert not timed.due(0, 30, 0, 600.0) and not Autosave(10, 0.1).due(0, 30, 5, 600.0)
 
 
 def test_the_object_map_is_rebuilt_at_most_every_period_and_share_of_the_time():
@@ -71,7 +76,7 @@ def test_a_tick_says_what_changed_and_autosaves(tmp_path, observations):
                                               'autosave_every_n_keyframes': 3, 'idle_full_solve_s': 0.0})
     core = MapperCore(config, clock=clock)
     graph = ViewGraphBuilder(core.mapper.config.matching)
-    keyframes = 0
+    keyframes, tracks = 0, []
     for obs in observations[:30]:
         keyframe, edges, track = graph.add(obs)
         if keyframe is not None:
@@ -79,6 +84,7 @@ def test_a_tick_says_what_changed_and_autosaves(tmp_path, observations):
             core.keyframe(keyframe.keyframe_id, keyframe.observations, session=7, sequence=keyframes)
         for e in edges:
             core.edge(EdgeRecord.from_edge(e))
+        tracks.append(track)
     assert keyframes >= 3
     tick = core.tick()
     ids, poses, stamps = tick.keyframe_poses
@@ -87,6 +93,16 @@ def test_a_tick_says_what_changed_and_autosaves(tmp_path, observations):
     assert tick.saved == str(tmp_path / 'map.rfm') and os.path.exists(tick.saved)
     quiet = core.tick()
     assert quiet.keyframe_poses is None and quiet.object_map is None and quiet.saved is None
+    # no new keyframes, frames still localized: saved once autosave_period_s has passed
+    for track in tracks:
+        core.tracked_frame(track, session=7)
+    clock.now = 59.0
+    assert core.tick().saved is None
+    clock.now = 60.5
+    assert core.tick().saved == str(tmp_path / 'map.rfm')
+    assert len(read_map(tmp_path / 'map.rfm')['frames']['stamps']) == len(core.mapper.frames) > 0
+    clock.now = 200.0
+    assert core.tick().saved is None                                # nothing new since
     status = core.status()
     assert (status.mode, status.num_keyframes, status.num_lost) == ('mapping', len(core.mapper.keyframes), 0)
     core.keyframe(99, None, session=7, sequence=keyframes + 3)      # a malformed one; two never arrived

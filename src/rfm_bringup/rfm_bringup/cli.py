@@ -617,6 +617,30 @@ def _pooled(rows: list, key: str, count: str) -> float:
     return pooled_share([r[key] for r in rows], [r[count] for r in rows])
 
 
+def cmd_eval_trajectory(args) -> int:
+    """ATE and RPE of a TUM trajectory against a TUM ground truth, as evo defines them."""
+    from rfm_core.evaluation.tum import evaluate_tum  # noqa: PLC0415
+
+    try:
+        r = evaluate_tum(args.trajectory, args.ground_truth, args.align, args.delta, args.max_diff)
+    except (OSError, ValueError) as exc:
+        raise SystemExit(f'rfm eval-trajectory: {exc}') from None
+    print(f"{r['associated']} of {r['poses']} poses associated with the ground truth ({r['ground_truth_poses']} "
+          f"poses, within {r['max_diff_s']} s); alignment {r['alignment']}"
+          + (f", scale {r['scale']:.4f}" if r['alignment'] == 'sim3' else ''))
+    print('| error | rmse | mean | median | std | min | max |')
+    print('|---|---|---|---|---|---|---|')
+    for key, name in (('ape_translation_m', 'APE translation (m): ATE'), ('ape_rotation_deg', 'APE rotation (deg)'),
+                      ('rpe_translation_m', f"RPE translation (m, {r['delta_frames']} frame)"),
+                      ('rpe_rotation_deg', f"RPE rotation (deg, {r['delta_frames']} frame)")):
+        st = r[key]
+        print(f'| {name} | ' + ' | '.join(f'{st[k]:.6f}' for k in ('rmse', 'mean', 'median', 'std', 'min', 'max'))
+              + ' |')
+    if args.json:
+        Path(args.json).write_text(json.dumps(r, indent=1))
+    return 0
+
+
 def cmd_replay(args) -> int:
     """A graph run's recorded detections through the in-process back end again
     (rfm_core.evaluation.replay): two versions of the code compared on the same detections."""
@@ -894,6 +918,19 @@ def build_parser() -> argparse.ArgumentParser:
                         'the objects); session: the outward walk mapped as a second session on the loaded map')
     p.add_argument('--jobs', type=int, default=1)
     p.set_defaults(func=cmd_eval_reloc)
+
+    p = sub.add_parser('eval-trajectory', help="ATE and RPE of a TUM trajectory against a TUM ground truth (evo's "
+                                               'definitions)')
+    p.add_argument('trajectory', help="the estimate, TUM format (timestamp tx ty tz qx qy qz qw; rfm run's "
+                                      'trajectory.tum)')
+    p.add_argument('ground_truth', help="the ground truth, TUM format (TUM RGB-D's groundtruth.txt)")
+    p.add_argument('--align', choices=('se3', 'sim3', 'yaw', 'none'), default='se3',
+                   help='alignment of the estimate: se3 (Umeyama), sim3 (and scale), yaw (about z, and a '
+                        'translation: a gravity-aligned map) or none')
+    p.add_argument('--delta', type=int, default=1, help='RPE over this many frames')
+    p.add_argument('--max-diff', type=float, default=0.01, help='association: largest stamp difference (s)')
+    p.add_argument('--json', help='also write the results to this JSON file')
+    p.set_defaults(func=cmd_eval_trajectory)
 
     p = sub.add_parser('replay', help="a graph run's recorded detections through the in-process back end again")
     p.add_argument('work', help="an rfm eval --work folder, or an rfm eval-reloc --work folder (its rooms' mapping "

@@ -135,6 +135,8 @@ class MapperNodeConfig:
                                               lo=0, hi=100000)
     autosave_growth: float = setting(0.1, '... or, for a larger map, once it has grown by this fraction since the '
                                      'last save', lo=0.0, hi=10.0)
+    autosave_period_s: float = setting(60.0, '... or, in mapping mode, this long after the last save with frames '
+                                       'localized since (s; 0: only with new keyframes)', lo=0.0, hi=86400.0)
     load_map_on_start: bool = setting(False, 'Load map_path at start-up', read_only=True)
     mode: str = setting('mapping', "Start in 'mapping' or 'localization' mode (the map frozen, every frame "
                         'localized against it); rfm/set_mode switches', choices=MODES, read_only=True)

@@ -9,7 +9,8 @@ appendix) and the node's policy around it:
   (the poses changed, the newest frame's camera pose, keyframes recovered or culled, whether
   the object map is due, the autosave written);
 - autosave (:class:`Autosave`: every n keyframes, or once a larger map has grown by a
-  fraction), and once more when the node stops (:meth:`MapperCore.close`);
+  fraction, or after a while with frames logged since), and once more when the node stops
+  (:meth:`MapperCore.close`);
 - the object map rebuilt at most every ``map_publish_period_s`` and at most
   ``map_max_cpu_share`` of the time (:class:`Throttle`);
 - the files a service request may name (:class:`MapFiles`: inside ``map_dir``);
@@ -71,13 +72,17 @@ class MapFiles:
 class Autosave:
     """Save every ``every_n`` new keyframes (0: never) or, once the map is larger, when it has
     grown by ``growth`` since the last save: a save rewrites the whole map (its frame log is
-    appended to), so the total cost of autosaving stays linear in the map's size."""
+    appended to), so the total cost of autosaving stays linear in the map's size. A map that
+    no longer grows (the room covered) still logs frames: they are saved every ``period_s``
+    (0: only with keyframes)."""
 
     every_n: int
     growth: float
+    period_s: float = 0.0
 
-    def due(self, since_save: int, keyframes: int) -> bool:
-        return bool(self.every_n) and since_save >= max(self.every_n, self.growth * keyframes)
+    def due(self, since_save: int, keyframes: int, unsaved_frames: int = 0, waited_s: float = 0.0) -> bool:
+        return bool(self.every_n) and (since_save >= max(self.every_n, self.growth * keyframes)
+                                       or bool(self.period_s and unsaved_frames and waited_s >= self.period_s))
 
 
 class Throttle:
@@ -156,7 +161,8 @@ class MapperCore:
             except FileNotFoundError as exc:
                 raise ValueError(str(exc)) from exc
         self.files = MapFiles(config.map_path, config.map_dir)
-        self.autosave = Autosave(config.autosave_every_n_keyframes, config.autosave_growth)
+        self.autosave = Autosave(config.autosave_every_n_keyframes, config.autosave_growth, config.autosave_period_s)
+        self.clock = clock
         self.throttle = Throttle(config.map_publish_period_s, config.map_max_cpu_share, clock)
         self.external_poses = ExternalPoses()
         # /tf and /tf_static as heard; no extrapolation at all (as tf2): the map's attachment
@@ -173,6 +179,7 @@ class MapperCore:
         self.session.mode = config.mode
         self.num_objects = 0                  # objects in the last object map built
         self.num_saves, self.save_seconds = 0, 0.0      # map saves written, the latest one's wall time
+        self._saved = (clock(), 0)                      # when the map file was last written, its frames
         self._republish = False               # a map loaded or cleared: publish it all at the next tick
         self._log: list = []                  # lines for the next tick's log
         self._sequences: dict = {}            # delivery checks of the matcher's numbered topics
@@ -326,8 +333,8 @@ class MapperCore:
         if changed is not False:
             out.camera = changed
             self.throttle.pending = True
-            if self.autosave.due(self.session.since_save, len(mapper.keyframes)):
-                out.saved = self.save()['path'] or None
+        if self._autosave_due():
+            out.saved = self.save()['path'] or None
         if changed is not False or self._republish:
             out.keyframe_poses = self.keyframe_poses()
         if self.throttle.due() or self._republish:
@@ -383,6 +390,8 @@ class MapperCore:
             self.warn(self.session.message)
             return dict(success=False, message=self.session.message, path='')
         self.num_saves, self.save_seconds = self.num_saves + 1, time.perf_counter() - start
+        if not requested:
+            self._saved = (self.clock(), len(self.mapper.frames))
         return dict(success=True, message=f'saved {len(self.mapper.keyframes)} keyframes to {written}', path=written)
 
     def load(self, requested: str = '') -> dict:
@@ -416,8 +425,14 @@ class MapperCore:
         self.session.mode = MODES[mode]
         return dict(success=True, message=f'mode: {self.session.mode}')
 
+    def _autosave_due(self) -> bool:
+        unsaved = len(self.mapper.frames) - self._saved[1] if self.mapper.mode == 'mapping' else 0
+        return bool(self.mapper.keyframes) and self.autosave.due(self.session.since_save, len(self.mapper.keyframes),
+                                                                 unsaved, self.clock() - self._saved[0])
+
     def close(self) -> str | None:
         """The node stops: the last autosave, when there is something unsaved (the path written)."""
-        if self.autosave.every_n and self.mapper.keyframes and self.session.since_save:
+        unsaved = self.mapper.mode == 'mapping' and len(self.mapper.frames) > self._saved[1]
+        if self.autosave.every_n and self.mapper.keyframes and (self.session.since_save or unsaved):
             return self.save()['path'] or None
         return None
