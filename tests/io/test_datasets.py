@@ -202,3 +202,117 @@ def test_a_tum_folder_runs_through_the_graph_and_is_scored(tmp_path):
     assert loc['registered'] >= 0.8 and loc['gross'] == 0, loc
     assert loc['ATE_median'] < 0.05 and loc['ARE_median'] < 2.0, loc
     assert 'the map is not scored' in (tmp_path / 'out' / 'report.md').read_text()
+
+
+def write_ros1_bag(path, frames: int = 40, seed: int = 3):
+    """A ROS 1 bag as TUM RGB-D records one, of a rendered capture: rgb8 colour, 32FC1 depth in
+    metres, camera_info, the Kinect's accelerometer on /imu (angular velocity zero, nothing saying
+    there is no gyroscope), and the
+    motion capture on /tf (tf/tfMessage, frames with a leading slash: /world -> /kinect at 100 Hz,
+    /kinect -> /openni_rgb_optical_frame), the world tilted (z not up). Returns the capture's frames."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    store.register(get_types_from_msg('geometry_msgs/TransformStamped[] transforms', 'tf/msg/tfMessage'))
+    t = store.types
+    cap = Capture(CaptureConfig(seed=seed, frames=frames, fps=5))
+    rendered = list(cap.frames())
+    imu = imu_samples(cap.trajectory, 100.0, seed=1)
+    mount = np.eye(4)
+    mount[:3, :3] = np.array([[0, 0, 1], [-1, 0, 0], [0, -1, 0]])        # body (x forward) -> optical
+    mount[:3, 3] = (0.02, -0.05, 0.1)
+
+    def stamp(ns):
+        return t['builtin_interfaces/msg/Time'](sec=ns // 10**9, nanosec=ns % 10**9)
+
+    def head(ns, frame, seq=0):
+        return t['std_msgs/msg/Header'](seq=seq, stamp=stamp(ns), frame_id=frame)
+
+    def transform(parent, child, ns, m):
+        q = _quaternion(m[:3, :3])
+        return t['geometry_msgs/msg/TransformStamped'](
+            header=head(ns, parent), child_frame_id=child, transform=t['geometry_msgs/msg/Transform'](
+                translation=t['geometry_msgs/msg/Vector3'](x=m[0, 3], y=m[1, 3], z=m[2, 3]),
+                rotation=t['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3])))
+
+    k = cap.intrinsics
+    info = dict(height=k.height, width=k.width, distortion_model='plumb_bob', D=np.zeros(5),
+                K=np.array([k.fx, 0, k.cx, 0, k.fy, k.cy, 0, 0, 1.0]), R=np.eye(3).reshape(-1),
+                P=np.array([k.fx, 0, k.cx, 0, 0, k.fy, k.cy, 0, 0, 0, 1.0, 0]), binning_x=0, binning_y=0,
+                roi=t['sensor_msgs/msg/RegionOfInterest'](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False))
+    events = [(f.stamp_ns, 'frame', f) for f in rendered]
+    events += [(cap.stamp_ns(s), 'imu', a) for s, a in zip(imu.times, imu.linear_acceleration)]
+    events.sort(key=lambda e: e[0])
+    optical = '/openni_rgb_optical_frame'
+    with Writer(path) as bag:
+        conns = {name: bag.add_connection(name, kind, typestore=store) for name, kind in (
+            ('/camera/rgb/image_color', 'sensor_msgs/msg/Image'), ('/camera/depth/image', 'sensor_msgs/msg/Image'),
+            ('/camera/rgb/camera_info', 'sensor_msgs/msg/CameraInfo'), ('/imu', 'sensor_msgs/msg/Imu'),
+            ('/tf', 'tf/msg/tfMessage'))}
+
+        def write(topic, ns, msg):
+            bag.write(conns[topic], ns, store.serialize_ros1(msg, conns[topic].msgtype))
+
+        for ns, kind, item in events:
+            if kind == 'imu':
+                zero = t['geometry_msgs/msg/Vector3'](x=0.0, y=0.0, z=0.0)
+                write('/imu', ns, t['sensor_msgs/msg/Imu'](
+                    header=head(ns, optical), orientation=t['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0),
+                    orientation_covariance=np.r_[-1.0, np.zeros(8)], angular_velocity=zero,
+                    angular_velocity_covariance=np.zeros(9),
+                    linear_acceleration=t['geometry_msgs/msg/Vector3'](x=item[0], y=item[1], z=item[2]),
+                    linear_acceleration_covariance=np.zeros(9)))
+                continue
+            f = item
+            write('/tf', ns, t['tf/msg/tfMessage'](transforms=[
+                transform('/world', '/kinect', ns, _TILT @ f.pose_matrix @ np.linalg.inv(mount)),
+                transform('/kinect', optical, ns, mount)]))
+            rgb = np.ascontiguousarray(f.render.rgb, np.uint8)
+            write('/camera/rgb/image_color', ns, t['sensor_msgs/msg/Image'](
+                header=head(ns, optical), height=rgb.shape[0], width=rgb.shape[1], encoding='rgb8', is_bigendian=0,
+                step=3 * rgb.shape[1], data=rgb.reshape(-1)))
+            depth = np.where(np.isfinite(f.render.depth), f.render.depth, np.nan).astype('<f4')
+            write('/camera/depth/image', ns + 7_000_000, t['sensor_msgs/msg/Image'](
+                header=head(ns + 7_000_000, optical), height=depth.shape[0], width=depth.shape[1], encoding='32FC1',
+                is_bigendian=0, step=4 * depth.shape[1], data=depth.view(np.uint8).reshape(-1)))
+            write('/camera/rgb/camera_info', ns, t['sensor_msgs/msg/CameraInfo'](header=head(ns, optical), **info))
+    return rendered
+
+
+def test_a_tum_ros1_bag_runs_through_the_graph_and_is_scored(tmp_path):
+    """`rfm run --bag x.bag`: a ROS 1 bag converted on the way in (TUM's topics found, frames
+    without their leading slash, tf/tfMessage as tf2_msgs/TFMessage), gravity from an
+    accelerometer alone, the ground truth from the bag's /tf when its frames are named."""
+    import json
+    import shutil
+    import subprocess
+
+    pytest.importorskip('rclpy')
+    rendered = write_ros1_bag(tmp_path / 'rgbd_dataset_freiburg3_walk.bag')
+    rfm = shutil.which('rfm')
+    run = subprocess.run([rfm, 'run', '--bag', str(tmp_path / 'rgbd_dataset_freiburg3_walk.bag'), '--output',
+                          str(tmp_path / 'out'), '--ground-truth-tf', 'world:openni_rgb_optical_frame',
+                          '--no-processes', '--quiet', '--settle', '2'], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stdout[-3000:] + run.stderr[-3000:]
+    assert "TUM RGB-D's topics" in run.stdout and 'levelled by 20.' in run.stdout, run.stdout
+    converted = _read_bag(tmp_path / 'out' / 'input')
+    assert len(converted['/camera/rgb/image_color']) == len(rendered) == len(converted['/ground_truth/camera_pose'])
+    assert all(m.angular_velocity_covariance[0] == -1 for _, m in converted['/imu'])    # an accelerometer alone
+    tf = converted['/tf'][0][1]
+    assert {(x.header.frame_id, x.child_frame_id) for x in tf.transforms} == {
+        ('world', 'kinect'), ('kinect', 'openni_rgb_optical_frame')}
+    summary = json.loads((tmp_path / 'out' / 'summary.json').read_text())
+    loc = summary['accuracy']['localization']
+    assert loc['registered'] >= 0.8 and loc['gross'] == 0, loc
+    assert loc['ATE_median'] < 0.05 and loc['ARE_median'] < 2.0, loc
+    for name in ('trajectory.tum', 'map.rfm', 'report.md', 'top_down.png', 'objects.json'):
+        assert (tmp_path / 'out' / name).is_file(), name
+    bad = subprocess.run([rfm, 'run', '--bag', str(tmp_path / 'rgbd_dataset_freiburg3_walk.bag'), '--output',
+                          str(tmp_path / 'bad'), '--ground-truth-tf', 'world:nowhere', '--quiet'],
+                         capture_output=True, text=True, timeout=120)
+    assert bad.returncode != 0 and 'no transform world -> nowhere' in bad.stderr, bad.stderr[-2000:]
+    (tmp_path / 'broken.bag').write_bytes(b'#ROSBAG V2.0\n' + bytes(range(256)) * 4)
+    broken = subprocess.run([rfm, 'run', '--bag', str(tmp_path / 'broken.bag'), '--output', str(tmp_path / 'broken'),
+                             '--quiet'], capture_output=True, text=True, timeout=120)
+    assert broken.returncode != 0 and 'cannot be read as a ROS 1 bag' in broken.stderr, broken.stderr[-2000:]

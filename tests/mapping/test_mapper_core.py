@@ -116,8 +116,10 @@ def test_a_tick_says_what_changed_and_autosaves(tmp_path, observations):
         keyframe, edges, _ = graph.add(obs)
         if keyframe is not None:
             core.keyframe(keyframe.keyframe_id, keyframe.observations)
+    assert list(tmp_path.glob('map.rfm.*.frames'))                   # autosaves append the frames beside it
     saved = core.close()
     assert saved == str(tmp_path / 'map.rfm')
+    assert not list(tmp_path.glob('map.rfm.*.frames'))               # stopped: one self-contained file
     loaded = MapperCore(with_values(config, {'load_map_on_start': True}), clock=clock)
     assert len(loaded.mapper.keyframes) == len(core.mapper.keyframes)
     assert loaded.tick().log and loaded.tick().log == []            # 'loaded ...' once

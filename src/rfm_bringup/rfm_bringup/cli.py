@@ -950,7 +950,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_params)
 
     p = sub.add_parser('run', help='run detector -> matcher -> mapper on a bag (--bag) or live camera (--live)')
-    p.add_argument('--bag', help='rosbag2 directory to replay (uses /clock and sim time)')
+    p.add_argument('--bag', help='rosbag2 directory or ROS 1 .bag file to replay (uses /clock and sim time)')
+    p.add_argument('--ground-truth-tf', metavar='WORLD:CAMERA_FRAME',
+                   help="a ROS 1 bag's ground truth in its /tf: the camera frame's pose in the world frame at each "
+                        'colour image (TUM RGB-D: world:openni_rgb_optical_frame); the report scores against it')
     p.add_argument('--live', action='store_true', help='subscribe to live camera topics until Ctrl-C')
     p.add_argument('--record-images', type=float, nargs='?', const=500.0, default=None, metavar='MB',
                    help='with --live: also record the colour images into outputs.mcap, at most MB megabytes '

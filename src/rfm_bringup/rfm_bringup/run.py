@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 from rfm_core.detection.frontend import DROP_COUNTERS
+from rfm_core.io.ros1 import is_ros1_bag, ros1_to_rosbag2, ros1_topics
 from rfm_core.io.topics import CAMERA_TOPICS, GROUND_TRUTH_TOPICS
 from rfm_core.processes import die_with_parent
 
@@ -116,6 +117,11 @@ def _parse_value(text: str):
     return text
 
 
+#: TUM RGB-D's topics (its ROS 1 bags), taken when a bag has them and not rfm's defaults
+TUM_REMAPS = {'rgb/image': '/camera/rgb/image_color', 'rgb/camera_info': '/camera/rgb/camera_info',
+              'depth/image': '/camera/depth/image', 'imu': '/imu'}
+
+
 def _remaps(args) -> dict:
     remaps = dict(BAG_REMAPS)
     for item in args.remap or []:
@@ -124,6 +130,33 @@ def _remaps(args) -> dict:
         a, b = item.split(':=', 1)
         remaps[a] = b
     return remaps
+
+
+def _from_ros1(source: Path, bag: Path, args, remaps: dict) -> Path:
+    """A ROS 1 bag converted to the rosbag2 ``bag`` (in the output folder) to replay; TUM
+    RGB-D's topics taken where the bag has them and the user remapped nothing."""
+    truth = None
+    if args.ground_truth_tf:
+        world, _, camera = args.ground_truth_tf.partition(':')
+        if not world or not camera:
+            raise SystemExit(f'rfm run: --ground-truth-tf {args.ground_truth_tf!r}: expected WORLD:CAMERA_FRAME')
+        truth = (world, camera)
+    print(f'rfm run: {source} is a ROS 1 bag; converting it to rosbag2 in {bag}', flush=True)
+    try:
+        topics = ros1_topics(source)
+        if not args.remap and remaps['rgb/image'] not in topics and TUM_REMAPS['rgb/image'] in topics:
+            remaps.update(TUM_REMAPS)
+            print("rfm run: TUM RGB-D's topics (" + ', '.join(TUM_REMAPS.values()) + ')', flush=True)
+        made = ros1_to_rosbag2(source, bag, truth, colour=remaps['rgb/image'], imu=remaps['imu'])
+    except ValueError as exc:
+        raise SystemExit(f'rfm run: {exc}') from None
+    if made['left_out']:
+        print('rfm run: left out (no ROS 2 type): ' + ', '.join(f'{t} ({m})' for t, m in made['left_out'].items()),
+              flush=True)
+    if truth:
+        print(f"rfm run: ground truth {truth[0]} -> {truth[1]} at {made['ground_truth']} colour images, "
+              f"levelled by {made['levelled_deg']:.1f} deg", flush=True)
+    return bag
 
 
 def _check_bag(bag: Path, params: dict, remaps: dict) -> None:
@@ -446,18 +479,25 @@ def run_graph(args) -> int:
     if bool(args.bag) == bool(args.live):
         raise SystemExit('rfm run: give either --bag PATH or --live')
     bag = Path(args.bag).expanduser() if args.bag else None
-    if bag is not None and not (bag / 'metadata.yaml').is_file():
-        raise SystemExit(f'rfm run: {bag} is not a rosbag2 directory (no metadata.yaml)')
-    output = Path(args.output or (Path('rfm_output') / (bag.name if bag else 'live'))).expanduser()
+    ros1 = bag is not None and is_ros1_bag(bag)
+    if bag is not None and not ros1 and not (bag / 'metadata.yaml').is_file():
+        raise SystemExit(f'rfm run: {bag} is neither a rosbag2 directory (no metadata.yaml) nor a ROS 1 bag')
+    if args.ground_truth_tf and not ros1:
+        raise SystemExit('rfm run: --ground-truth-tf reads a ROS 1 bag\'s /tf (a rosbag2 bag brings its ground '
+                         'truth on /ground_truth/camera_pose: rfm convert writes it)')
+    output = Path(args.output or (Path('rfm_output') / (bag.stem if ros1 else bag.name if bag else 'live'))).expanduser()
     if output.exists() and not args.force:
         raise SystemExit(f'rfm run: {output} exists; pass --force to replace it')
     params = _params(args, output)
     remaps = _remaps(args)
-    if bag is not None:
+    if bag is not None and not ros1:
         _check_bag(bag, params, remaps)
     if output.exists():
         shutil.rmtree(output)
     output.mkdir(parents=True)
+    if ros1:
+        bag = _from_ros1(bag, output / 'input', args, remaps)
+        _check_bag(bag, params, remaps)
     # Ctrl-C, and kill / docker stop / systemd's SIGTERM, end the loop below; the context stays valid
     # until the map is saved (rclpy's own handlers would shut it down first) and then the nodes are stopped
     signal.signal(signal.SIGTERM, _interrupt)

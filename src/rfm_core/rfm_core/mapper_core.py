@@ -334,7 +334,7 @@ class MapperCore:
             out.camera = changed
             self.throttle.pending = True
         if self._autosave_due():
-            out.saved = self.save()['path'] or None
+            out.saved = self.save(frames_beside=True)['path'] or None
         if changed is not False or self._republish:
             out.keyframe_poses = self.keyframe_poses()
         if self.throttle.due() or self._republish:
@@ -374,23 +374,24 @@ class MapperCore:
         """The query's pose in the map: (Relocalization or None, what happened)."""
         return self.session.relocalize(obs)
 
-    def save(self, requested: str = '') -> dict:
-        """Save the map to the file a request names (empty: the map file, whose frame log is
-        kept beside it and appended to, so that autosaving costs the same all day): success,
-        message, path."""
+    def save(self, requested: str = '', frames_beside: bool = False) -> dict:
+        """Save the map to the file a request names (empty: the map file): success, message,
+        path. An autosave (``frames_beside``) keeps the frame log beside the map file and
+        appends to it, so that autosaving costs the same all day; any other save writes one
+        self-contained file."""
         try:
             path = self.files.resolve(requested)
         except ValueError as exc:
             return dict(success=False, message=f'not saved: {exc}', path='')
         start = time.perf_counter()
         try:
-            written = self.session.save(path, frames_beside=not requested)
+            written = self.session.save(path, frames_beside=frames_beside)
         except (OSError, ValueError) as exc:
             self.session.message = f'saving the map to {path} failed: {exc}'
             self.warn(self.session.message)
             return dict(success=False, message=self.session.message, path='')
         self.num_saves, self.save_seconds = self.num_saves + 1, time.perf_counter() - start
-        if not requested:
+        if Path(path).expanduser().resolve() == Path(self.files.path).expanduser().resolve():
             self._saved = (self.clock(), len(self.mapper.frames))
         return dict(success=True, message=f'saved {len(self.mapper.keyframes)} keyframes to {written}', path=written)
 
@@ -431,7 +432,8 @@ class MapperCore:
                                                                  unsaved, self.clock() - self._saved[0])
 
     def close(self) -> str | None:
-        """The node stops: the last autosave, when there is something unsaved (the path written)."""
+        """The node stops: the map file written once more, self-contained (its frame log inside),
+        when something is unsaved (the path written)."""
         unsaved = self.mapper.mode == 'mapping' and len(self.mapper.frames) > self._saved[1]
         if self.autosave.every_n and self.mapper.keyframes and (self.session.since_save or unsaved):
             return self.save()['path'] or None
