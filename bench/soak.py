@@ -30,21 +30,34 @@ import numpy as np
 NODES = ('detector', 'matcher', 'mapper')
 
 
-def _rss_mb() -> dict:
-    """Resident memory (MB) of the rfm node processes on this machine, by node."""
-    out = {}
+def _rss_mb(root: int) -> dict:
+    """Resident memory (MB) of the rfm node processes under process ``root`` (the ``rfm run``
+    this started: not another run's on the same machine), by node."""
+    parents, cmds, rss = {}, {}, {}
     for proc in Path('/proc').iterdir():
         if not proc.name.isdigit():
             continue
         try:
-            cmd = (proc / 'cmdline').read_bytes().decode(errors='replace').split('\0')[:3]
             status = (proc / 'status').read_text()
+            cmds[int(proc.name)] = (proc / 'cmdline').read_bytes().decode(errors='replace').split('\0')[:3]
         except OSError:
             continue
+        fields = dict(line.split(':', 1) for line in status.splitlines() if ':' in line)
+        parents[int(proc.name)] = int(fields.get('PPid', '0').split()[0])
+        rss[int(proc.name)] = int(fields.get('VmRSS', '0 kB').split()[0]) / 1024
+
+    def under_root(pid):
+        while pid > 1:
+            if pid == root:
+                return True
+            pid = parents.get(pid, 0)
+        return False
+
+    out = {}
+    for pid, cmd in cmds.items():
         for node in NODES:                     # the executable, or the python running it
-            if any(part.endswith(f'/lib/rfm_{node}_node/{node}') for part in cmd):
-                kb = next(int(line.split()[1]) for line in status.splitlines() if line.startswith('VmRSS'))
-                out[node] = out.get(node, 0.0) + kb / 1024
+            if any(part.endswith(f'/lib/rfm_{node}_node/{node}') for part in cmd) and under_root(pid):
+                out[node] = out.get(node, 0.0) + rss[pid]
     return out
 
 
@@ -103,7 +116,7 @@ def main() -> int:
                 last = now
                 samples.append({'t': now - start, 'keyframes': s.num_keyframes, 'registered': s.num_registered,
                                 'objects': s.num_objects, 'frames': s.num_frames, 'saves': s.num_saves,
-                                'save_s': s.save_seconds, 'rss_mb': _rss_mb()})
+                                'save_s': s.save_seconds, 'rss_mb': _rss_mb(run.pid)})
                 print(f"[soak] {samples[-1]['t']:6.0f} s  keyframes {s.num_keyframes:4d}  registered "
                       f"{s.num_registered:4d}  objects {s.num_objects:4d}  frames {s.num_frames:5d}  saves "
                       f"{s.num_saves:4d} (latest {1e3 * s.save_seconds:.0f} ms)  RSS "
