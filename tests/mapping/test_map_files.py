@@ -314,3 +314,47 @@ def test_an_autosave_appends_the_frames_logged_since_the_last_one(tmp_path):
     (new,) = tmp_path.glob('room.rfm.*.frames')
     assert new.name != side.name
     np.testing.assert_array_equal(np.fromfile(new, ROW, offset=16), mapped.frames.rows())
+
+
+def test_mutated_frame_files_are_refused_or_load_into_a_working_map(saved, tmp_path):
+    """The frame file an autosave keeps beside the map, cut short or with bytes changed
+    (its head, a row's values: NaN, huge, another id), ``RFM_FUZZ_N`` / 10 times: refused with
+    MapFileError, the current map kept, or loaded with every frame pose finite."""
+    import os
+    import random
+
+    from rfm_core.mapping.frame_log import ROW
+    rng = random.Random(int(os.environ.get('RFM_FUZZ_SEED', '19')) + 1)
+    mapper = Mapper()
+    load_map(mapper, saved)
+    path = save_map(mapper, tmp_path / 'room.rfm', frames_beside=True)
+    (side,) = tmp_path.glob('room.rfm.*.frames')
+    good = side.read_bytes()
+    assert len(good) == 16 + len(mapper.frames) * ROW.itemsize > 16
+    kept, refused = set(mapper.keyframes), 0
+    for i in range(max(20, int(os.environ.get('RFM_FUZZ_N', '400')) // 10)):
+        data = bytearray(good)
+        kind = rng.randrange(3)
+        if kind == 0:
+            data = data[:rng.randrange(len(data))]
+        elif kind == 1:
+            for _ in range(rng.randrange(1, 8)):
+                data[rng.randrange(len(data))] = rng.randrange(256)
+        else:
+            row = rng.randrange(len(mapper.frames))
+            field = rng.choice(['poses', 'gravity', 'keyframes', 'stamps'])
+            rows = np.frombuffer(bytes(data[16:]), ROW).copy()
+            rows[field][row] = rng.choice([np.nan, np.inf, -1, 2 ** 62, 1e308]) if field in ('poses', 'gravity') \
+                else rng.choice([-1, 2 ** 62, 0])
+            data[16:] = rows.tobytes()
+        side.write_bytes(bytes(data))
+        try:
+            load_map(mapper, path)
+        except MapFileError:
+            refused += 1
+            assert set(mapper.keyframes) == kept, (i, kind)
+            continue
+        poses = mapper.frame_poses()
+        assert all(np.all(np.isfinite(m)) for m in poses.values()), (i, kind)
+        load_map(mapper, saved)
+    assert refused > 0

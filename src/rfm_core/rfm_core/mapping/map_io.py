@@ -188,10 +188,16 @@ def _parse_culled(data: dict, keyframes: dict) -> tuple[dict, dict, dict]:
     return merged, carried, origins
 
 
+def _unit(vectors: np.ndarray) -> bool:
+    """Whether every row is a unit vector, near enough (gravity, as the messages carry it)."""
+    with np.errstate(over='ignore', invalid='ignore'):
+        return bool(np.all(np.abs(np.linalg.norm(np.asarray(vectors, float), axis=1) - 1.0) < 0.5))
+
+
 def _check_rows(rows: np.ndarray, where) -> None:
     """MapFileError for frame log rows that loading would refuse."""
     if not (np.all(np.isfinite(rows['poses'])) and np.all(np.isfinite(rows['gravity']))
-            and np.all(np.linalg.norm(rows['gravity'], axis=1) > 0.5)):
+            and _unit(rows['gravity'])):
         raise MapFileError(f'not saved to {where}, the frame log is not valid (a non-finite pose or gravity)')
 
 
@@ -419,7 +425,7 @@ def _parse_map(path: Path, data: dict, load_frames: bool = True) -> dict:
             (all(k in data and len(data[k]) == n_frames for k in frame_keys), 'frame arrays differ in length'),
             (data['frame_poses'].shape == (n_frames, 4) and data['frame_gravity'].shape == (n_frames, 3),
              'frame shapes'),
-            (np.all(np.linalg.norm(data['frame_gravity'], axis=1) > 0.5), 'frame gravity is not a unit vector'),
+            (_unit(data['frame_gravity']), 'frame gravity is not a unit vector'),
         ]
     if 'kf_origin' in data:                                   # none in maps of older rfm versions
         checks += [(data['kf_origin'].shape == (n_kf, 2) and data['kf_origin'].dtype.kind in 'iu',
