@@ -149,7 +149,8 @@ def main() -> int:
           f"{100 * growth.get('objects', 0):+.0f}%, memory of the three nodes "
           f"{100 * growth.get('rss_mb', 0):+.0f}% ({'%.0f -> %.0f MB' % growth.get('rss_mb_first_last', (0, 0))}), "
           f"autosave time {100 * growth.get('save_s', 0):+.0f}% "
-          f"({'%.3f -> %.3f s' % growth.get('save_s_first_last', (0, 0))}); final {summary['keyframes']} keyframes ({summary['registered']} "
+          f"({'%.3f -> %.3f s' % growth.get('save_s_first_last', (0, 0))}); "
+          f"final {summary['keyframes']} keyframes ({summary['registered']} "
           f"registered), {summary['objects']} objects; ARE {loc.get('ARE_median', float('nan')):.2f} deg, ATE "
           f"{100 * loc.get('ATE_median', float('nan')):.1f} cm, {100 * loc.get('registered', 0):.0f}% localized; "
           f"{args.work / 'soak.png'}")

@@ -271,7 +271,7 @@ class _InProcessGraph:
         return {k: v for k, v in seconds.items() if v is not None}
 
     def peak_memory_mb(self) -> dict:
-        """Peak resident memory of this process (all three nodes and the player; Linux only)."""
+        """Peak resident memory of this process, which runs all three nodes (Linux only)."""
         mb = _peak_memory_mb('/proc/self/status')
         return {'graph': mb} if mb is not None else {}
 
@@ -485,7 +485,8 @@ def run_graph(args) -> int:
     if args.ground_truth_tf and not ros1:
         raise SystemExit('rfm run: --ground-truth-tf reads a ROS 1 bag\'s /tf (a rosbag2 bag brings its ground '
                          'truth on /ground_truth/camera_pose: rfm convert writes it)')
-    output = Path(args.output or (Path('rfm_output') / (bag.stem if ros1 else bag.name if bag else 'live'))).expanduser()
+    name = bag.stem if ros1 else bag.name if bag else 'live'
+    output = Path(args.output or (Path('rfm_output') / name)).expanduser()
     if output.exists() and not args.force:
         raise SystemExit(f'rfm run: {output} exists; pass --force to replace it')
     params = _params(args, output)
@@ -495,6 +496,7 @@ def run_graph(args) -> int:
     if output.exists():
         shutil.rmtree(output)
     output.mkdir(parents=True)
+    source = bag
     if ros1:
         bag = _from_ros1(bag, output / 'input', args, remaps)
         _check_bag(bag, params, remaps)
@@ -581,7 +583,8 @@ def run_graph(args) -> int:
     if not ok:
         print(f'rfm run: the map could not be saved to {output / "map.rfm"}', file=sys.stderr)
         return 1
-    summary = write_outputs(output, bag, params, final, max(wall, 1e-3), posed=args.posed, remaps=remaps)
+    summary = write_outputs(output, bag, params, final, max(wall, 1e-3), posed=args.posed, remaps=remaps,
+                            source=source)
     print(f'\nrfm run: results in {output}/')
     acc = summary.get('accuracy')
     frames_in = f' of {summary["input_frames"]}' if summary.get('input_frames') else ''
@@ -601,9 +604,10 @@ def run_graph(args) -> int:
 
 
 def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float, posed: bool = False,
-                  remaps: dict | None = None) -> dict:
+                  remaps: dict | None = None, source=None) -> dict:
     """Everything but the recording, from the saved map (which this also validates), with
-    the configuration the mapper ran with (stored in the map file)."""
+    the configuration the mapper ran with (stored in the map file). ``source``: the input as
+    the user named it (a ROS 1 bag; ``bag`` is then its conversion)."""
     from rfm_core.evaluation.report import (  # noqa: PLC0415
         GroundTruth, evaluate_run, published_camera_poses, read_ground_truth, render_top_down, tf_camera_poses,
         write_keyframes_tum, write_object_json, write_report, write_tum)
@@ -627,7 +631,8 @@ def write_outputs(output: Path, bag, params: dict, progress: dict, wall_s: float
              + (f', AP25 {accuracy["mapping"]["AP25"]:.2f}' if accuracy["mapping"] else '') if accuracy else '')
     render_top_down(output / 'top_down.png', mapper, truth if truth else None,
                     accuracy['alignment'] if accuracy else None, title=title)
-    summary = {'input': str(bag) if bag else 'live camera', 'date': datetime.datetime.now().isoformat(timespec='seconds'),
+    summary = {'input': str(source or bag) if bag else 'live camera',
+               'date': datetime.datetime.now().isoformat(timespec='seconds'),
                'backend': params['detector']['backend'], 'matcher': params['matcher']['matcher'], 'posed': posed,
                'input_frames': input_frames, 'received': progress.get('received'), 'frames': progress.get('frames', 0),
                'points_only': progress.get('points_only'),

@@ -164,7 +164,8 @@ class BoxRefiner:
         params, meta = load_weights(path, WEIGHTS_FORMAT, 2, shapes, 'rfm train-box-refiner')
         num_points = meta.get('num_points')
         if not isinstance(num_points, int) or not 0 < num_points <= 4096:
-            raise ValueError(f'{path}: num_points {num_points!r} is not a point count; retrain with rfm train-box-refiner')
+            raise ValueError(f'{path}: num_points {num_points!r} is not a point count; '
+                             'retrain with rfm train-box-refiner')
         return cls(RefinerNet(int(meta['width']), params), nms_iou, num_points)
 
     def refine(self, found):
