@@ -175,10 +175,12 @@ def _plot(path: Path, samples: list, loop_ends: list, summary: dict) -> None:
     save.set_ylabel('autosave wall time (ms)')
     save.set_xlabel('time since the first frame (s)')
     save.legend()
+    marked = loop_ends if len(loop_ends) <= 30 else loop_ends[:1]       # many loops: the first one's end
     for a in (ax, mem, save):
-        for end in loop_ends:
+        for end in marked:
             a.axvline(end, color='grey', lw=0.5)
-    ax.set_title(f"soak: {len(loop_ends)} loops (grey), {summary.get('frames', 0)} frames")
+    ax.set_title(f"soak: {len(loop_ends)} loops ({'grey' if len(marked) > 1 else 'grey: the first one ends'}), "
+                 f"{summary.get('frames', 0)} frames")
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
