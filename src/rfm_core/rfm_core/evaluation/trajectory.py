@@ -19,7 +19,7 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 
-__all__ = ['GROSS', 'TWO_SIGMA', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth', 'trajectory_errors',
+__all__ = ['GROSS', 'TWO_SIGMA', 'umeyama', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth', 'trajectory_errors',
            'covariance_coverage',
            'frame_errors']
 
@@ -30,19 +30,28 @@ GROSS = (5.0, 0.25)
 TWO_SIGMA = 9.72
 
 
+def umeyama(x: np.ndarray, y: np.ndarray, with_scale: bool) -> tuple:
+    """(R, t, c) minimising sum |y_i - (c R x_i + t)|^2 over points (N, 3) (Umeyama, 1991;
+    R a proper rotation, c = 1 without ``with_scale``)."""
+    mean_x, mean_y = x.mean(0), y.mean(0)
+    u, d, vt = np.linalg.svd((y - mean_y).T @ (x - mean_x) / len(x))
+    s = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        s[2, 2] = -1
+    r = u @ s @ vt
+    c = float(np.trace(np.diag(d) @ s) / np.mean(np.sum((x - mean_x) ** 2, axis=1))) if with_scale else 1.0
+    return r, mean_y - c * r @ mean_x, c
+
+
 def align_se3(source: np.ndarray, target: np.ndarray):
     """(R, t) minimising sum |R source_i + t - target_i|^2 (proper rotation)."""
     source = np.asarray(source, float).reshape(-1, 3)
     target = np.asarray(target, float).reshape(-1, 3)
     if len(source) == 0:
         return np.eye(3), np.zeros(3)
-    ms, mt = source.mean(0), target.mean(0)
     if len(source) < 3:
-        return np.eye(3), mt - ms
-    u, _, vt = np.linalg.svd((target - mt).T @ (source - ms))
-    d = np.sign(np.linalg.det(u @ vt)) or 1.0
-    r = u @ np.diag([1.0, 1.0, d]) @ vt
-    return r, mt - r @ ms
+        return np.eye(3), target.mean(0) - source.mean(0)
+    return umeyama(source, target, with_scale=False)[:2]
 
 
 def align_4dof(est: np.ndarray, gt: np.ndarray, lever_m: float = 1.0):

@@ -22,9 +22,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-__all__ = ['ALIGNMENTS', 'read_tum', 'associate', 'umeyama', 'align', 'ape', 'rpe', 'statistics', 'evaluate_tum']
+from rfm_core.evaluation.trajectory import umeyama
+from rfm_core.geometry import kabsch_4dof, matrix_from_quaternion
+
+__all__ = ['ALIGNMENTS', 'read_tum', 'associate', 'align', 'ape', 'rpe', 'statistics', 'evaluate_tum']
 
 ALIGNMENTS = ('se3', 'sim3', 'yaw', 'none')
 
@@ -49,7 +51,7 @@ def read_tum(path) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f'{path}: no poses')
     rows = np.array(rows)
     poses = np.tile(np.eye(4), (len(rows), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(rows[:, 3:]).as_matrix()    # x y z w, normalised
+    poses[:, :3, :3] = matrix_from_quaternion(rows[:, 3:])            # x y z w, normalised
     poses[:, :3, 3] = rows[:, :3]
     return np.array(stamps), poses
 
@@ -75,28 +77,6 @@ def associate(stamps_ref: np.ndarray, stamps_est: np.ndarray, max_diff: float = 
     return np.array(ref, int), np.array(est, int)
 
 
-def umeyama(x: np.ndarray, y: np.ndarray, with_scale: bool) -> tuple:
-    """(R, t, c) minimising sum |y_i - (c R x_i + t)|^2 over points (N, 3) (Umeyama, 1991)."""
-    mean_x, mean_y = x.mean(0), y.mean(0)
-    sigma_x = np.mean(np.sum((x - mean_x) ** 2, axis=1))
-    u, d, vt = np.linalg.svd((y - mean_y).T @ (x - mean_x) / len(x))
-    s = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        s[2, 2] = -1
-    r = u @ s @ vt
-    c = float(np.trace(np.diag(d) @ s) / sigma_x) if with_scale else 1.0
-    return r, mean_y - c * r @ mean_x, c
-
-
-def _yaw(x: np.ndarray, y: np.ndarray) -> tuple:
-    """(R about z, t) minimising sum |y_i - (R x_i + t)|^2."""
-    a, b = x - x.mean(0), y - y.mean(0)
-    yaw = np.arctan2(np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]), np.sum(a[:, :2] * b[:, :2]))
-    c, s = np.cos(yaw), np.sin(yaw)
-    r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    return r, y.mean(0) - r @ x.mean(0)
-
-
 def align(est: np.ndarray, ref: np.ndarray, mode: str = 'se3') -> tuple[np.ndarray, float]:
     """(the estimated poses (N, 4, 4) aligned to the reference ones, the scale applied)."""
     if mode not in ALIGNMENTS:
@@ -106,7 +86,8 @@ def align(est: np.ndarray, ref: np.ndarray, mode: str = 'se3') -> tuple[np.ndarr
     if len(est) < 3:
         raise ValueError(f'{mode} alignment needs three associated poses or more, got {len(est)}')
     if mode == 'yaw':
-        (r, t), c = _yaw(est[:, :3, 3], ref[:, :3, 3]), 1.0
+        m = kabsch_4dof(est[:, :3, 3], ref[:, :3, 3]).matrix()
+        r, t, c = m[:3, :3], m[:3, 3], 1.0
     else:
         r, t, c = umeyama(est[:, :3, 3], ref[:, :3, 3], with_scale=mode == 'sim3')
     out = est.copy()

@@ -60,7 +60,7 @@ def _frame(name: str) -> str:
 def _ground_truth(reader, connections, world: str, camera: str, colour: str, imu: str) -> tuple[list, float]:
     """([(stamp_ns, 4x4 T_world_camera)] at the colour images, levelled; the turn in degrees)."""
     from rfm_core.io.datasets import level_ground_truth  # noqa: PLC0415
-    from rfm_core.io.messages import stamp_to_ns, transform_to_matrix  # noqa: PLC0415
+    from rfm_core.io.messages import stamp_to_ns, transforms_from_msg  # noqa: PLC0415
     from rfm_core.transforms import TransformBuffer  # noqa: PLC0415
 
     buffer = TransformBuffer(cache_s=1e9, tolerance_s=0.0)
@@ -69,9 +69,8 @@ def _ground_truth(reader, connections, world: str, camera: str, colour: str, imu
     for conn, _, raw in reader.messages(connections=wanted):
         msg = reader.deserialize(raw, conn.msgtype)
         if conn.topic in ('/tf', '/tf_static'):
-            for t in msg.transforms:
-                buffer.add(_frame(t.header.frame_id), _frame(t.child_frame_id), stamp_to_ns(t.header.stamp),
-                           transform_to_matrix(t.transform), static=conn.topic == '/tf_static')
+            for parent, child, stamp_ns, matrix in transforms_from_msg(msg):
+                buffer.add(_frame(parent), _frame(child), stamp_ns, matrix, static=conn.topic == '/tf_static')
         elif conn.topic == colour:
             stamps.append(stamp_to_ns(msg.header.stamp))
         else:
