@@ -459,3 +459,11 @@ def test_a_saved_map_relocalizes_a_second_walk_through_rfm_run(tmp_path):
     assert replay.returncode == 0, replay.stderr[-3000:]
     row, = json.loads((tmp_path / 'r.json').read_text())
     assert row['frames'] == config.frames and row['registered'] >= 0.9 and row['gross'] == 0, row
+    # rfm replay --reloc: the query walk localized and the second session mapped again, in-process
+    replay = subprocess.run([shutil.which('rfm'), 'replay', str(tmp_path), '--reloc', '--json', 'q.json'],
+                            capture_output=True, text=True, timeout=240, cwd=tmp_path)
+    assert replay.returncode == 0, replay.stderr[-3000:]
+    rows = {r['query']: r for r in json.loads((tmp_path / 'q.json').read_text())}
+    assert set(rows) == {'handheld', 'session'}, rows
+    assert rows['handheld']['found'] >= 0.6 * rows['handheld']['seeing'] and rows['handheld']['wrong'] == 0, rows
+    assert rows['session']['registered_seeing'] >= 0.5 and rows['session']['gross'] == 0, rows

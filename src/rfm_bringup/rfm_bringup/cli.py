@@ -644,7 +644,7 @@ def cmd_eval_trajectory(args) -> int:
 def cmd_replay(args) -> int:
     """A graph run's recorded detections through the in-process back end again
     (rfm_core.evaluation.replay): two versions of the code compared on the same detections."""
-    from rfm_core.evaluation.replay import replay_localization, replay_mapping  # noqa: PLC0415
+    from rfm_core.evaluation.replay import replay_localization, replay_mapping, replay_session  # noqa: PLC0415
 
     work = Path(args.work)
     if not work.is_dir():
@@ -670,6 +670,20 @@ def cmd_replay(args) -> int:
                       f'that see two mapped objects; wrong {wrong} of {relocalized} '
                       f'({100 * wrong / max(relocalized, 1):.1f}%); within their 2-sigma bound '
                       f'{100 * _pooled(sel, "within_2sigma", "covered"):.1f}%')
+        sessions = [room for room in rooms if (query_folders(room, 'session')[1] / 'outputs.mcap').exists()]
+        for room in sessions:
+            r = replay_session(room, args.verbose)
+            rows.append(r)
+            print(f"{r['scene']:26s} session  {r['registered_seeing'] * r['seeing_mapped']:2.0f} of the "
+                  f"{r['seeing_mapped']:2d} frames that see two mapped objects  wrong {r['gross']}  ARE "
+                  f"{r['ARE_median']:5.2f} deg  ATE {100 * r['ATE_median']:5.1f} cm  loaded keyframes moved "
+                  f"{r['moved_cm_max']:.1f} cm at most", flush=True)
+        sel = [r for r in rows if r['query'] == 'session']
+        if sel:
+            seeing = sum(r['seeing_mapped'] for r in sel)
+            found = sum(r['registered_seeing'] * r['seeing_mapped'] for r in sel if r['seeing_mapped'])
+            print(f"second sessions, {len(sel)} rooms: {100 * found / max(seeing, 1):.1f}% of the {seeing} frames "
+                  f"that see two mapped objects; wrong {sum(r['gross'] for r in sel)}")
     else:
         def recorded(scene):          # an rfm eval scene's run, or an rfm eval-reloc room's mapping walk
             return next(((run, bag) for run, bag in ((args.run, 'bag'), ('map_run', 'map_bag'))
@@ -934,11 +948,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser('replay', help="a graph run's recorded detections through the in-process back end again")
     p.add_argument('work', help="an rfm eval --work folder, or an rfm eval-reloc --work folder (its rooms' mapping "
-                                'walks; with --reloc their query walks)')
-    p.add_argument('--reloc', action='store_true', help="rfm eval-reloc's rooms: their query walks against their maps")
+                                'walks; with --reloc their query walks and second sessions)')
+    p.add_argument('--reloc', action='store_true',
+                   help="rfm eval-reloc's rooms: their query walks against their maps, their second sessions on them")
     p.add_argument('--scenes', nargs='*', help='scene folders of WORK (default: all with a recorded run)')
     p.add_argument('--run', default='rgb_d__depth_clusters', help="the run's folder in each scene")
-    p.add_argument('--verbose', action='store_true', help='--reloc: each missed and wrong frame')
+    p.add_argument('--verbose', action='store_true', help='--reloc: each missed and wrong frame (second sessions: each wrong one)')
     p.add_argument('--json', help='also write the per-scene results to this JSON file')
     p.set_defaults(func=cmd_replay)
 

@@ -14,12 +14,15 @@ their code.
   loaded in localization mode, the query walk's recorded detections localized as a stream
   and scored as ``rfm eval-reloc`` scores the graph. Localization against a frozen map is
   deterministic: the same detections give the graph's result.
+- :func:`replay_session`: a room of ``rfm eval-reloc --work WORK``: its saved map loaded in
+  mapping mode, the second session's recorded detections mapped on it, and the map it ends
+  with scored as ``rfm eval-reloc`` scores the graph's saved map.
 """
 from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ['recorded_detections', 'replay_mapping', 'replay_localization']
+__all__ = ['recorded_detections', 'replay_mapping', 'replay_localization', 'replay_session']
 
 
 def recorded_detections(run: Path) -> list:
@@ -98,3 +101,41 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
             'relocalized': len(estimated), 'wrong': row['gross'], 'within_2sigma': coverage['within_2sigma'],
             'covered': coverage['frames'],
             'ARE_median': row['ARE_median'], 'ATE_median': row['ATE_median'], 'map_registered': row['map_registered']}
+
+
+def replay_session(room: Path, verbose: bool = False) -> dict:
+    """One room of an ``rfm eval-reloc`` run: its second session's recorded detections mapped
+    on its saved map (mapping mode), scored from the map that ends with, as the graph's
+    ``session`` row is. ``verbose`` prints each wrong frame."""
+    import tempfile  # noqa: PLC0415
+
+    from rfm_core.evaluation.suite import query_folders, session_scores  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import GROSS, frame_errors  # noqa: PLC0415
+    from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
+    from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
+    from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
+    from rfm_core.session import Session  # noqa: PLC0415
+
+    room = Path(room)
+    loaded = room / 'map_run' / 'map.rfm'
+    session = Session(MapperConfig(), matcher=make_matcher('learned'))
+    session.map.load(loaded)
+    bag, run = query_folders(room, 'session')
+    for obs in recorded_detections(run):
+        session.step(obs)
+    session.finish()
+    before = Mapper()
+    load_map(before, loaded)
+    with tempfile.TemporaryDirectory() as tmp:
+        saved = session.map.save(Path(tmp) / 'map.rfm')
+        row = session_scores(before, saved, room / 'map_bag', bag)
+        if verbose:
+            from rfm_core.evaluation.suite import relocalization_scores  # noqa: PLC0415
+            after = Mapper()
+            load_map(after, saved)
+            scores = relocalization_scores(before, room / 'map_bag', bag, after.frame_poses())
+            start = min(scores.truth)
+            for stamp, (metres, deg) in sorted(frame_errors(scores.estimated, scores.truth).items()):
+                if deg > GROSS[0] or metres > GROSS[1]:
+                    print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {metres:.2f} m')
+    return {'scene': room.name, 'query': 'session', **row}

@@ -51,7 +51,7 @@ from rfm_core.mapping.relocalization import MotionPrior, Relocalization, Relocal
 from rfm_core.matching.relative_pose import track_on_points
 from rfm_core.observations import FrameObservations, imu_relative_yaw
 
-__all__ = ['StreamLocalizer', 'motion_prior']
+__all__ = ['StreamLocalizer', 'motion_prior', 'on_points']
 
 HELD = 8                        #: unconfirmed poses held at most (the newest)
 UNPLACED = 8                    #: frames nothing placed kept for the next track to walk back over (the newest)
@@ -80,6 +80,31 @@ def motion_prior(track: list, obs: FrameObservations, config: RelocalizationConf
         yaw, tolerance = t_map_last.yaw, config.stream_slack_deg + config.stream_turn_dps * dt
     return MotionPrior(float(yaw), t_map_last.t.copy(), config.stream_slack_m + config.stream_speed_mps * dt,
                        min(math.radians(tolerance), math.pi))
+
+
+def on_points(obs: FrameObservations, prior: MotionPrior, index, matching) -> Relocalization | None:
+    """A frame placed on its depth points from where ``prior`` predicts it (see the module):
+    aligned to the map's merged depth points near the prediction (``index``: a
+    :class:`~rfm_core.mapping.map_index.MapIndex`), else to the map keyframes nearest it;
+    accepted where the points fix every direction and the pose is one ``prior`` admits. None
+    otherwise."""
+    if not len(obs.cloud):
+        return None
+    t_map_view = Pose4(prior.yaw, prior.centre)              # the prediction
+    found = track_on_points(t_map_view, index.cloud_near(prior.centre), obs, matching)
+    if found is not None and not found.free and prior.admits(found.pose.inverse()):
+        return Relocalization(found.pose.inverse(), index.nearest_keyframe(found.pose.t), 0,
+                              np.zeros((0, 2), int), candidates=1)
+    near = index.keyframes_with_points_near(prior.centre, POINT_KEYFRAMES)
+    for k in near:
+        t_k_map = index.poses[k]
+        found = track_on_points(t_k_map @ t_map_view, index.keyframes[k], obs, matching)
+        if found is None or found.free:
+            continue
+        pose = found.pose.inverse() @ t_k_map                  # T_view_map
+        if prior.admits(pose):
+            return Relocalization(pose, k, 0, np.zeros((0, 2), int), candidates=len(near))
+    return None
 
 
 @dataclass
@@ -148,26 +173,8 @@ class StreamLocalizer:
         return out[::-1]
 
     def _on_points(self, obs: FrameObservations, prior: MotionPrior) -> Relocalization | None:
-        """A frame of the live track placed on its depth points (see the module), or None."""
-        matching = self.mapper.config.matching
-        if not len(obs.cloud):
-            return None
-        index = self.mapper.map_index()
-        t_map_view = Pose4(prior.yaw, prior.centre)              # the prediction: the gyroscope's yaw, held
-        found = track_on_points(t_map_view, index.cloud_near(prior.centre), obs, matching)
-        if found is not None and not found.free and prior.admits(found.pose.inverse()):
-            return Relocalization(found.pose.inverse(), index.nearest_keyframe(found.pose.t), 0,
-                                  np.zeros((0, 2), int), candidates=1)
-        near = index.keyframes_with_points_near(prior.centre, POINT_KEYFRAMES)
-        for k in near:
-            t_k_map = self.mapper.poses[k]
-            found = track_on_points(t_k_map @ t_map_view, self.mapper.keyframes[k], obs, matching)
-            if found is None or found.free:
-                continue
-            pose = found.pose.inverse() @ t_k_map                  # T_view_map
-            if prior.admits(pose):
-                return Relocalization(pose, k, 0, np.zeros((0, 2), int), candidates=len(near))
-        return None
+        """A frame of the live track placed on its depth points (:func:`on_points`), or None."""
+        return on_points(obs, prior, self.mapper.map_index(), self.mapper.config.matching)
 
     def step(self, obs: FrameObservations, why: list | None = None) -> list:
         """Localize one frame: the frames accepted by it, oldest first, as (observations,

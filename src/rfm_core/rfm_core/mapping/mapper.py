@@ -26,6 +26,7 @@ from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.culling import CullingConfig, Merged, protected_keyframes, redundant_keyframes
 from rfm_core.mapping.frame_log import FrameLog
+from rfm_core.mapping.localization import on_points
 from rfm_core.mapping.relocalization import MapIndex, MotionPrior, Relocalization, RelocalizationConfig, relocalize
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.recovery import TrackingRecovery
@@ -397,7 +398,17 @@ class Mapper:
                 lambda obs: relocalize(obs, self.reference_index(), self.matcher, self.config.relocalization,
                                        self.config.matching, self.config.averaging),
                 self.config.relocalization, self.averager.reference)
+            found += self.recovery.on_map_edges(self.keyframes, poses, self.averager.reference, self._on_reference,
+                                                self.config.relocalization)
         return self._join(found)
+
+    def _on_reference(self, obs: FrameObservations, prior: MotionPrior) -> Relocalization | None:
+        """A keyframe placed on the loaded map where ``prior`` predicts it: on its objects,
+        else on its depth points (:mod:`rfm_core.mapping.recovery`)."""
+        index, cfg = self.reference_index(), self.config
+        found = relocalize(obs, index, self.matcher, cfg.relocalization, cfg.matching, cfg.averaging,
+                           prior=prior) if len(obs) >= 2 else None
+        return found or on_points(obs, prior, index, cfg.matching)
 
     def _join(self, edges: list) -> bool:
         """Add the edges that join keyframes to the map (kept in :attr:`recovered`); True when one was new."""

@@ -24,6 +24,15 @@ placement that agrees with another of its session's (also after the session join
 the edge from the map keyframe that placed it, so many placements average out the errors of
 the first two.
 
+**A joined session goes on on the map.** Once a session has joined, each of its keyframes
+registered through its own edges is placed once on the loaded map where its pose predicts
+it, as a localization track places a frame (:mod:`rfm_core.mapping.localization`: only
+poses within ``stream_slack_m`` / ``stream_slack_deg`` of the prediction, on its objects,
+else on its depth points against the map's surfaces), and gets the edge from the map
+keyframe that placed it. Without it a session's keyframes that see two or three objects
+chain on their own edges, and the chain drifts from the map it joined (0.3 m after ten
+keyframes); the map's own objects and surfaces hold it, as in localization mode.
+
 **The views left out, again** (the paper's global pass over a finished capture, 3.5: pose
 averaging over the whole view graph, then the views left out registered again). When all
 poses are solved at once (the input idle, or the capture finished), every keyframe still
@@ -40,12 +49,14 @@ accepted. Each keyframe is tried again whenever the registered map has doubled s
 """
 from __future__ import annotations
 
+import math
 from typing import Callable
 
 import numpy as np
 
 from rfm_core.geometry import Pose4
-from rfm_core.mapping.relocalization import MapIndex, Relocalization, RelocalizationConfig, match_to_map
+from rfm_core.mapping.relocalization import (MapIndex, MotionPrior, Relocalization, RelocalizationConfig,
+                                             match_to_map)
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import Edge
 from rfm_core.observations import EdgeRecord, FrameObservations
@@ -61,6 +72,7 @@ class TrackingRecovery:
         self.placed: dict = {}               # another session's keyframe id -> its Relocalization (None: none)
         self.joined: set = set()             # ... those whose placement became an edge
         self.left_out: dict = {}             # keyframe id -> registered keyframes when the global pass tried it
+        self.on_map: set = set()             # a joined session's keyframes tried on the loaded map
 
     @staticmethod
     def recoverable(obs: FrameObservations, config: RelocalizationConfig) -> bool:
@@ -108,8 +120,7 @@ class TrackingRecovery:
             if (k not in reference and k not in self.placed and self.recoverable(obs, config)
                     and obs.stamp_ns < newest_stamp_ns):
                 found = relocalize(obs)
-                self.placed[k] = found if found is not None and found.num_inliers >= config.recovery_min_inliers \
-                    else None
+                self.placed[k] = found
         placed = [k for k, found in self.placed.items() if found is not None and k in keyframes]
         out, links = [], None
         for a in placed:
@@ -126,6 +137,27 @@ class TrackingRecovery:
                     out.append(_edge_from(self.placed[a], a, poses))
                     break
         return out
+
+    def on_map_edges(self, keyframes: dict, poses: dict, reference: set,
+                     place: Callable[[FrameObservations, MotionPrior], Relocalization | None],
+                     config: RelocalizationConfig) -> list:
+        """The edges that hold a joined session on the loaded map (see the module): each
+        registered keyframe outside ``reference`` that its own placement did not join,
+        ``place``d once where its pose (``poses``: {id: T_k_map}) predicts it."""
+        if not self.joined:
+            return []
+        found = []
+        for k, obs in keyframes.items():
+            if k in reference or k not in poses or k in self.joined or k in self.on_map:
+                continue
+            self.on_map.add(k)
+            t_map_k = poses[k].inverse()
+            prior = MotionPrior(float(t_map_k.yaw), t_map_k.t.copy(), config.stream_slack_m,
+                                math.radians(config.stream_slack_deg))
+            placed = place(obs, prior)
+            if placed is not None:
+                found.append(_edge_from(placed, k, poses))
+        return found
 
     def left_out_edges(self, keyframes: dict, poses: dict,
                        relocalize: Callable[[FrameObservations], Relocalization | None],
