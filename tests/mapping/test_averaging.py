@@ -281,3 +281,33 @@ def test_a_part_that_outgrows_the_registered_one_changes_the_map_frame_and_says_
     av.add_edge(14, 15, step, 3.0)                  # the map grows on: the same frame
     av.update(force_full=True)
     assert 15 in av.poses and av.frame_changes == 1
+
+
+def test_a_loaded_map_keeps_every_keyframe_where_it_was_saved():
+    """A loaded map's keyframes are held where the map file put them, and an edge between
+    two of them is never dropped: its residual says nothing about the new session (both ends
+    are held), and dropping it cut a saved keyframe out of the map, which a new session's
+    edge then put back 0.6 m off. Here the saved map holds its last keyframe 0.4 m from
+    where its one remaining edge puts it (other evidence, since culled, placed it); a second
+    session joins and a full solve runs."""
+    def pose(x, y):
+        return Pose4.from_centre(0.0, np.array([x, y, 0.0]))
+
+    truth = {k: pose(0.5 * k, 0.0) for k in range(6)}
+    truth.update({10: pose(0.5, 1.0), 11: pose(1.0, 1.2), 12: pose(2.0, 1.0)})
+    inc = IncrementalAverager(AveragingConfig())
+    for k in range(6):
+        inc.add_keyframe(k)
+        if k:
+            inc.add_edge(k - 1, k, truth[k - 1] @ truth[k].inverse(), 2.0)
+    saved = {**truth, 5: pose(2.9, 0.0)}
+    inc.restore({k: saved[k] for k in range(6)}, np.ones(5, bool))
+    inc.reference = set(range(6))                             # as load_map sets it
+    for s, t in ((1, 10), (2, 11), (10, 11), (11, 12), (4, 12)):
+        inc.add_keyframe(t)
+        inc.add_edge(s, t, truth[s] @ truth[t].inverse(), 2.0)
+        inc.update()
+    inc.update(force_full=True)
+    for k in range(6):
+        assert inc.pose(k) is not None and np.allclose(inc.pose(k).t, saved[k].t), k
+    assert all(inc.pose(k) is not None for k in (10, 11, 12))

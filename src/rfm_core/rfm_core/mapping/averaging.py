@@ -467,7 +467,9 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     if n == 0:
         return theta, centres, active, comp, cycle
     order = np.arange(n) if anchor_order is None else np.asarray(anchor_order, np.int64)
-    cycle = cycle_inconsistent(src, dst, yaw, trans, active & full, cfg)
+    held = np.zeros(n, bool) if fixed is None else np.isfinite(fixed[0])
+    between_held = held[src] & held[dst]        # the loaded map's own: they hold it together, nothing moves them
+    cycle = cycle_inconsistent(src, dst, yaw, trans, active & full, cfg) & ~between_held
     active &= ~cycle
 
     def component(active, seed=None):
@@ -481,8 +483,6 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     def gyro(mask):
         u = mask & ~full
         return src[u], dst[u], yaw[u], weight[u]
-
-    held = np.zeros(n, bool) if fixed is None else np.isfinite(fixed[0])
 
     def start(comp, root, active, seed=None):
         use = active & full & comp[src] & comp[dst]
@@ -522,6 +522,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
                                              trans[use], weight[use], free, cfg)
                     _, tr = _residuals(theta, centres, src, dst, yaw, trans)
                     bad = use & (tr > cfg.max_translation_residual_m)
+                bad &= ~between_held
                 if not np.any(bad):
                     break
                 active = active & ~bad
