@@ -11,7 +11,7 @@ import pytest
 
 from rfm_core.evaluation.pipeline import run_capture
 from rfm_core.geometry import Pose4, wrap_angle, yaw_matrix
-from rfm_core.mapping.localization import StreamLocalizer
+from rfm_core.mapping.localization import StreamLocalizer, motion_prior, on_points
 from rfm_core.mapping.map_io import load_map, save_map
 from rfm_core.mapping.mapper import Mapper, MapperConfig
 from rfm_core.mapping.relocalization import MotionPrior
@@ -290,6 +290,74 @@ def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
             continue
         assert len(placed) == 1 and placed[0][1].num_inliers == 0 and stream.counts['points'] == 1
         assert _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2)
+
+
+def _room_map(saved):
+    """The saved map in localization mode, each keyframe seeing the room's points
+    (:func:`_room_points`), and those points."""
+    mapper = Mapper()
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
+    for k, pose in mapper.poses.items():
+        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
+    return mapper, room
+
+
+def _points_of(room, t_view_map: Pose4, like: FrameObservations, stamp_ns: int, seed: int = 0):
+    """A frame at ``t_view_map`` that sees the room's points and nothing else."""
+    rng = np.random.default_rng(seed)
+    cloud = t_view_map.transform_points(room) + rng.normal(0, 0.005, room.shape)
+    return FrameObservations(stamp_ns, like.frame_id, like.intrinsics, like.gravity_cam,
+                             cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
+
+
+def test_a_track_on_the_points_starts_each_alignment_where_the_cameras_velocity_puts_it(saved):
+    """Frames 0.5 s apart that only the depth points place: a camera walking at 0.7 m/s is
+    0.35 m from the last frame, beyond the reach of an alignment started there (its first
+    correspondences are searched within 0.25 m). The track's velocity predicts where it is,
+    and each alignment starts there: every frame is placed within a centimetre."""
+    mapper, room = _room_map(saved)
+    views = _views(mapper)
+    start = views[1][1].inverse()                                      # T_map_view of a confirmed frame
+    step = yaw_matrix(start.yaw) @ np.array([0.0, 0.35, 0.0])          # sideways, 0.35 m per frame
+    stream = StreamLocalizer(mapper)
+    for view, _ in views[:2]:                                          # the track: the second confirms the first
+        stream.step(view)
+    stream.track = [(views[0][0], Pose4(start.yaw, start.t - step).inverse()), (views[1][0], start.inverse())]
+    for i in range(1, 4):
+        truth = Pose4(start.yaw, start.t + i * step).inverse()
+        placed = stream.step(_points_of(room, truth, views[1][0], views[1][0].stamp_ns + i * STEP_NS, seed=i))
+        assert len(placed) == 1 and _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2), i
+
+
+def test_the_objects_overrule_a_track_that_the_points_alone_would_carry_on(saved):
+    """A frame of a live track whose depth points lie on the map's surfaces near where the
+    track predicts it, but whose objects place it unambiguously elsewhere: the points alone
+    are not trusted (a track slides on them), the frame is held as one that contradicts the
+    track, and a second frame like it replaces the track where the objects put it."""
+    mapper, room = _room_map(saved)
+    views = _views(mapper)
+    centres = np.array([p.inverse().t for _, p in views])
+    far = int(np.argmax(np.linalg.norm(centres - centres[1], axis=1)))
+    assert np.linalg.norm(centres[far] - centres[1]) > 2.0
+    stream = StreamLocalizer(mapper)
+    for view, _ in views[:2]:
+        stream.step(view)
+    assert len(stream.track) == 2
+    near = views[1][1]                                                 # where the track is
+    stamp = views[1][0].stamp_ns + STEP_NS
+    frame = replace(views[far][0], stamp_ns=stamp, imu_rotation=None, imu_epoch=0,
+                    cloud=_points_of(room, near, views[1][0], stamp).cloud)
+    assert on_points(frame, motion_prior(stream.track, frame, mapper.config.relocalization), mapper.map_index(),
+                     mapper.config.matching) is not None               # the points alone place it near the track
+    why = []
+    assert stream.step(frame, why) == [] and 'contradicts the track' in why[-1]
+    assert stream.counts['points'] == 0
+    again = replace(frame, stamp_ns=stamp + STEP_NS)
+    moved = stream.step(again)
+    assert [o.stamp_ns for o, _ in moved] == [stamp, again.stamp_ns]
+    assert _close(moved[-1][1].pose, views[far][1])
 
 
 def test_a_frame_no_keyframe_saw_all_of_is_placed_on_the_maps_merged_points(saved):

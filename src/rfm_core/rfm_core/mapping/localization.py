@@ -33,7 +33,15 @@ does with its odometry:
   (:func:`rfm_core.matching.relative_pose.track_on_points`),
   and accepted where the points fix every direction and the pose is within the
   prediction's bounds: the map's own surfaces place it, so a run of such frames does not
-  drift.
+  drift. An alignment finds the surfaces within a quarter metre of where it starts, and a
+  walking camera moves that far in half a second: it starts where the track's velocity
+  (its last two frames) puts the camera, and again from the last frame's centre (a velocity
+  from one wrong pose predicts wrong); the one that puts more of the frame on the map's
+  surfaces wins.
+- **The objects have the last word.** Points alone can slide a track along a wall, a frame
+  at a time, 0.5 m off in a few seconds while each alignment fits well. A frame the points
+  place whose objects, relocalized against the whole map, place it somewhere else is taken
+  as contradicting the track (held, and two such frames that agree replace it).
 
 No ROS here: :class:`rfm_core.session.MapSession` calls :meth:`StreamLocalizer.step` for
 each frame in localization mode (``rfm/detections``), and ``rfm eval-reloc --offline`` does
@@ -47,7 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rfm_core.geometry import Pose4, wrap_angle
-from rfm_core.mapping.relocalization import MotionPrior, Relocalization, RelocalizationConfig
+from rfm_core.mapping.relocalization import MotionPrior, Relocalization, RelocalizationConfig, same_view
 from rfm_core.matching.relative_pose import track_on_points
 from rfm_core.observations import FrameObservations, imu_relative_yaw
 
@@ -78,33 +86,60 @@ def motion_prior(track: list, obs: FrameObservations, config: RelocalizationConf
         yaw, tolerance = ref + float(np.median(wrap_angle(np.array(yaws) - ref))), config.stream_slack_deg
     else:
         yaw, tolerance = t_map_last.yaw, config.stream_slack_deg + config.stream_turn_dps * dt
+    predicted = None
+    if len(track) >= 2:                         # the camera keeps the velocity of its last two frames
+        before, pose_before = track[-2]
+        gap = (last.stamp_ns - before.stamp_ns) * 1e-9
+        if 0 < gap <= config.stream_max_gap_s:
+            velocity = (t_map_last.t - pose_before.inverse().t) / gap
+            speed = float(np.linalg.norm(velocity))
+            if speed > config.stream_speed_mps:
+                velocity *= config.stream_speed_mps / speed
+            predicted = t_map_last.t + velocity * dt
     return MotionPrior(float(yaw), t_map_last.t.copy(), config.stream_slack_m + config.stream_speed_mps * dt,
-                       min(math.radians(tolerance), math.pi))
+                       min(math.radians(tolerance), math.pi), predicted)
 
 
 def on_points(obs: FrameObservations, prior: MotionPrior, index, matching) -> Relocalization | None:
     """A frame placed on its depth points from where ``prior`` predicts it (see the module):
     aligned to the map's merged depth points near the prediction (``index``: a
     :class:`~rfm_core.mapping.map_index.MapIndex`), else to the map keyframes nearest it;
-    accepted where the points fix every direction and the pose is one ``prior`` admits. None
-    otherwise."""
+    accepted where the points fix every direction and the pose is one ``prior`` admits. Each
+    is aligned from the centre the camera's velocity predicts and from the last frame's (a
+    velocity from a wrong pose predicts wrong), and the alignment that puts more of the
+    frame's points on the map's surfaces is kept (as many: the one they lie closer on; the
+    share is capped where all that can lie on a surface does). None otherwise."""
     if not len(obs.cloud):
         return None
-    t_map_view = Pose4(prior.yaw, prior.centre)              # the prediction
-    found = track_on_points(t_map_view, index.cloud_near(prior.centre), obs, matching)
-    if found is not None and not found.free and prior.admits(found.pose.inverse()):
-        return Relocalization(found.pose.inverse(), index.nearest_keyframe(found.pose.t), 0,
-                              np.zeros((0, 2), int), candidates=1)
-    near = index.keyframes_with_points_near(prior.centre, POINT_KEYFRAMES)
-    for k in near:
-        t_k_map = index.poses[k]
-        found = track_on_points(t_k_map @ t_map_view, index.keyframes[k], obs, matching)
-        if found is None or found.free:
-            continue
-        pose = found.pose.inverse() @ t_k_map                  # T_view_map
-        if prior.admits(pose):
-            return Relocalization(pose, k, 0, np.zeros((0, 2), int), candidates=len(near))
-    return None
+    starts = [prior.start] + ([prior.centre] if prior.predicted is not None else [])
+    best = None
+    for start in starts:
+        t_map_view = Pose4(prior.yaw, start)
+        found = track_on_points(t_map_view, index.cloud_near(start), obs, matching)
+        if (found is not None and not found.free and prior.admits(found.pose.inverse())
+                and (best is None or _better(found, best[0]))):
+            best = (found, found.pose.inverse(), index.nearest_keyframe(found.pose.t), 1)
+    if best is None:
+        near = index.keyframes_with_points_near(prior.start, POINT_KEYFRAMES)
+        for k in near:
+            t_k_map = index.poses[k]
+            for start in starts:
+                found = track_on_points(t_k_map @ Pose4(prior.yaw, start), index.keyframes[k], obs, matching)
+                if found is None or found.free:
+                    continue
+                pose = found.pose.inverse() @ t_k_map                  # T_view_map
+                if prior.admits(pose) and (best is None or _better(found, best[0])):
+                    best = (found, pose, k, len(near))
+            if best is not None:
+                break
+    if best is None:
+        return None
+    return Relocalization(best[1], best[2], 0, np.zeros((0, 2), int), candidates=best[3])
+
+
+def _better(a, b) -> bool:
+    """Whether point alignment ``a`` puts the frame on the map's surfaces better than ``b``."""
+    return (a.overlap, -a.residual_m) > (b.overlap, -b.residual_m)
 
 
 @dataclass
@@ -184,18 +219,25 @@ class StreamLocalizer:
         why = why if why is not None else []
         cfg = self.config
         relocalize = self.mapper.relocalize
+        reloc = None
         if self._live(obs):
             prior = motion_prior(self.track, obs, cfg)
             reloc = relocalize(obs, why, prior) if len(obs) >= 2 else None
             if reloc is not None:
                 self.counts['tracked'] += 1
                 return self._accept((obs, reloc))
-            reloc = self._on_points(obs, prior)
-            if reloc is not None:
-                self.counts['points'] += 1
-                return self._accept((obs, reloc))
+            on_points = self._on_points(obs, prior)
+            if on_points is not None:
+                # the objects have the last word: a frame they place elsewhere (the track
+                # slid on the points) goes on as one the track cannot place
+                alone = relocalize(obs, []) if len(obs) >= 2 else None
+                if alone is None or same_view(alone.pose.inverse(), on_points.pose.inverse(), cfg):
+                    self.counts['points'] += 1
+                    return self._accept((obs, on_points))
+                reloc = alone
         self.unplaced = (self.unplaced + [obs])[-UNPLACED:]        # until something places it
-        reloc = relocalize(obs, why)
+        if reloc is None:
+            reloc = relocalize(obs, why)
         if reloc is None:
             return []
         # keep only held poses still within reach in time; the newest that agrees confirms

@@ -38,7 +38,7 @@ from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_re
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import constant, setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize',
+__all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize', 'same_view',
            'match_to_map', 'match_on_points', 'refine_on_tracks', 'explained', 'track_boxes']
 
 
@@ -86,12 +86,19 @@ class RelocalizationConfig:
 @dataclass(frozen=True)
 class MotionPrior:
     """Where a frame's camera can be (a localization track's prediction): T_map_view's yaw
-    within ``yaw_tolerance`` (rad) of ``yaw``, its centre within ``reach_m`` of ``centre``."""
+    within ``yaw_tolerance`` (rad) of ``yaw``, its centre within ``reach_m`` of ``centre``
+    (the last frame's); ``predicted``: where it most likely is (the camera's velocity)."""
 
     yaw: float
     centre: np.ndarray
     reach_m: float
     yaw_tolerance: float
+    predicted: np.ndarray | None = None      #: the centre the camera's velocity predicts (None: ``centre``)
+
+    @property
+    def start(self) -> np.ndarray:
+        """Where an alignment of the frame starts: the predicted centre, else ``centre``."""
+        return self.centre if self.predicted is None else self.predicted
 
     def admits(self, pose: Pose4) -> bool:
         """Whether ``pose`` (T_view_map) is where the camera can be."""
@@ -192,7 +199,7 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         why.append(f'verification against the map failed: the best pose explains {count} of the query\'s '
                    f'{len(query)} detections; need {need}')
         return None
-    runner_up = max((h[0] for h in hypotheses if not _same(h[2].inverse(), pose.inverse(), config)), default=0)
+    runner_up = max((h[0] for h in hypotheses if not same_view(h[2].inverse(), pose.inverse(), config)), default=0)
     k, rel, _ = found[best]
     # the floor, walls and depth points again on the final pose: the refit on the tracks' centres moves it
     final = replace(rel, pose=poses[k] @ pose.inverse())                         # T_k_query
@@ -373,7 +380,7 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
         return None
     found.sort(key=lambda f: (-f[0], -f[1]))
     best = found[0]
-    runner_up = max((f[0] for f in found[1:] if not _same(f[2].inverse(), best[2].inverse(), config)), default=0)
+    runner_up = max((f[0] for f in found[1:] if not same_view(f[2].inverse(), best[2].inverse(), config)), default=0)
     return MapMatch(best[3], best[4], best[2], best[0], runner_up)
 
 
@@ -403,7 +410,7 @@ def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: Matchin
         if count[h] < 2 or len(tried) >= config.map_hypotheses:
             break
         t_map_view = Pose4(float(hy[h]), trans[h])
-        if not any(_same(t_map_view, other, config) for other in tried):
+        if not any(same_view(t_map_view, other, config) for other in tried):
             tried.append(t_map_view)
     return tried, compatible
 
@@ -438,7 +445,7 @@ def match_on_points(query: FrameObservations, index: MapIndex, matching: Matchin
         return None
     found.sort(key=lambda f: (-f[0], -f[1]))
     count, _, pose = found[0]
-    runner_up = max((f[0] for f in found[1:] if not _same(f[2].inverse(), pose.inverse(), config)), default=0)
+    runner_up = max((f[0] for f in found[1:] if not same_view(f[2].inverse(), pose.inverse(), config)), default=0)
     need = _needed(config, len(query))
     if count < need or count <= runner_up:
         why.append(f'the map\'s depth points place the query where it explains {count} of its {len(query)} '
@@ -448,7 +455,7 @@ def match_on_points(query: FrameObservations, index: MapIndex, matching: Matchin
                           count, runner_up)
 
 
-def _same(a: Pose4, b: Pose4, config: RelocalizationConfig) -> bool:
+def same_view(a: Pose4, b: Pose4, config: RelocalizationConfig) -> bool:
     """Whether two T_map_view poses are one (centres within ``distinct_m``, yaws within ``distinct_deg``)."""
     return (a.inverse() @ b).within(config.distinct_m, config.distinct_deg)
 
