@@ -229,6 +229,26 @@ def _room_points(centres: np.ndarray, spacing: float = 0.15) -> np.ndarray:
     return np.concatenate(parts)
 
 
+def _room_map(saved):
+    """The saved map in localization mode, each keyframe seeing the room's points
+    (:func:`_room_points`), and those points."""
+    mapper = Mapper()
+    load_map(mapper, saved)
+    mapper.mode = 'localization'
+    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
+    for k, pose in mapper.poses.items():
+        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
+    return mapper, room
+
+
+def _points_of(room, t_view_map: Pose4, like: FrameObservations, stamp_ns: int, seed: int = 0):
+    """A frame at ``t_view_map`` that sees the room's points and nothing else."""
+    rng = np.random.default_rng(seed)
+    cloud = t_view_map.transform_points(room) + rng.normal(0, 0.005, room.shape)
+    return FrameObservations(stamp_ns, like.frame_id, like.intrinsics, like.gravity_cam,
+                             cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
+
+
 def test_a_pose_lifted_by_a_seat_taken_for_the_floor_is_put_back_on_the_maps_floor(saved):
     """A keyframe that took a seat for the floor, and partial boxes cut at it, lift a
     relocalized pose by the seat's height; the map's floor (what most keyframes around agree
@@ -265,12 +285,7 @@ def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
     """A frame of a live track without detections (the detector was behind and sent its
     depth points only) is aligned to the nearest map keyframe's points from the predicted
     pose and accepted: within a centimetre of where it is. Without its points, it is not placed."""
-    mapper = Mapper()
-    load_map(mapper, saved)
-    mapper.mode = 'localization'
-    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
-    for k, pose in mapper.poses.items():                               # each keyframe sees the room
-        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
+    mapper, room = _room_map(saved)
     views = _views(mapper)
     rng = np.random.default_rng(0)
     last, last_pose = views[1]
@@ -290,26 +305,6 @@ def test_a_frame_with_depth_points_only_is_placed_on_the_maps_surfaces(saved):
             continue
         assert len(placed) == 1 and placed[0][1].num_inliers == 0 and stream.counts['points'] == 1
         assert _close(placed[0][1].pose, truth, metres=0.01, degrees=0.2)
-
-
-def _room_map(saved):
-    """The saved map in localization mode, each keyframe seeing the room's points
-    (:func:`_room_points`), and those points."""
-    mapper = Mapper()
-    load_map(mapper, saved)
-    mapper.mode = 'localization'
-    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
-    for k, pose in mapper.poses.items():
-        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
-    return mapper, room
-
-
-def _points_of(room, t_view_map: Pose4, like: FrameObservations, stamp_ns: int, seed: int = 0):
-    """A frame at ``t_view_map`` that sees the room's points and nothing else."""
-    rng = np.random.default_rng(seed)
-    cloud = t_view_map.transform_points(room) + rng.normal(0, 0.005, room.shape)
-    return FrameObservations(stamp_ns, like.frame_id, like.intrinsics, like.gravity_cam,
-                             cloud=cloud[rng.permutation(len(cloud))[:4000]].astype(np.float32))
 
 
 def test_a_track_on_the_points_starts_each_alignment_where_the_cameras_velocity_puts_it(saved):
@@ -403,12 +398,7 @@ def test_a_new_track_walks_back_over_the_frames_nothing_placed_before_it(saved):
     """A frame before the first pose of a track (depth points only: nothing places it on
     its own) is placed once the track is confirmed, walking back from its first frame: late,
     before the track's frames, within a centimetre of where it is."""
-    mapper = Mapper()
-    load_map(mapper, saved)
-    mapper.mode = 'localization'
-    room = _room_points(np.array([p.inverse().t for p in mapper.poses.values()]))
-    for k, pose in mapper.poses.items():
-        mapper.keyframes[k] = replace(mapper.keyframes[k], cloud=pose.transform_points(room).astype(np.float32))
+    mapper, room = _room_map(saved)
     views = _views(mapper)
     first, first_pose = views[0]
     seen = first_pose.inverse()
