@@ -953,7 +953,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="rfm eval-reloc's rooms: their query walks against their maps, their second sessions on them")
     p.add_argument('--scenes', nargs='*', help='scene folders of WORK (default: all with a recorded run)')
     p.add_argument('--run', default='rgb_d__depth_clusters', help="the run's folder in each scene")
-    p.add_argument('--verbose', action='store_true', help='--reloc: each missed and wrong frame (second sessions: each wrong one)')
+    p.add_argument('--verbose', action='store_true',
+                   help='--reloc: each missed and wrong frame (second sessions: each wrong one)')
     p.add_argument('--json', help='also write the per-scene results to this JSON file')
     p.set_defaults(func=cmd_replay)
 

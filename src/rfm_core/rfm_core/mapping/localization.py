@@ -226,14 +226,14 @@ class StreamLocalizer:
             if reloc is not None:
                 self.counts['tracked'] += 1
                 return self._accept((obs, reloc))
-            on_points = self._on_points(obs, prior)
-            if on_points is not None:
+            by_points = self._on_points(obs, prior)
+            if by_points is not None:
                 # the objects have the last word: a frame they place elsewhere (the track
                 # slid on the points) goes on as one the track cannot place
                 alone = relocalize(obs, []) if len(obs) >= 2 else None
-                if alone is None or same_view(alone.pose.inverse(), on_points.pose.inverse(), cfg):
+                if alone is None or same_view(alone.pose.inverse(), by_points.pose.inverse(), cfg):
                     self.counts['points'] += 1
-                    return self._accept((obs, on_points))
+                    return self._accept((obs, by_points))
                 reloc = alone
         self.unplaced = (self.unplaced + [obs])[-UNPLACED:]        # until something places it
         if reloc is None:
