@@ -165,17 +165,38 @@ def test_a_second_session_on_a_loaded_map_joins_it_in_its_frame(second_session):
     assert not any(s in truth for s in alone.frame_poses())           # its own component: not in the map
 
 
+def test_a_session_that_sees_three_objects_a_view_joins_the_map(second_session):
+    """A second session whose views each hold three objects (a camera looking out at the
+    walls sees two or three): a keyframe of three detections is a relocalization query like
+    any other (all three must be explained), and two placements that agree with the
+    session's own edges join it, in the loaded map's frame. Asking four detections of a
+    keyframe, as tracking recovery does, leaves the session apart."""
+    path, world, observations, truth = second_session
+    three = [o if len(o) <= 3 else o.subset(np.sort(np.argsort(np.linalg.norm(o.boxes[:, :3], axis=1))[:3]))
+             for o in observations]
+    mapper, _ = _second_session(path, three)
+    errors = _placed(mapper, world, truth)
+    assert errors['registered'] >= 0.4 and errors['gross'] == 0, errors
+
+    def four(session):
+        session.mapper.recovery.placeable = lambda obs, config: len(obs) >= 4
+    apart, _ = _second_session(path, three, four)
+    assert not any(s in truth for s in apart.frame_poses())
+
+
 def test_a_joined_session_whose_own_edges_drift_is_held_on_the_map(second_session):
     """Once joined, a session's keyframes that see too few objects to be relocalized alone
     are placed on the loaded map where their own edges put them (its objects, else its
     surfaces, near that prediction), so the session's own drift does not carry them off the
     map. The fault: from its seventh frame the session sees its three nearest objects only,
-    and each of its own edges is 8 cm off, as a chain of weak edges drifts."""
+    relocalization places none of its keyframes on its own (as when they see too few
+    objects), and each of its own edges is 8 cm off, as a chain of weak edges drifts."""
     from rfm_core.geometry import Pose4  # noqa: PLC0415
 
     path, world, observations, truth = second_session
     few = observations[:6] + [o if len(o) <= 3 else o.subset(np.sort(np.argsort(
         np.linalg.norm(o.boxes[:, :3], axis=1))[:3])) for o in observations[6:]]
+    late = observations[6].stamp_ns
 
     def drifting(on_map: bool):
         def edit(session):
@@ -185,6 +206,12 @@ def test_a_joined_session_whose_own_edges_drift_is_held_on_the_map(second_sessio
                 edge.pose = Pose4(edge.pose.yaw, edge.pose.t + np.array([0.08, 0.0, 0.0]))
                 return add(edge, source)
             session.map.add_edge = biased
+            join = session.mapper.recovery.joining_edges
+
+            def joining(keyframes, poses, edges, newest, relocalize, *args):
+                return join(keyframes, poses, edges, newest,
+                            lambda obs: None if obs.stamp_ns >= late else relocalize(obs), *args)
+            session.mapper.recovery.joining_edges = joining
             if not on_map:
                 session.mapper.recovery.on_map_edges = lambda *args: []
         return edit

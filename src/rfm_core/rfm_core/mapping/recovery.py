@@ -15,7 +15,8 @@ epoch: separate photos, no IMU) is not tried: box pairs alone propose wrong yaws
 **Joining another session.** A keyframe of another session (a loaded map's keyframes have
 no gyroscope readings, and a new session's gyroscope is not the old one's) is placed
 instead as a relocalization query is (:func:`~rfm_core.mapping.relocalization.relocalize`:
-keyframes voting, the pose verified against the whole map), once; it joins only when
+keyframes voting, the pose verified against the whole map), once, if it has the three
+detections such a query needs; it joins only when
 another keyframe of its component was placed too and the two placements agree with the
 session's own relative pose between them (its edges composed; within ``distinct_m`` /
 ``distinct_deg``), as a localization stream confirms a pose by a later frame: one
@@ -79,6 +80,12 @@ class TrackingRecovery:
         """Whether a keyframe has enough detections to be matched to the map."""
         return len(obs) >= max(config.min_explained, 2)
 
+    @staticmethod
+    def placeable(obs: FrameObservations, config: RelocalizationConfig) -> bool:
+        """Whether relocalization could place a keyframe on its own: it has the detections a
+        pose must explain (``min_explained``, all of a smaller query but at least three)."""
+        return len(obs) >= max(min(config.min_explained, 3), 2)
+
     def awaits(self, keyframe_id: int, obs: FrameObservations, config: RelocalizationConfig) -> bool:
         """Whether an unregistered keyframe has yet to be tried."""
         return self.recoverable(obs, config) and keyframe_id not in self.tried
@@ -117,7 +124,7 @@ class TrackingRecovery:
         edge, also once the session has joined: each adds evidence, so the first two
         placements' errors do not carry the whole session."""
         for k, obs in keyframes.items():
-            if (k not in reference and k not in self.placed and self.recoverable(obs, config)
+            if (k not in reference and k not in self.placed and self.placeable(obs, config)
                     and obs.stamp_ns < newest_stamp_ns):
                 found = relocalize(obs)
                 self.placed[k] = found
