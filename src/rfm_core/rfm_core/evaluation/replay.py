@@ -72,7 +72,7 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
     the denominator (the query frames that see two mapped objects) with the reason, and each
     wrong pose."""
     from rfm_core.evaluation.suite import query_folders, relocalization_scores  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import GROSS, covariance_coverage, frame_errors  # noqa: PLC0415
+    from rfm_core.evaluation.trajectory import covariance_coverage  # noqa: PLC0415
     from rfm_core.mapping.mapper import MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
     from rfm_core.session import MapSession  # noqa: PLC0415
@@ -93,9 +93,7 @@ def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = Fals
         start = min(truth)
         for stamp in sorted(seeing - set(estimated)):
             print(f'    missed {(stamp - start) * 1e-9:5.1f} s: {why.get(stamp, "no detections recorded")}')
-        for stamp, (metres, deg) in sorted(frame_errors(estimated, truth).items()):
-            if deg > GROSS[0] or metres > GROSS[1]:
-                print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {metres:.2f} m')
+        _print_wrong(estimated, truth)
     coverage = covariance_coverage(poses, covariances, truth)          # poses in the map frame: aligned
     return {'scene': room.name, 'query': kind, 'seeing': len(seeing), 'found': len(seeing & set(estimated)),
             'relocalized': len(estimated), 'wrong': row['gross'], 'within_2sigma': coverage['within_2sigma'],
@@ -109,8 +107,7 @@ def replay_session(room: Path, verbose: bool = False) -> dict:
     ``session`` row is. ``verbose`` prints each wrong frame."""
     import tempfile  # noqa: PLC0415
 
-    from rfm_core.evaluation.suite import query_folders, session_scores  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import GROSS, frame_errors  # noqa: PLC0415
+    from rfm_core.evaluation.suite import query_folders, scored_session  # noqa: PLC0415
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper, MapperConfig  # noqa: PLC0415
     from rfm_core.matching.factory import make_matcher  # noqa: PLC0415
@@ -127,15 +124,17 @@ def replay_session(room: Path, verbose: bool = False) -> dict:
     before = Mapper()
     load_map(before, loaded)
     with tempfile.TemporaryDirectory() as tmp:
-        saved = session.map.save(Path(tmp) / 'map.rfm')
-        row = session_scores(before, saved, room / 'map_bag', bag)
-        if verbose:
-            from rfm_core.evaluation.suite import relocalization_scores  # noqa: PLC0415
-            after = Mapper()
-            load_map(after, saved)
-            scores = relocalization_scores(before, room / 'map_bag', bag, after.frame_poses())
-            start = min(scores.truth)
-            for stamp, (metres, deg) in sorted(frame_errors(scores.estimated, scores.truth).items()):
-                if deg > GROSS[0] or metres > GROSS[1]:
-                    print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {metres:.2f} m')
+        row, scores = scored_session(before, session.map.save(Path(tmp) / 'map.rfm'), room / 'map_bag', bag)
+    if verbose:
+        _print_wrong(scores.estimated, scores.truth)
     return {'scene': room.name, 'query': 'session', **row}
+
+
+def _print_wrong(estimated: dict, truth: dict) -> None:
+    """Each frame of ``estimated`` more than 5 deg or 25 cm off its ``truth`` (seconds from the first)."""
+    from rfm_core.evaluation.trajectory import GROSS, frame_errors  # noqa: PLC0415
+
+    start = min(truth)
+    for stamp, (metres, deg) in sorted(frame_errors(estimated, truth).items()):
+        if deg > GROSS[0] or metres > GROSS[1]:
+            print(f'    wrong  {(stamp - start) * 1e-9:5.1f} s: {deg:.1f} deg, {metres:.2f} m')

@@ -549,6 +549,11 @@ def session_scores(mapper, session_map, map_bag, session_bag) -> dict:
     truth in the world frame through the first map's alignment (not re-aligned: placed in the
     loaded map's frame or wrong), as :func:`relocalization_scores`; ``moved_cm``: how far the
     loaded map's keyframes moved (median and max of camera centres, cm)."""
+    return scored_session(mapper, session_map, map_bag, session_bag)[0]
+
+
+def scored_session(mapper, session_map, map_bag, session_bag) -> tuple[dict, 'RelocalizationScores']:
+    """:func:`session_scores`' row, and the :class:`RelocalizationScores` it comes from."""
     from rfm_core.mapping.map_io import load_map  # noqa: PLC0415
     from rfm_core.mapping.mapper import Mapper  # noqa: PLC0415
 
@@ -560,7 +565,7 @@ def session_scores(mapper, session_map, map_bag, session_bag) -> dict:
     moved = [100 * float(np.linalg.norm(now[k][:3, 3] - m[:3, 3])) for k, m in before.items() if k in now]
     return {**scores.row, 'moved_cm_median': float(np.median(moved)) if moved else float('nan'),
             'moved_cm_max': float(np.max(moved)) if moved else float('nan'),
-            'loaded_kept': len(moved) / max(len(before), 1)}
+            'loaded_kept': len(moved) / max(len(before), 1)}, scores
 
 
 @dataclass

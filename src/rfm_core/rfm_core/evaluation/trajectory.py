@@ -19,9 +19,8 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 
-__all__ = ['GROSS', 'TWO_SIGMA', 'umeyama', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth', 'trajectory_errors',
-           'covariance_coverage',
-           'frame_errors']
+__all__ = ['GROSS', 'TWO_SIGMA', 'umeyama', 'align_se3', 'align_4dof', 'align_robust', 'map_to_truth',
+           'trajectory_errors', 'covariance_coverage', 'frame_errors']
 
 #: a pose off by more than this is wrong (deg, m): the gross errors every evaluation counts
 GROSS = (5.0, 0.25)

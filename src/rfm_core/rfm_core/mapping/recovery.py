@@ -57,7 +57,7 @@ import numpy as np
 
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.relocalization import (MapIndex, MotionPrior, Relocalization, RelocalizationConfig,
-                                             match_to_map)
+                                             detections_needed, match_to_map)
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import Edge
 from rfm_core.observations import EdgeRecord, FrameObservations
@@ -83,8 +83,8 @@ class TrackingRecovery:
     @staticmethod
     def placeable(obs: FrameObservations, config: RelocalizationConfig) -> bool:
         """Whether relocalization could place a keyframe on its own: it has the detections a
-        pose must explain (``min_explained``, all of a smaller query but at least three)."""
-        return len(obs) >= max(min(config.min_explained, 3), 2)
+        pose must explain (:func:`~rfm_core.mapping.relocalization.detections_needed`)."""
+        return len(obs) >= max(detections_needed(config, len(obs)), 2)
 
     def awaits(self, keyframe_id: int, obs: FrameObservations, config: RelocalizationConfig) -> bool:
         """Whether an unregistered keyframe has yet to be tried."""

@@ -39,7 +39,8 @@ from rfm_core.observations import FrameObservations
 from rfm_core.settings import constant, setting
 
 __all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize',
-           'same_view', 'match_to_map', 'match_on_points', 'refine_on_tracks', 'explained', 'track_boxes']
+           'same_view', 'detections_needed', 'match_to_map', 'match_on_points', 'refine_on_tracks', 'explained',
+           'track_boxes']
 
 
 #: two cameras further apart than this see nothing in common (twice a depth camera's reach)
@@ -194,7 +195,7 @@ def _on_keyframes(query, index: MapIndex, matcher, config, matching, averaging, 
         why.append(f'the verified keyframes agree on no pose with {config.min_inliers} query objects')
         return None
     count, support_, pose, best, members = max(hypotheses, key=lambda h: h[:2])
-    need = _needed(config, len(query)) if prior is None else min(config.stream_min_explained, len(query))
+    need = detections_needed(config, len(query)) if prior is None else min(config.stream_min_explained, len(query))
     if count < need:
         why.append(f'verification against the map failed: the best pose explains {count} of the query\'s '
                    f'{len(query)} detections; need {need}')
@@ -245,7 +246,7 @@ def on_map_points(query: FrameObservations, pose: Pose4, index: MapIndex, matchi
     return refined if explained(query, refined, index, matching) >= explains else pose
 
 
-def _needed(config: RelocalizationConfig, detections: int) -> int:
+def detections_needed(config: RelocalizationConfig, detections: int) -> int:
     """Detections a pose found without a track's prior must explain in the whole map
     (``min_explained``): all of a small query's, but never only the two a pose can be built
     from: they verify nothing."""
@@ -446,7 +447,7 @@ def match_on_points(query: FrameObservations, index: MapIndex, matching: Matchin
     found.sort(key=lambda f: (-f[0], -f[1]))
     count, _, pose = found[0]
     runner_up = max((f[0] for f in found[1:] if not same_view(f[2].inverse(), pose.inverse(), config)), default=0)
-    need = _needed(config, len(query))
+    need = detections_needed(config, len(query))
     if count < need or count <= runner_up:
         why.append(f'the map\'s depth points place the query where it explains {count} of its {len(query)} '
                    f'detections (need {need}, and more than the {runner_up} of another pose)')
