@@ -4,7 +4,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from rfm_core.detection.box_refiner import BoxRefiner, CLASSES, decode_boxes, encode_target
+from rfm_core.detection.box_refiner import BoxRefiner, decode_boxes, encode_target
+from rfm_core.detection.labels import NYU40
 from rfm_core.detection.depth_clusters import DepthClustersConfig, DepthClustersDetector
 from rfm_core.evaluation.detection import DetectionEvaluator
 from rfm_core.evaluation.suite import eval_configs
@@ -51,7 +52,7 @@ def test_the_refiner_beats_the_heuristic_boxes_on_unseen_realistic_rooms(realist
             assert np.all((obs.scores >= 0.25) & (obs.scores <= 1.0)) and np.all(obs.boxes[:, 3:6] > 0)
             evaluators[k].add(obs, f.ground_truth)
             counts[k] += len(obs)
-        assert set(out['default'].labels) <= set(CLASSES) and all(out['default'].labels)
+        assert set(out['default'].labels) <= set(NYU40) and all(out['default'].labels)     # named as NYU40's
         # the default publishes the fitted boxes (for relative poses) with the predicted ones attached
         assert out['default'].full_boxes.shape == out['default'].boxes.shape
     h, d, fit, r = (evaluators[k].summary() for k in ('heuristic', 'default', 'fitted', 'refined'))

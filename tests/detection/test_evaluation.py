@@ -86,8 +86,10 @@ def test_suite_tables_pool_the_map_object_kinds_over_scenes():
     def run(kinds, objects):
         loc = {'ARE_median': 1.0, 'ATE_median': 0.05, 'ARE_rmse': 1.0, 'ATE_rmse': 0.05, 'registered': 1.0,
                'frames': 10, 'gross': objects // 10}
+        right = kinds['real'] // 2
         mapping = {'objects': objects, 'ground_truth': 10, 'AP15': 0.6, 'AR15': 0.6, 'AP25': 0.5, 'AR25': 0.5,
-                   'kinds': kinds}
+                   'kinds': kinds, 'labels': {'labelled': kinds['real'], 'right': right,
+                                              'classes': {'chair': [kinds['real'], right]}}}
         return {'accuracy': {'localization': loc, 'mapping': mapping},
                 'frames': 10, 'input_frames': 10}
     name = SETTINGS[0].name
@@ -98,6 +100,9 @@ def test_suite_tables_pool_the_map_object_kinds_over_scenes():
     assert m['objects_per_object'] == 2.0                 # median of 1.0 and 3.0
     assert '| 25% | 5% | 5% | 65% |' in format_tables({name: m})
     assert '| 4 of 20 (20.0%) |' in format_tables({name: m})      # wrong frames pooled: 1 + 3 of 10 + 10
+    # labels pooled: 3 + 2 right of 6 + 4 on real objects, and per class
+    assert (m['labelled'], m['labels_right'], m['label_classes']) == (10, 5, {'chair': (10, 5)})
+    assert '| 50.0% of 10 |' in format_tables({name: m}) and '| chair | 10 | 5 | 50% |' in format_tables({name: m})
 
 
 def test_the_offline_suite_counts_the_map_object_kinds_too():

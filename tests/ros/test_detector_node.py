@@ -121,6 +121,20 @@ def test_detections_from_bgr8_and_32fc1_in_the_camera_frame(graph, scene):
     assert matched >= 6          # boxes land on the true objects: the frames are right
 
 
+def test_classes_go_out_in_nyu40_names_renamed_by_label_map(graph, scene):
+    from rfm_core.detection.labels import NYU40, TO_NYU40
+
+    cap, frames = scene
+    with pytest.raises(ValueError, match='spaceship'):
+        graph(label_map='spaceship:car')
+    renames = ','.join(f'{name}:{name.replace(" ", "_")}_renamed' for name in sorted(set(TO_NYU40.values())))
+    _, pubs, got, _ = graph(imu_tau_s=0.02, label_map=renames)
+    publish_frame(pubs, cap, frames[0])
+    assert wait_for(lambda: got), 'no FrameDetections received'
+    labels = [d.label for d in got[0].detections]
+    assert labels and all(lab.endswith('_renamed') and lab[:-8].replace('_', ' ') in NYU40 for lab in labels), labels
+
+
 def test_frames_it_is_behind_on_go_out_with_their_depth_points_only(graph, scene):
     """A burst of 30 Hz frames while the worker detects one: the oldest beyond
     points_only_backlog (3 here) are dropped, each taken while another waits is sent with its

@@ -46,6 +46,7 @@ class DetectorNodeConfig:
     max_detections: int = same_setting(DetectorConfig, 'max_detections')
     cloud_voxel_m: float = same_setting(DetectorConfig, 'cloud_voxel_m')
     cloud_max_range_m: float = same_setting(DetectorConfig, 'cloud_max_range_m')
+    label_map: str = same_setting(DetectorConfig, 'label_map')
     image_transport: str = setting('raw', "Colour image transport: 'raw' (rgb/image, sensor_msgs/Image) or "
                                    "'compressed' (rgb/image/compressed, JPEG or PNG)", choices=('raw', 'compressed'),
                                    read_only=True)

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from rfm_core.clouds import depth_cloud
+from rfm_core.detection.labels import label_map
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.settings import setting
 
@@ -55,6 +56,12 @@ class DetectorConfig:
                                    'for relative poses and tracking on points): one per cell of this size (m; '
                                    '0: none)', lo=0.0, hi=1.0)
     cloud_max_range_m: float = setting(6.0, '... from depth up to this range (m)', lo=0.5, hi=100.0)
+    label_map: str = setting('', "Class names are NYU40's (rfm_core.detection.labels); rename or merge on top: "
+                             "'FROM:TO' entries, comma-separated, FROM a detector class or an NYU40 name (e.g. "
+                             "'monitor:monitor,otherprop:clutter')", read_only=True)
+
+    def __post_init__(self):
+        label_map(self.label_map)            # a wrong entry fails at start-up, saying which
 
 
 class Detector:
@@ -78,9 +85,10 @@ class Detector:
 def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, config: DetectorConfig,
              backend: str, visibility=None, object_ids=None, full_boxes=None,
              camera_height: float = float('nan'), walls=None) -> FrameObservations:
-    """Threshold by score, keep the best ``max_detections``, package as FrameObservations
-    (``full_boxes``, ``camera_height``, ``walls``: see :class:`FrameObservations`; the
-    frame's depth points as ``cloud`` where it has depth)."""
+    """Threshold by score, keep the best ``max_detections``, name the classes (NYU40's and
+    ``label_map``'s), package as FrameObservations (``full_boxes``, ``camera_height``,
+    ``walls``: see :class:`FrameObservations`; the frame's depth points as ``cloud`` where it
+    has depth)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     scores = np.asarray(scores, dtype=np.float32).reshape(-1)
     keep = np.flatnonzero(scores >= config.score_threshold)
@@ -90,7 +98,7 @@ def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, 
     return FrameObservations(
         stamp_ns=frame.stamp_ns, frame_id=frame.frame_id, intrinsics=frame.intrinsics,
         gravity_cam=frame.gravity_cam, boxes=boxes[keep], scores=scores[keep],
-        labels=[labels[i] for i in keep],
+        labels=label_map(config.label_map).names([labels[i] for i in keep]),
         embeddings=embeddings.reshape(n, -1)[keep] if n else np.zeros((0, 0), np.float32),
         boxes_2d=np.asarray(boxes_2d, dtype=np.float32).reshape(-1, 4)[keep],
         visibility=(np.asarray(visibility, np.float32)[keep] if visibility is not None

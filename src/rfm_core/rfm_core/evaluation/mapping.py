@@ -10,15 +10,20 @@ Besides AP/AR, every map object is put in one of four kinds (:func:`object_kinds
 first box of a real object (matched at IoU 0.25, best score first), a duplicate of an object
 already matched, a poor fit (best IoU 0.1-0.25), or overlapping nothing real (IoU < 0.1):
 phantoms.
+
+Labels (:func:`label_scores`): of the map objects that overlap a real object (IoU 0.25), the
+share that carry its class, in NYU40's names (:mod:`rfm_core.detection.labels`), overall and
+per class the map gives (precision).
 """
 from __future__ import annotations
 
 import numpy as np
 
+from rfm_core.detection.labels import LabelMap
 from rfm_core.evaluation.detection import THRESHOLDS, average_precision, match_detections
 from rfm_core.geometry import iou_3d
 
-__all__ = ['evaluate_map', 'object_kinds', 'OBJECT_KINDS']
+__all__ = ['evaluate_map', 'object_kinds', 'label_scores', 'OBJECT_KINDS']
 
 OBJECT_KINDS = ('real', 'duplicate', 'poor_fit', 'phantom')
 PHANTOM_IOU = 0.1
@@ -45,8 +50,33 @@ def object_kinds(boxes, scores, gt_boxes, threshold: float = 0.25) -> dict:
     return counts
 
 
-def evaluate_map(boxes, scores, gt_boxes, gt_ignore=None, thresholds=THRESHOLDS) -> dict:
-    """AP and AR of map boxes (N, 7) with scores against ground truth (M, 7)."""
+def label_scores(boxes, labels, gt_boxes, gt_labels, threshold: float = 0.25) -> dict:
+    """``labelled``: map objects whose best IoU with a real object is at least ``threshold``;
+    ``right``: those of them that carry that object's class; ``classes``: {name: [labelled,
+    right]} by the name the map gives. Names compared as NYU40's (a detector's own or an NYU40
+    name alike; see :mod:`rfm_core.detection.labels`)."""
+    boxes = np.asarray(boxes, float).reshape(-1, 7)
+    gt_boxes = np.asarray(gt_boxes, float).reshape(-1, 7)
+    out = {'labelled': 0, 'right': 0, 'classes': {}}
+    if not len(boxes) or not len(gt_boxes):
+        return out
+    name = LabelMap()
+    ious = iou_3d(boxes, gt_boxes)
+    for i in np.flatnonzero(ious.max(1) >= threshold):
+        given, true = name(labels[i]), name(gt_labels[int(ious[i].argmax())])
+        counts = out['classes'].setdefault(given or '(none)', [0, 0])
+        right = int(given == true)
+        counts[0] += 1
+        counts[1] += right
+        out['labelled'] += 1
+        out['right'] += right
+    return out
+
+
+def evaluate_map(boxes, scores, gt_boxes, gt_ignore=None, thresholds=THRESHOLDS, labels=None,
+                 gt_labels=None) -> dict:
+    """AP and AR of map boxes (N, 7) with scores against ground truth (M, 7); with both
+    ``labels`` and ``gt_labels``, their :func:`label_scores` as ``labels``."""
     boxes = np.asarray(boxes, float).reshape(-1, 7)
     scores = np.asarray(scores, float).reshape(-1)
     gt_boxes = np.asarray(gt_boxes, float).reshape(-1, 7)
@@ -59,4 +89,6 @@ def evaluate_map(boxes, scores, gt_boxes, gt_ignore=None, thresholds=THRESHOLDS)
         out[f'AP{key}'] = average_precision(tp[counted], scores[counted], num_gt)
         out[f'AR{key}'] = matched / num_gt if num_gt else float('nan')
     out['kinds'] = object_kinds(boxes, scores, gt_boxes)
+    if labels is not None and gt_labels is not None and len(gt_labels) == len(gt_boxes):
+        out['labels'] = label_scores(boxes, labels, gt_boxes, gt_labels)
     return out

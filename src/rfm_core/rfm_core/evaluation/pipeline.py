@@ -104,7 +104,8 @@ def run_capture(config: CaptureConfig, detector: str = 'ground_truth:rgbd', matc
     align = Pose4(0.0, (0, 0, 0)) if posed else map_to_truth(estimated, frame_truth)
     boxes = map_boxes(tracks, align)
     scores = np.array([t.score for t in tracks])
-    mapping = evaluate_map(boxes, scores, capture.room.boxes, best_visibility < min_visibility)
+    mapping = evaluate_map(boxes, scores, capture.room.boxes, best_visibility < min_visibility,
+                           labels=[t.label for t in tracks], gt_labels=capture.room.labels)
     return PipelineResult(loc, mapping, len(truth), n_frames, times, mapper, truth, align)
 
 

@@ -26,6 +26,7 @@ class GroundTruth:
     camera_poses: dict = field(default_factory=dict)     #: stamp_ns -> 4x4 camera-to-map
     boxes: np.ndarray = field(default_factory=lambda: np.zeros((0, 7)))   #: (M, 7) map frame, z up
     ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    labels: list = field(default_factory=list)           #: the objects' classes, as ``boxes``
     best_visibility: dict = field(default_factory=dict)  #: object id -> best visible fraction
     frame_visibility: dict = field(default_factory=dict)  #: stamp_ns -> {object id: visible fraction}
 
@@ -58,6 +59,7 @@ def read_ground_truth(bag) -> GroundTruth:
                 rots = np.array([m[:3, :3] for m in mats]).reshape(-1, 3, 3)
                 gt.boxes = boxes_from_oriented(centres, rots, sizes)
                 gt.ids = np.array([o.id for o in msg.objects], np.int64)
+                gt.labels = [o.label for o in msg.objects]
             else:
                 seen = gt.frame_visibility.setdefault(stamp_to_ns(msg.header.stamp), {})
                 for d in msg.detections:
@@ -163,8 +165,19 @@ def evaluate_run(mapper, truth: GroundTruth, min_visibility: float = 0.2, posed:
     tracks = mapper.tracks()
     boxes = map_boxes(tracks, align)
     ignore = np.array([truth.best_visibility.get(int(i), 0.0) < min_visibility for i in truth.ids], bool)
-    mapping = evaluate_map(boxes, [tr.score for tr in tracks], truth.boxes, ignore) if len(truth.boxes) else None
+    mapping = (evaluate_map(boxes, [tr.score for tr in tracks], truth.boxes, ignore,
+                            labels=[tr.label for tr in tracks], gt_labels=truth.labels)
+               if len(truth.boxes) else None)
     return {'localization': loc, 'mapping': mapping, 'alignment': align}
+
+
+def _labels_line(labels: dict) -> str:
+    """The labels of the map objects on a real one, overall and per class (NYU40 names)."""
+    per_class = ', '.join(f'{name} {right}/{n}' for name, (n, right) in
+                          sorted(labels['classes'].items(), key=lambda kv: -kv[1][0]))
+    return (f"Labels: {labels['right']} of the {labels['labelled']} map objects on a real object carry its class "
+            f"({100 * labels['right'] / labels['labelled']:.0f}%; NYU40 names; right of labelled, per class: "
+            f'{per_class}).')
 
 
 def _write_tum(path, poses: dict) -> Path:
@@ -341,6 +354,7 @@ def write_report(path, summary: dict) -> Path:
                   *([('Map objects: {real} first boxes of real objects, {duplicate} duplicates, {poor_fit} poor '
                       'fits (IoU 0.1-0.25), {phantom} overlapping nothing real (IoU < 0.1).').format(**m['kinds']), '']
                     if m and m.get('kinds') else []),
+                  *([_labels_line(m['labels']), ''] if m and (m.get('labels') or {}).get('labelled') else []),
                   'Localization aligned by yaw + translation (gravity is shared), fitted on the frames most of '
                   'the trajectory agrees with; a frame counts as localized when it has a pose in `trajectory.tum`, '
                   'as wrong when it is off by more than 5 deg or 25 cm. Mapping: scene-level AP/AR at 3D IoU 0.15 / 0.25, objects '

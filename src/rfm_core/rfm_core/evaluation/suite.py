@@ -223,9 +223,24 @@ def scene_metrics(summary: dict) -> dict:
 
 def kind_counts(mapping: dict) -> dict:
     """``objects_<kind>``: how many map objects :func:`rfm_core.evaluation.mapping.object_kinds`
-    put in each kind (NaN when the mapping was not scored), as :func:`summarize` pools them."""
+    put in each kind (NaN when the mapping was not scored), and the label counts of
+    :func:`rfm_core.evaluation.mapping.label_scores` (``labelled``, ``labels_right``,
+    ``label_classes``), as :func:`summarize` pools them."""
     kinds = mapping.get('kinds') or {}
-    return {f'objects_{k}': kinds.get(k, float('nan')) for k in OBJECT_KINDS}
+    labels = mapping.get('labels') or {}
+    return {**{f'objects_{k}': kinds.get(k, float('nan')) for k in OBJECT_KINDS},
+            'labelled': labels.get('labelled', 0), 'labels_right': labels.get('right', 0),
+            'label_classes': labels.get('classes', {})}
+
+
+def label_precision(rows) -> dict:
+    """{class: (labelled, right)} pooled over scenes' ``label_classes``, most labelled first."""
+    pooled = {}
+    for row in rows:
+        for name, (labelled, right) in (row.get('label_classes') or {}).items():
+            a, b = pooled.get(name, (0, 0))
+            pooled[name] = (a + labelled, b + right)
+    return dict(sorted(pooled.items(), key=lambda kv: (-kv[1][0], kv[0])))
 
 
 def _written_bag(config, bag: Path) -> Path:
@@ -378,6 +393,9 @@ def summarize(results, settings=SETTINGS) -> dict:
             **{f'share_{k}': float(np.nansum(col(f'objects_{k}')) / max(np.nansum(col('objects')), 1))
                for k in OBJECT_KINDS},
             'keyframes': float(np.mean(col('keyframes'))),
+            # labels of the map objects on a real one, pooled: right of labelled, and per class
+            'labelled': int(np.nansum(col('labelled', 0))), 'labels_right': int(np.nansum(col('labels_right', 0))),
+            'label_classes': label_precision(rows),
             # the camera poses as the mapper published them (live), pooled over scenes
             'published': int(np.nansum(col('published', 0))),
             'published_gross': int(np.nansum(col('published_gross', 0))),
@@ -406,6 +424,10 @@ def pooled_share(share, count) -> float:
     return float(np.sum(share[ok] * count[ok]) / np.sum(count[ok])) if np.any(ok) else float('nan')
 
 
+def _share(part: int, whole: int) -> str:
+    return f'{100 * part / whole:.1f}% of {whole}' if whole else '-'
+
+
 def wrong_share(m: dict) -> str:
     """'3 of 412 (0.7%)': the frames off by more than the gross thresholds, of those localized."""
     return f'{m["gross"]} of {m["localized"]} ({100 * m["gross"] / max(m["localized"], 1):.1f}%)'
@@ -429,13 +451,21 @@ def format_tables(summary: dict) -> str:
     lines += ['', 'Mapping (scene-level AP/AR at 3D IoU 0.15 / 0.25, mean over scenes; objects mapped per object '
               'in the room, median over scenes; what the map objects are, pooled over scenes: the first box '
               'of a real object (IoU >= 0.25), a duplicate, a poor fit (IoU 0.1-0.25), nothing real '
-              '(IoU < 0.1))', '',
-              '| setting | AP15 | AR15 | AP25 | AR25 | objects / room | real | duplicate | poor fit | nothing real |',
-              '|---|---|---|---|---|---|---|---|---|---|']
+              '(IoU < 0.1); labels right: of the map objects on a real one (IoU >= 0.25), those that carry its '
+              "class in NYU40's names, pooled)", '',
+              '| setting | AP15 | AR15 | AP25 | AR25 | objects / room | real | duplicate | poor fit | nothing real '
+              '| labels right |',
+              '|---|---|---|---|---|---|---|---|---|---|---|']
     for name, m in summary.items():
         lines.append(f'| {name} | {m["AP15"]:.3f} | {m["AR15"]:.3f} | {m["AP25"]:.3f} | {m["AR25"]:.3f} | '
                      f'{m["objects_per_object"]:.1f} | '
-                     + ' | '.join(f'{100 * m.get("share_" + k, float("nan")):.0f}%' for k in OBJECT_KINDS) + ' |')
+                     + ' | '.join(f'{100 * m.get("share_" + k, float("nan")):.0f}%' for k in OBJECT_KINDS)
+                     + f' | {_share(m.get("labels_right", 0), m.get("labelled", 0))} |')
+    for name, m in summary.items():
+        if m.get('label_classes'):
+            lines += ['', f'Labels per class the map gives ({name}): right of the map objects so labelled that lie on '
+                      'a real object (precision)', '', '| class | labelled | right | precision |', '|---|---|---|---|']
+            lines += [f'| {c} | {n} | {k} | {100 * k / n:.0f}% |' for c, (n, k) in m['label_classes'].items()]
     failed = {name: m['failed'] for name, m in summary.items() if m.get('failed')}
     if failed:
         lines += ['', f'Runs that failed (counted as nothing localized or mapped): {failed}']
