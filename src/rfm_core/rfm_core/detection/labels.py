@@ -9,9 +9,10 @@ definition holds it (our reading: ``armchair`` and ``stool`` are chairs, ``monit
 ``tv`` television, ``wardrobe`` a cabinet, ``tv_stand`` other furniture, ``bin``, ``plant``,
 ``vase`` and ``bowl`` other props).
 
-``label_map`` entries ``FROM:TO`` (comma-separated in the parameter) rename or merge on top of that: ``FROM`` is a detector
-class (``monitor:monitor`` keeps monitors apart from televisions) or an NYU40 name
-(``otherprop:clutter`` renames every class NYU40 calls a prop); ``TO`` is any name.
+``label_map`` entries ``FROM:TO`` (comma-separated in the parameter) rename or merge on top
+of that: ``FROM`` is a detector class (``monitor:monitor`` keeps monitors apart from
+televisions) or an NYU40 name (``otherprop:clutter`` renames every class NYU40 calls a
+prop); ``TO`` is any name.
 """
 from __future__ import annotations
 
