@@ -82,7 +82,7 @@ def _run_worker(backlog: int) -> tuple:
         release.wait(5)
         waiting.append(worker.waiting)
         done.append(job)
-    worker = FrameWorker(work, lambda: replaced.append(1), backlog=backlog)
+    worker = FrameWorker(work, lambda *job: replaced.append(job), backlog=backlog)
     worker.submit('first')                            # taken at once, blocks the worker
     deadline = threading.Event()
     while worker.waiting and not deadline.wait(0.01):
@@ -101,7 +101,65 @@ def test_the_newest_job_wins_while_the_worker_is_busy():
     assert done == ['first', 'fourth'] and replaced == 2 and waiting == [1, 0]
 
 
+def test_jobs_pushed_out_are_handed_back_on_the_worker_thread_before_later_ones():
+    """A frame the detector has no time for goes out (a robot's, with its odometry) before
+    the frames after it: stamps stay in order."""
+    release, order, threads = threading.Event(), [], set()
+
+    def work(job):
+        release.wait(5)
+        order.append(job)
+        threads.add(threading.current_thread().name)
+
+    def replaced(job):
+        order.append(f'{job} (pushed out)')
+        threads.add(threading.current_thread().name)
+    worker = FrameWorker(work, replaced, name='test_worker', backlog=1)
+    worker.submit('first')
+    deadline = threading.Event()
+    while worker.waiting and not deadline.wait(0.01):
+        pass
+    for job in ('second', 'third', 'fourth'):
+        worker.submit(job)
+    release.set()
+    while not worker.idle and not deadline.wait(0.01):
+        pass
+    worker.stop()
+    assert order == ['first', 'second (pushed out)', 'third (pushed out)', 'fourth'] and threads == {'test_worker'}
+
+
 def test_a_backlog_keeps_the_newest_jobs_in_order_and_tells_work_it_is_behind():
     done, replaced, waiting = _run_worker(backlog=2)
     assert done == ['first', 'third', 'fourth'] and replaced == 1
     assert waiting == [2, 1, 0]                       # each ran with the later ones waiting: behind
+
+
+def test_a_robots_frame_without_time_for_it_goes_out_with_its_odometry(tmp_path):
+    """On a robot a frame the detector pushes out of its backlog is sent with the camera's
+    pose in the odometry frame (and gravity, the gyroscope's orientation), no detections
+    and no depth points: the matcher carries it on the odometry. Without odometry: nothing."""
+    from rosbags.highlevel import AnyReader
+
+    from rfm_core.io.messages import transforms_from_msg
+
+    path = tmp_path / 'robot'
+    capture = Capture(CaptureConfig(seed=12, capture='robot', frames=6, fps=5))
+    capture.write_bag(path)
+    with AnyReader([path]) as reader:
+        messages = [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    truth = capture.camera_odometry()
+    frames = []
+    robot = DetectorFrontend(make_detector('depth_clusters'), lambda *job: frames.append(job), imu_wait_s=0.0,
+                             odom_frame='odom')
+    for topic, msg in messages:
+        if topic in (TOPICS['tf'], TOPICS['tf_static']):
+            for link in transforms_from_msg(msg):
+                robot.add_transform(*link, topic == TOPICS['tf_static'])
+    _feed(robot, messages)
+    obs = robot.odometry_only(*frames[-1])
+    assert obs is not None and len(obs) == 0 and len(obs.cloud) == 0 and obs.imu_epoch > 0
+    np.testing.assert_allclose(obs.odometry, truth[obs.stamp_ns], atol=1e-4)   # the bag's odometry at the image
+    assert robot.counts['odometry_only'] == 1 and robot.counts['processed'] == 0
+    handheld = DetectorFrontend(make_detector('depth_clusters'), lambda *job: None, imu_wait_s=0.0, odom_frame='odom')
+    _feed(handheld, messages)
+    assert handheld.odometry_only(*frames[-1]) is None            # no odometry on /tf: dropped as before

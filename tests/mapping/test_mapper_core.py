@@ -144,3 +144,16 @@ def test_map_to_odom_never_goes_out_twice_at_one_stamp(tmp_path):
     assert second.stamp_ns == 11 * 10**8
     again = core.attach(CameraPose(11 * 10**8, 'camera_optical', np.eye(4)))     # the same image twice
     assert again.stamp_ns == 11 * 10**8 + 1
+
+
+def test_the_maps_own_broadcast_heard_before_tf_static_does_not_take_the_cameras_place():
+    """The first camera pose comes before the latched /tf_static: the map attaches to the
+    camera frame, hears its own broadcast back, and once the mount arrives moves up to the
+    root of the camera's tree (it stayed on the camera frame for good, a second parent)."""
+    from rfm_core.session import CameraPose
+    core = MapperCore(MapperNodeConfig(), clock=_Clock())
+    first = core.attach(CameraPose(10**9, 'camera_optical', np.eye(4)))
+    assert first.child == 'camera_optical'
+    core.transform('map', 'camera_optical', first.stamp_ns, first.matrix, False)      # its own, heard back
+    core.transform('camera_link', 'camera_optical', 0, np.eye(4), True)                # the mount, late
+    assert core.attach(CameraPose(11 * 10**8, 'camera_optical', np.eye(4))).child == 'camera_link'

@@ -157,6 +157,33 @@ def test_frames_it_is_behind_on_go_out_with_their_depth_points_only(graph, scene
     assert detector.counts['points_only'] == len(points_only) and detector.counts['dropped_busy'] >= 1
 
 
+def test_on_a_robot_frames_it_has_no_time_for_go_out_with_their_odometry(graph, scene):
+    """The same burst on a robot (odometry on /tf): a frame pushed out of the backlog is
+    sent with the camera's pose in the odometry frame and nothing else (no detections, no
+    depth points: the matcher carries it on the odometry), in stamp order with the rest."""
+    cap, frames = scene
+    detector, pubs, got, _ = graph(imu_tau_s=0.02, points_only_backlog=1)
+    stamps = [frames[0].stamp_ns + i * 33_000_000 for i in range(6)]
+    for i, stamp in enumerate(stamps + [stamps[-1] + 33_000_000]):   # as /tf gives it: odom -> camera
+        moved = np.eye(4)
+        moved[0, 3] = 0.01 * i
+        detector.frontend.add_transform('odom', FRAME, stamp, moved)
+    for i, stamp in enumerate(stamps):
+        publish_frame(pubs, cap, frames[i // 3], stamp=stamp)
+    newest = stamps[-1]
+    assert wait_for(lambda: detector.worker.idle
+                    and any(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec == newest for m in got)), \
+        (detector.counts, len(got))
+    sent = [frame_detections_from_msg(m) for m in got]
+    assert [o.stamp_ns for o in sent] == sorted(o.stamp_ns for o in sent)
+    bare = [o for o in sent if len(o) == 0 and len(o.cloud) == 0]
+    assert bare and detector.counts['odometry_only'] == len(bare) >= 1
+    for o in bare:                                   # the odometry at its own stamp
+        assert o.odometry_epoch == 1
+        np.testing.assert_allclose(o.odometry[0, 3], 0.01 * stamps.index(o.stamp_ns), atol=1e-6)
+    assert all(o.odometry is not None for o in sent)
+
+
 def test_bad_input_is_dropped_and_the_next_good_frame_served(graph, scene):
     cap, frames = scene
     detector, pubs, got, diags = graph(imu_max_age_s=0.3)

@@ -246,7 +246,13 @@ class MapperCore:
             self.session.attach_external_poses()
 
     def transform(self, parent: str, child: str, stamp_ns: int, matrix, static: bool) -> None:
-        """A transform heard on /tf or /tf_static (one that breaks the tree is reported and dropped)."""
+        """A transform heard on /tf or /tf_static (one that breaks the tree is reported and
+        dropped). Links from the map frame are the map's own broadcast: kept only in posed
+        mode (``pose_source`` tf, which reads them); otherwise the first frames' broadcast,
+        heard before a latched /tf_static, would take the camera frame's place in the tree
+        and keep the map attached to it for good."""
+        if parent == self.config.map_frame and self.config.pose_source != 'tf':
+            return
         problem = self.tf.add(parent, child, stamp_ns, matrix, static)
         if problem is not None:
             self.warn(f'/tf: {problem}')

@@ -136,8 +136,17 @@ class DetectorNode(GuardedCallbacks, Node):
     def _submit(self, kind, payload) -> None:
         self.worker.submit(kind, payload)
 
-    def _replaced(self) -> None:
+    def _replaced(self, kind, payload) -> None:
+        """A frame pushed out of the backlog (worker thread): dropped, except on a robot,
+        where it goes out with its odometry alone (the map logs a pose for it)."""
         self.counts['dropped_busy'] += 1
+        try:
+            obs = self.frontend.odometry_only(kind, payload)
+            if obs is not None:
+                self.pub.publish(frame_detections_to_msg(obs))
+                self.counts['published'] += 1
+        except Exception as exc:  # noqa: BLE001 - a dropped frame never kills the node
+            self.get_logger().debug(f'frame without time for it not sent: {exc!r}')
 
     def _work(self, kind, payload) -> None:
         """One frame on the worker thread: detect (its depth points only when the next frame

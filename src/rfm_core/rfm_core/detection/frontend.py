@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from rfm_core.detection.base import Detector, DetectorInput
+from rfm_core.detection.base import Detector, DetectorInput, finalize
 from rfm_core.detection.gravity import GravityFilter
 from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_msg, imu_reading, stamp_to_ns
@@ -32,9 +32,10 @@ from rfm_core.io.sync import ApproximateTimeSynchronizer
 from rfm_core.transforms import TransformBuffer
 from rfm_core.observations import FrameObservations
 
-__all__ = ['DetectorFrontend', 'FrameWorker', 'TIME_JUMP_NS', 'DROP_COUNTERS']
+__all__ = ['DetectorFrontend', 'FrameWorker', 'TIME_JUMP_NS', 'REPLACED_KEPT', 'DROP_COUNTERS']
 
 TIME_JUMP_NS = 2_000_000_000      #: a stamp this much older than the last one: the bag looped
+REPLACED_KEPT = 64                #: jobs a FrameWorker pushed out that wait for ``on_replaced``
 #: the counter (in ``counts`` and on /diagnostics) behind each reason :meth:`DetectorFrontend.dropped`
 #: gives, but ``unsynchronised``
 DROP_COUNTERS = dict(busy='dropped_busy', invalid='dropped_invalid', no_gravity='dropped_no_gravity',
@@ -65,8 +66,8 @@ class DetectorFrontend:
         self.odom_frame = odom_frame          # a robot's odometry: the camera's pose in it goes with each frame
         self.tf = TransformBuffer()
         self._tf_lock = threading.Lock()      # /tf arrives on the node's thread, frames are detected on the worker's
-        self.counts = dict(received=0, processed=0, published=0, points_only=0, dropped_busy=0, dropped_invalid=0,
-                           dropped_no_gravity=0, dropped_out_of_order=0, skipped_nth=0)
+        self.counts = dict(received=0, processed=0, published=0, points_only=0, odometry_only=0, dropped_busy=0,
+                           dropped_invalid=0, dropped_no_gravity=0, dropped_out_of_order=0, skipped_nth=0)
         # colour, camera_info and depth when needed (ground truth arrives as one message)
         self.sync = (None if detector.name == 'ground_truth' else
                      ApproximateTimeSynchronizer(3 if detector.needs_depth else 2, int(sync_slop_s * 1e9), queue_size,
@@ -150,11 +151,40 @@ class DetectorFrontend:
             obs.odometry, obs.odometry_epoch = odometry, 1
         return obs
 
-    def _odometry(self, frame_id: str, stamp_ns: int) -> np.ndarray | None:
+    def odometry_only(self, kind: str, payload) -> FrameObservations | None:
+        """A frame the detector has no time for, on a robot: its stamp, gravity, the
+        gyroscope's orientation and the camera's pose in the odometry frame, without
+        detections or depth points (the matcher carries it on the odometry, so the map logs
+        a pose for it); None without odometry at its stamp, or gravity. Costs no image
+        decoding, and does not wait: /tf is past a frame that waited behind another."""
+        if kind != 'images' or not self.odom_frame:
+            return None
+        rgb_msg, info = tuple(payload)[:2]
+        stamp = stamp_to_ns(rgb_msg.header.stamp)
+        odometry = self._odometry(rgb_msg.header.frame_id, stamp, wait=False)
+        if odometry is None:
+            return None
+        if self.fixed_gravity is not None:
+            gravity = self.fixed_gravity / np.linalg.norm(self.fixed_gravity)
+        elif self.gravity_filter.age_s(stamp) > self.imu_max_age_s:
+            return None
+        else:
+            gravity = self.gravity_filter.gravity_at(stamp)
+        frame = DetectorInput(stamp, rgb_msg.header.frame_id, camera_info_intrinsics(info), gravity)
+        obs = finalize(frame, np.zeros((0, 7)), np.zeros(0), [], np.zeros((0, 0), np.float32), np.zeros((0, 4)),
+                       self.detector.config, self.detector.name)
+        found = self.gravity_filter.orientation_at(stamp)
+        if found is not None:
+            obs.imu_rotation, obs.imu_epoch = found
+        obs.odometry, obs.odometry_epoch = odometry, 1
+        self.counts['odometry_only'] += 1
+        return obs
+
+    def _odometry(self, frame_id: str, stamp_ns: int, wait: bool = True) -> np.ndarray | None:
         """The camera's pose in the odometry frame at the image's stamp: interpolated once /tf
         has odometry past the stamp (waiting for it up to ``imu_wait_s``), else the newest
         within the buffer's tolerance; None without odometry."""
-        deadline = time.monotonic() + self.imu_wait_s
+        deadline = time.monotonic() + (self.imu_wait_s if wait else 0.0)
         while True:
             with self._tf_lock:
                 exact = self.tf.lookup(self.odom_frame, frame_id, stamp_ns, exact=True)
@@ -200,15 +230,18 @@ class DetectorFrontend:
 
 
 class FrameWorker:
-    """Runs ``work(job)`` on its own thread, oldest job first, with at most ``backlog`` jobs
-    waiting: a job submitted while the backlog is full pushes out the oldest waiting one
-    (``on_replaced`` is called), so nothing queues without bound. ``backlog`` 1: the newest
-    job wins. :attr:`waiting` tells ``work`` whether it is behind."""
+    """Runs ``work(*job)`` on its own thread, oldest job first, with at most ``backlog`` jobs
+    waiting: a job submitted while the backlog is full pushes out the oldest waiting one, so
+    nothing queues without bound; ``on_replaced(*job)`` is called with it, on the worker's
+    thread, before the jobs submitted after it (it must be cheap; at most
+    :data:`REPLACED_KEPT` wait for it, the oldest going unseen). ``backlog`` 1: the newest job
+    wins. :attr:`waiting` tells ``work`` whether it is behind."""
 
     def __init__(self, work: Callable, on_replaced: Callable[[], None], name: str = 'worker', backlog: int = 1):
         self.work, self.on_replaced = work, on_replaced
         self.backlog = max(int(backlog), 1)
         self._pending: deque = deque()
+        self._replaced: deque = deque(maxlen=REPLACED_KEPT)
         self._running = False
         self._stop = False
         self._cv = threading.Condition()
@@ -222,15 +255,14 @@ class FrameWorker:
 
     @property
     def idle(self) -> bool:
-        """No job waiting and none running."""
+        """No job waiting (nor one pushed out) and none running."""
         with self._cv:
-            return not self._pending and not self._running
+            return not self._pending and not self._replaced and not self._running
 
     def submit(self, *job) -> None:
         with self._cv:
             if len(self._pending) >= self.backlog:
-                self._pending.popleft()
-                self.on_replaced()
+                self._replaced.append(self._pending.popleft())
             self._pending.append(job)
             self._cv.notify()
 
@@ -242,14 +274,15 @@ class FrameWorker:
     def _run(self) -> None:
         while True:
             with self._cv:
-                while not self._pending and not self._stop:
+                while not self._pending and not self._replaced and not self._stop:
                     self._cv.wait()
                 if self._stop:
                     return
-                job = self._pending.popleft()
-                self._running = True
+                replaced = bool(self._replaced)
+                job = self._replaced.popleft() if replaced else self._pending.popleft()
+                self._running = not replaced
             try:
-                self.work(*job)
+                (self.on_replaced if replaced else self.work)(*job)
             finally:
                 with self._cv:
                     self._running = False
