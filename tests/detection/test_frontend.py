@@ -74,15 +74,23 @@ def test_every_nth_frame_and_a_looping_bag(bag_messages):
 
 
 def _run_worker(backlog: int) -> tuple:
-    """Jobs submitted while the worker is blocked on the first: (done, replaced, waiting seen by each job)."""
-    release, done, replaced, waiting = threading.Event(), [], [], []
+    """Jobs submitted while the worker is blocked on the first: (done, replaced, waiting seen
+    by each job, what ran in order with the jobs pushed out, the threads they ran on)."""
+    release, done, replaced, waiting, order, threads = threading.Event(), [], [], [], [], set()
     worker = None
 
     def work(job):
         release.wait(5)
         waiting.append(worker.waiting)
         done.append(job)
-    worker = FrameWorker(work, lambda *job: replaced.append(job), backlog=backlog)
+        order.append(job)
+        threads.add(threading.current_thread().name)
+
+    def pushed_out(job):
+        replaced.append(job)
+        order.append(f'{job} (pushed out)')
+        threads.add(threading.current_thread().name)
+    worker = FrameWorker(work, pushed_out, name='test_worker', backlog=backlog)
     worker.submit('first')                            # taken at once, blocks the worker
     deadline = threading.Event()
     while worker.waiting and not deadline.wait(0.01):
@@ -93,43 +101,23 @@ def _run_worker(backlog: int) -> tuple:
     while not worker.idle and not deadline.wait(0.01):
         pass
     worker.stop()
-    return done, len(replaced), waiting
+    return done, len(replaced), waiting, order, threads
 
 
 def test_the_newest_job_wins_while_the_worker_is_busy():
-    done, replaced, waiting = _run_worker(backlog=1)
+    done, replaced, waiting, _, _ = _run_worker(backlog=1)
     assert done == ['first', 'fourth'] and replaced == 2 and waiting == [1, 0]
 
 
 def test_jobs_pushed_out_are_handed_back_on_the_worker_thread_before_later_ones():
     """A frame the detector has no time for goes out (a robot's, with its odometry) before
     the frames after it: stamps stay in order."""
-    release, order, threads = threading.Event(), [], set()
-
-    def work(job):
-        release.wait(5)
-        order.append(job)
-        threads.add(threading.current_thread().name)
-
-    def replaced(job):
-        order.append(f'{job} (pushed out)')
-        threads.add(threading.current_thread().name)
-    worker = FrameWorker(work, replaced, name='test_worker', backlog=1)
-    worker.submit('first')
-    deadline = threading.Event()
-    while worker.waiting and not deadline.wait(0.01):
-        pass
-    for job in ('second', 'third', 'fourth'):
-        worker.submit(job)
-    release.set()
-    while not worker.idle and not deadline.wait(0.01):
-        pass
-    worker.stop()
+    _, _, _, order, threads = _run_worker(backlog=1)
     assert order == ['first', 'second (pushed out)', 'third (pushed out)', 'fourth'] and threads == {'test_worker'}
 
 
 def test_a_backlog_keeps_the_newest_jobs_in_order_and_tells_work_it_is_behind():
-    done, replaced, waiting = _run_worker(backlog=2)
+    done, replaced, waiting, _, _ = _run_worker(backlog=2)
     assert done == ['first', 'third', 'fourth'] and replaced == 1
     assert waiting == [2, 1, 0]                       # each ran with the later ones waiting: behind
 
