@@ -134,12 +134,12 @@ class DetectorNode(GuardedCallbacks, Node):
         self.get_logger().warning(text, throttle_duration_sec=5.0)
 
     def _submit(self, kind, payload) -> None:
-        self.worker.submit(kind, payload)
+        if self.worker.submit(kind, payload):
+            self.counts['dropped_busy'] += 1
 
     def _replaced(self, kind, payload) -> None:
         """A frame pushed out of the backlog (worker thread): dropped, except on a robot,
         where it goes out with its odometry alone (the map logs a pose for it)."""
-        self.counts['dropped_busy'] += 1
         try:
             obs = self.frontend.odometry_only(kind, payload)
             if obs is not None:

@@ -237,7 +237,7 @@ class FrameWorker:
     :data:`REPLACED_KEPT` wait for it, the oldest going unseen). ``backlog`` 1: the newest job
     wins. :attr:`waiting` tells ``work`` whether it is behind."""
 
-    def __init__(self, work: Callable, on_replaced: Callable[[], None], name: str = 'worker', backlog: int = 1):
+    def __init__(self, work: Callable, on_replaced: Callable[..., None], name: str = 'worker', backlog: int = 1):
         self.work, self.on_replaced = work, on_replaced
         self.backlog = max(int(backlog), 1)
         self._pending: deque = deque()
@@ -259,12 +259,15 @@ class FrameWorker:
         with self._cv:
             return not self._pending and not self._replaced and not self._running
 
-    def submit(self, *job) -> None:
+    def submit(self, *job) -> bool:
+        """Queue ``job``; True when it pushed the oldest waiting one out."""
         with self._cv:
-            if len(self._pending) >= self.backlog:
+            pushed = len(self._pending) >= self.backlog
+            if pushed:
                 self._replaced.append(self._pending.popleft())
             self._pending.append(job)
             self._cv.notify()
+        return pushed
 
     def stop(self) -> None:
         with self._cv:
