@@ -104,7 +104,7 @@ class DetectorNode(GuardedCallbacks, Node):
         self.create_timer(self.diagnostics_period, self._publish_diagnostics,
                           clock=Clock(clock_type=ClockType.STEADY_TIME))          # also while a bag pauses
         self.points_only = self.detector.needs_depth and cfg.cloud_voxel_m > 0
-        self.worker = FrameWorker(self._work, self._replaced, name='detector_worker',
+        self.worker = FrameWorker(self._work, lambda *job: self._work(*job, pushed_out=True), name='detector_worker',
                                   backlog=cfg.points_only_backlog if self.points_only else 1)
         self.get_logger().info(f'detector ready: backend={self.backend}, inputs: {inputs}')
 
@@ -137,24 +137,14 @@ class DetectorNode(GuardedCallbacks, Node):
         if self.worker.submit(kind, payload):
             self.counts['dropped_busy'] += 1
 
-    def _replaced(self, kind, payload) -> None:
-        """A frame pushed out of the backlog (worker thread): dropped, except on a robot,
-        where it goes out with its odometry alone (the map logs a pose for it)."""
-        try:
-            obs = self.frontend.odometry_only(kind, payload)
-            if obs is not None:
-                self.pub.publish(frame_detections_to_msg(obs))
-                self.counts['published'] += 1
-        except Exception as exc:  # noqa: BLE001 - a dropped frame never kills the node
-            self.get_logger().debug(f'frame without time for it not sent: {exc!r}')
-
-    def _work(self, kind, payload) -> None:
-        """One frame on the worker thread: detect (its depth points only when the next frame
-        already waits), publish."""
+    def _work(self, kind, payload, pushed_out: bool = False) -> None:
+        """One frame on the worker thread: detect it (its depth points only when the next one
+        waits; one pushed out of the backlog: its odometry alone, on a robot), publish."""
         start = time.perf_counter()
         points_only = self.points_only and self.worker.waiting > 0
         try:
-            obs = self.frontend.detect(kind, payload, points_only)
+            obs = (self.frontend.odometry_only(kind, payload) if pushed_out
+                   else self.frontend.detect(kind, payload, points_only))
         except (ValueError, RuntimeError) as exc:
             self.counts['dropped_invalid'] += 1
             self._warn(f'frame dropped: {exc}')
@@ -165,14 +155,15 @@ class DetectorNode(GuardedCallbacks, Node):
             return
         if obs is None:
             return
-        self.counts['processed'] += 1
-        if not points_only:
+        full = not (points_only or pushed_out)
+        self.counts['processed'] += not pushed_out
+        if full:
             self.last_latency_ms = 1e3 * (time.perf_counter() - start)
             self.last_detections = len(obs)
         try:
             self.pub.publish(frame_detections_to_msg(obs))
             self.counts['published'] += 1
-            if self.marker_pub is not None and not points_only:
+            if self.marker_pub is not None and full:
                 self.marker_pub.publish(detection_markers_msg(obs))
         except Exception as exc:  # noqa: BLE001 - e.g. publishing during shutdown
             self.get_logger().debug(f'publish failed: {exc!r}')
