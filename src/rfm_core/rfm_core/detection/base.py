@@ -15,7 +15,7 @@ from rfm_core.detection.labels import label_map
 from rfm_core.observations import CameraIntrinsics, FrameObservations
 from rfm_core.settings import setting
 
-__all__ = ['DetectorInput', 'DetectorConfig', 'Detector', 'finalize']
+__all__ = ['DetectorInput', 'DetectorConfig', 'Detector', 'finalize', 'no_detections']
 
 
 @dataclass
@@ -78,8 +78,14 @@ class Detector:
         """The frame without detections: its stamp, gravity and depth points (``cloud``), for
         a frame the detector is behind on (the matcher tracks it on the points)."""
         frame.validate(needs_depth=True)
-        return finalize(frame, np.zeros((0, 7)), np.zeros(0), [], np.zeros((0, 0), np.float32), np.zeros((0, 4)),
-                        self.config, self.name)
+        return no_detections(frame, self.config, self.name)
+
+
+def no_detections(frame: DetectorInput, config: DetectorConfig, backend: str) -> FrameObservations:
+    """The frame without detections: its stamp, gravity and (where it has depth) its depth
+    points."""
+    return finalize(frame, np.zeros((0, 7)), np.zeros(0), [], np.zeros((0, 0), np.float32), np.zeros((0, 4)),
+                    config, backend)
 
 
 def finalize(frame: DetectorInput, boxes, scores, labels, embeddings, boxes_2d, config: DetectorConfig,

@@ -24,7 +24,7 @@ from typing import Callable
 
 import numpy as np
 
-from rfm_core.detection.base import Detector, DetectorInput, finalize
+from rfm_core.detection.base import Detector, DetectorInput, no_detections
 from rfm_core.detection.gravity import GravityFilter
 from rfm_core.io.images import depth_to_meters, image_to_rgb
 from rfm_core.io.messages import camera_info_intrinsics, frame_detections_from_msg, imu_reading, stamp_to_ns
@@ -143,13 +143,7 @@ class DetectorFrontend:
                 self.counts['points_only'] += 1
             else:
                 obs = self.detector.detect(frame)
-        found = self.gravity_filter.orientation_at(obs.stamp_ns)
-        if found is not None:
-            obs.imu_rotation, obs.imu_epoch = found
-        odometry = self._odometry(obs.frame_id, obs.stamp_ns) if self.odom_frame else None
-        if odometry is not None:
-            obs.odometry, obs.odometry_epoch = odometry, 1
-        return obs
+        return self._with_sensors(obs, self._odometry(obs.frame_id, obs.stamp_ns) if self.odom_frame else None)
 
     def odometry_only(self, kind: str, payload) -> FrameObservations | None:
         """A frame the detector has no time for, on a robot: its stamp, gravity, the
@@ -162,22 +156,21 @@ class DetectorFrontend:
         rgb_msg, info = tuple(payload)[:2]
         stamp = stamp_to_ns(rgb_msg.header.stamp)
         odometry = self._odometry(rgb_msg.header.frame_id, stamp, wait=False)
-        if odometry is None:
+        gravity = self._gravity(stamp, wait=False) if odometry is not None else None
+        if gravity is None:
             return None
-        if self.fixed_gravity is not None:
-            gravity = self.fixed_gravity / np.linalg.norm(self.fixed_gravity)
-        elif self.gravity_filter.age_s(stamp) > self.imu_max_age_s:
-            return None
-        else:
-            gravity = self.gravity_filter.gravity_at(stamp)
         frame = DetectorInput(stamp, rgb_msg.header.frame_id, camera_info_intrinsics(info), gravity)
-        obs = finalize(frame, np.zeros((0, 7)), np.zeros(0), [], np.zeros((0, 0), np.float32), np.zeros((0, 4)),
-                       self.detector.config, self.detector.name)
-        found = self.gravity_filter.orientation_at(stamp)
+        self.counts['odometry_only'] += 1
+        return self._with_sensors(no_detections(frame, self.detector.config, self.detector.name), odometry)
+
+    def _with_sensors(self, obs: FrameObservations, odometry) -> FrameObservations:
+        """``obs`` with the gyroscope's orientation at its stamp (where the IMU has it) and the
+        camera's pose in the odometry frame (where given)."""
+        found = self.gravity_filter.orientation_at(obs.stamp_ns)
         if found is not None:
             obs.imu_rotation, obs.imu_epoch = found
-        obs.odometry, obs.odometry_epoch = odometry, 1
-        self.counts['odometry_only'] += 1
+        if odometry is not None:
+            obs.odometry, obs.odometry_epoch = odometry, 1
         return obs
 
     def _odometry(self, frame_id: str, stamp_ns: int, wait: bool = True) -> np.ndarray | None:
@@ -200,15 +193,20 @@ class DetectorFrontend:
         if problem is not None:
             self.warn(f'/tf: {problem}')
 
-    def _gravity(self, stamp: int):
+    def _gravity(self, stamp: int, wait: bool = True):
+        """Gravity at the image's stamp: the fixed one, else the IMU filter's; None when the
+        IMU is stale. ``wait``: a frame to detect, for which the IMU gets a moment to catch up
+        and which is counted and warned about as dropped; else neither."""
         if self.fixed_gravity is not None:
             return self.fixed_gravity / np.linalg.norm(self.fixed_gravity)
         # IMU and images travel on different topics: give the IMU a moment to catch up.
-        deadline = time.monotonic() + self.imu_wait_s
+        deadline = time.monotonic() + (self.imu_wait_s if wait else 0.0)
         while time.monotonic() < deadline and (self.gravity_filter.last_stamp_ns or 0) < stamp:
             time.sleep(0.002)
             self.poll_imu()
         if self.gravity_filter.age_s(stamp) > self.imu_max_age_s:
+            if not wait:
+                return None
             self.counts['dropped_no_gravity'] += 1
             self.warn('frame dropped: no recent IMU data on "imu"; remap the IMU topic, '
                       'or set gravity_source:=parameter with gravity:=[gx, gy, gz]')
