@@ -174,6 +174,36 @@ def test_the_gyroscope_votes_where_the_first_keyframe_is_placed():
     assert err['registered'] == 1.0 and err['ARE_median'] < 1e-6, err
 
 
+@pytest.mark.parametrize('reverse', [False, True])
+def test_lone_hypotheses_go_to_the_one_nearest_the_others(reverse):
+    """As on a robot capture: a new keyframe's three edges place it at three points each
+    more than the outlier threshold from the others: a look-alike match of two objects 31 cm
+    off (weight 2), another two-object edge 14 cm off (weight 1.33), and the link from the
+    keyframe the stream was tracked on (odometry refined on the depth points, weight 2).
+    The tie between the two of weight 2 went to whichever edge came first; it goes to the
+    hypothesis nearest the others, whatever the order."""
+    truth, edge = _chain(5, seed=3)
+
+    def off(s, t, dx, dy):                      # an edge s -> t placing t (dx, dy) m off in the map
+        e = truth[s] @ truth[t].inverse()
+        return Pose4(e.yaw, np.asarray(e.t) + truth[s].rotation @ np.array([dx, dy, 0.0]))
+
+    inc = IncrementalAverager()
+    for k in range(4):
+        inc.add_keyframe(k)
+        if k:
+            inc.add_edge(k - 1, k, edge[(k - 1, k)], 3.0)
+        inc.update()
+    inc.add_keyframe(4)
+    last = [(1, 4, off(1, 4, 0.18, 0.25), 2.0), (2, 4, off(2, 4, -0.04, 0.13), 1.33), (3, 4, edge[(3, 4)], 2.0)]
+    for s, t, pose, w in reversed(last) if reverse else last:
+        inc.add_edge(s, t, pose, w)
+    inc.update()
+    placed = inc.pose(3) @ inc.pose(4).inverse()                  # the map's gauge is keyframe 0's
+    assert np.linalg.norm(np.asarray(placed.t) - np.asarray(edge[(3, 4)].t)) < 0.01
+    assert (3, 4) in inc.active_edges() and (1, 4) not in inc.active_edges()
+
+
 @pytest.mark.parametrize('incremental', [False, True])
 def test_cycle_consistency_drops_heavy_wrong_edges(incremental):
     """Injected wrong edges: in a walk whose keyframes each see the next three, three edges

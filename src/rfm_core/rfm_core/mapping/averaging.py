@@ -162,7 +162,15 @@ def _vote(hyp, weights, cfg: AveragingConfig, yaw_hyp=(), yaw_weights=()):
     if len(yaw_hyp):
         yaw_agree = np.degrees(np.abs(wrap_angle(th[:, None] - np.asarray(yaw_hyp)[None]))) <= cfg.max_yaw_residual_deg
         support = support + yaw_agree.astype(float) @ np.asarray(yaw_weights, float)
-    best = int(np.argmax(support))
+    # ties (hypotheses that each stand alone, say) go to the one nearest the others: the
+    # weighted medoid, in units of the outlier thresholds, not the first edge's
+    tied = np.flatnonzero(support >= support.max() - 1e-9)
+    if len(tied) > 1:
+        spread = np.maximum(np.degrees(np.abs(wrap_angle(th[tied, None] - th[None, :]))) / cfg.max_yaw_residual_deg,
+                            np.linalg.norm(c[tied, None] - c[None, :], axis=-1) / cfg.max_translation_residual_m)
+        best = int(tied[np.argmin(spread @ w)])
+    else:
+        best = int(tied[0])
     sup = agree[best]
     ws = w[sup]
     return circular_mean(th[sup], ws), (ws[:, None] * c[sup]).sum(0) / ws.sum(), float(support[best])

@@ -126,7 +126,9 @@ class NewKeyframe:
         depth points fix every direction (``rel.on_points``) or a robot's odometry measured the
         motion it is a measurement; otherwise at most ``max_motion_edge_s`` after the last
         frame that objects (or points) placed: motion edges never chain longer. It has no
-        object matches; the averaging weighs it as ``averaging.points_edge_weight`` objects."""
+        object matches; the averaging weighs it as ``averaging.points_edge_weight`` objects.
+        A robot's keyframe gets it from the reference whenever objects did not link the two,
+        beside the edges objects gave from older keyframes."""
         g = self.g
         predicted = g.predicted_pose(obs)
         if predicted is None:
@@ -169,14 +171,19 @@ class NewKeyframe:
             if rel is not None and ((same and (i >= recent_from or i == last))
                                     or len(rel.inliers) >= cfg.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
-        if not edges and stream and g.keyframes:
+        if stream and g.keyframes and not any(e.source_id == g.reference.keyframe_id for e in edges):
             motion = self.motion_edge(obs)
-            if motion is not None:
+            if motion is not None and not edges:
                 edges.append(Edge(g.reference.keyframe_id, keyframe.keyframe_id, motion))
                 if not motion.on_points:                           # placed by the motion alone
                     g.motion_placed.add(keyframe.keyframe_id)
                 # the camera keeps its velocity through the new keyframe (a vector: rotated only)
                 g.motion.carry(keyframe.keyframe_id, yaw_matrix(motion.pose.yaw).T @ g.motion.velocity(g.state))
+            elif motion is not None and g.motion.carried(g.state, g.reference, obs) is not None:
+                # objects of older keyframes placed it, but not the reference the stream was
+                # tracked on: the robot's odometry still measures that link, which outvotes a
+                # look-alike match of two objects among the others
+                edges.append(Edge(g.reference.keyframe_id, keyframe.keyframe_id, motion))
         g.add_keyframe(keyframe, edges)
         g.stats.keyframes += 1
         g.stats.tracked += 1
