@@ -4,7 +4,8 @@ import pytest
 
 from rfm_core.evaluation.trajectory import trajectory_errors
 from rfm_core.geometry import Pose4
-from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, average_poses, cycle_inconsistent
+from rfm_core.mapping.averaging import (AveragingConfig, IncrementalAverager, average_poses, cycle_inconsistent,
+                                        gyro_drift)
 from rfm_core.mapping.synthetic import synthetic_view_graph
 
 
@@ -341,3 +342,20 @@ def test_a_loaded_map_keeps_every_keyframe_where_it_was_saved():
     for k in range(6):
         assert inc.pose(k) is not None and np.allclose(inc.pose(k).t, saved[k].t), k
     assert all(inc.pose(k) is not None for k in (10, 11, 12))
+
+
+def test_the_gyroscopes_drift_from_edges_against_it():
+    """Edges' yaws minus the gyroscope's over the same keyframes grow with the time between
+    them at the gyroscope's drift: found through noise and look-alike edges; a few short
+    edges leave it near zero (the prior)."""
+    rng = np.random.default_rng(4)
+    cfg = AveragingConfig()
+    seconds = rng.uniform(0.5, 20.0, 60)
+    weights = rng.choice([1.0, 2.0, 4.0], 60)
+    residuals = np.radians(0.3) * seconds + rng.normal(0, np.radians(cfg.pose_sigma_deg) / np.sqrt(weights))
+    residuals[:6] += np.radians(rng.choice([-90.0, 20.0, 8.0], 6))          # wrong edges
+    assert abs(gyro_drift(seconds, residuals, weights, cfg) - np.radians(0.3)) < np.radians(0.03)
+    short = rng.uniform(0.1, 0.3, 3)                                         # edges across a few frames
+    noise = rng.normal(0, np.radians(cfg.pose_sigma_deg), 3)
+    assert abs(gyro_drift(short, np.radians(0.3) * short + noise, np.ones(3), cfg)) < np.radians(0.05)
+    assert gyro_drift([], [], [], cfg) == 0.0

@@ -7,7 +7,8 @@ import pytest
 from sim_frames import detected_frames
 
 from rfm_core.evaluation.trajectory import trajectory_errors
-from rfm_core.geometry import Pose4
+from rfm_core.geometry import Pose4, yaw_matrix
+from rfm_core.mapping.mapper import MapperConfig
 from rfm_core.matching.motion import StreamMotion
 from rfm_core.session import Session
 from rfm_core.sim.capture import Capture, CaptureConfig
@@ -77,3 +78,29 @@ def test_every_keyframe_of_a_robot_is_linked_to_the_one_it_was_tracked_on(robot_
                            np.degrees(abs(links[0].pose.yaw - truth.yaw))))
     errors = np.array(beside)
     assert len(errors) >= 4 and np.all(errors < (0.05, 1.0)), errors      # and those links are right
+
+
+def test_the_gyroscopes_drift_is_measured_and_taken_out(robot_frames):
+    """A gyroscope that drifts 0.3 deg/s about the vertical (a MEMS zero-rate offset): its
+    yaw edges would turn the robot's map against its objects by 9 deg over the capture. The
+    mapper measures the drift from the objects' edges and takes it out of them."""
+    truth = {f.stamp_ns: f.pose_matrix for f in Capture(CaptureConfig(
+        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
+        noise=NoiseModel.realsense())).frames()}
+    drift, start = np.radians(0.3), robot_frames[0].stamp_ns
+    frames = [dataclasses.replace(o, imu_rotation=yaw_matrix(drift * (o.stamp_ns - start) * 1e-9) @ o.imu_rotation)
+              for o in robot_frames]
+    results = {}
+    for prior_dps in (0.5, 1e-3):               # the default prior, and one that pins the drift at zero
+        config = MapperConfig()
+        config = dataclasses.replace(config, averaging=dataclasses.replace(config.averaging,
+                                                                           gyro_bias_sigma_dps=prior_dps))
+        session = Session(config)
+        for obs in frames:
+            session.step(obs)
+        session.finish()
+        results[prior_dps] = session.mapper.gyro_drift, trajectory_errors(session.mapper.frame_poses(), truth)
+    (measured, corrected), (_, uncorrected) = results[0.5], results[1e-3]
+    assert abs(measured + drift) < np.radians(0.05), np.degrees(measured)      # the correction undoes it
+    assert corrected['gross'] == 0 and corrected['ARE_median'] < 1.2, corrected
+    assert uncorrected['gross'] > 20 and uncorrected['ARE_median'] > 1.5, uncorrected

@@ -46,7 +46,7 @@ from rfm_core.mapping.uncertainty import KeyframeCovariances
 from rfm_core.settings import constant, setting
 
 __all__ = ['AveragingConfig', 'AveragingResult', 'average_poses', 'IncrementalAverager', 'agreement',
-           'cycle_inconsistent', 'largest_component']
+           'cycle_inconsistent', 'gyro_drift', 'largest_component']
 
 
 @dataclass(frozen=True)
@@ -67,6 +67,9 @@ class AveragingConfig:
                                    'outside the window disagree', lo=1, hi=1000)
     gyro_yaw_weight: float = constant(10.0, "Weight of the gyroscope's yaw between consecutive keyframes of a "
                                       'stream, in verified objects (yaw only; 0: boxes alone)', lo=0.0, hi=1000.0)
+    gyro_bias_sigma_dps: float = constant(0.5, "Prior std of the gyroscope's yaw drift (deg/s; a MEMS gyroscope's "
+                                          'zero-rate offset): the drift the relative poses measure against it is '
+                                          'taken out of its yaw edges', lo=1e-3, hi=10.0)
     points_edge_weight: float = constant(2.0, 'Weight of an edge no object verified (a keyframe placed on its depth '
                                          'points, or by its motion refined on them), in verified objects: on tuning '
                                          'walks they are as accurate as edges of two objects or more', lo=0.0,
@@ -101,6 +104,28 @@ def _robust(residual, scale):
     """IRLS weights of the Cauchy loss: outliers (many scales off) lose almost all weight,
     which is safe because the initial poses come from a robust vote."""
     return 1.0 / (1.0 + (np.asarray(residual) / scale) ** 2)
+
+
+def gyro_drift(seconds, residuals, weights, cfg: AveragingConfig) -> float:
+    """The gyroscope's yaw drift (rad/s) that relative poses measure: each edge's yaw minus
+    the gyroscope's between the same two keyframes (``residuals``, rad) against the time
+    between them (``seconds``). A robust (Cauchy) fit through the origin, each residual of
+    std ``pose_sigma_deg`` / sqrt(its ``weights``), under a zero-mean prior of std
+    ``gyro_bias_sigma_dps`` (few or short edges leave the drift near zero; a wrong edge
+    counts little)."""
+    x, w = np.asarray(seconds, float), np.asarray(weights, float)
+    y = wrap_angle(np.asarray(residuals, float))
+    if not len(x):
+        return 0.0
+    var = np.radians(cfg.pose_sigma_deg) ** 2 / np.maximum(w, 1e-6)
+    sigma = np.radians(cfg.gyro_bias_sigma_dps)
+    grid = sigma * np.linspace(-4.0, 4.0, 161)           # the basin: least robust cost on a grid
+    cost = np.log1p((y[None] - grid[:, None] * x[None]) ** 2 / var[None]).sum(1) + 0.5 * (grid / sigma) ** 2
+    drift = float(grid[np.argmin(cost)])
+    for _ in range(5):                                   # then IRLS
+        a = 1.0 / (var + (y - drift * x) ** 2)
+        drift = float(np.sum(a * x * y) / (np.sum(a * x * x) + 0.5 / sigma ** 2))
+    return drift
 
 
 def largest_component(nodes: np.ndarray, src: np.ndarray, dst: np.ndarray,
@@ -658,6 +683,12 @@ class IncrementalAverager:
             return
         self.edges.append(s, t, float(pose.yaw), np.zeros(3) if yaw_only else np.asarray(pose.t, float),
                           float(weight), yaw_only)
+        self._new_edges = True
+
+    def set_yaw(self, index: int, yaw: float) -> None:
+        """Replace the yaw an edge (by the order added) measures: a yaw-only edge's, once
+        the gyroscope's drift is better known."""
+        self.edges.yaw[index] = yaw
         self._new_edges = True
 
     # ------------------------------------------------------------------ output

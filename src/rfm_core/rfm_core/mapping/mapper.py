@@ -21,8 +21,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.geometry import Pose4
-from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager
+from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, gyro_drift
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.culling import CullingConfig, Merged, protected_keyframes, redundant_keyframes
 from rfm_core.mapping.frame_log import FrameLog
@@ -109,6 +109,9 @@ class Mapper:
         self._cull_due: set = set()          # keyframes new edges touched since the last culling pass
         self.carried: dict = {}              # (keyframe, detection) -> views of culled keyframes it stands for
         self.streamed: set = set()           # keyframes that frames of a stream were tracked against
+        self.gyro_drift = 0.0                # the gyroscope's yaw drift the edges measure (rad/s)
+        self._gyro: dict = {}                # averager edge index -> (gyroscope's yaw, seconds) of its yaw-only edges
+        self._spans: dict = {}               # (source, target, their stamps) -> (gyroscope's yaw, seconds) or None
         self._reference_index = (None, None)  # (the loaded map's keyframes, their MapIndex): reference_index
 
     # ------------------------------------------------------------------ input
@@ -134,9 +137,45 @@ class Mapper:
         boxes whose yaw it contradicts is outvoted and dropped instead of turning the map.
         (A map loaded from a file has no gyroscope readings: its keyframes get none.)"""
         weight = self.config.averaging.gyro_yaw_weight
-        yaw = imu_relative_yaw(self.keyframes[source], self.keyframes[target]) if weight > 0 else None
-        if yaw is not None:
-            self.averager.add_edge(source, target, Pose4(yaw, (0.0, 0.0, 0.0)), weight, yaw_only=True)
+        span = self._span(source, target) if weight > 0 else None
+        if span is not None:
+            yaw, seconds = span
+            self._gyro[len(self.averager.edges)] = span
+            self.averager.add_edge(source, target, Pose4(yaw + self.gyro_drift * seconds, (0.0, 0.0, 0.0)), weight,
+                                   yaw_only=True)
+
+    def _span(self, source: int, target: int):
+        """(yaw of T_source_target as the gyroscope measured it, seconds between them), or
+        None when the two keyframes share no integration epoch (cached)."""
+        a, b = self.keyframes[source], self.keyframes[target]
+        key = (source, target, a.stamp_ns, b.stamp_ns)
+        if key not in self._spans:
+            yaw = imu_relative_yaw(a, b)
+            self._spans[key] = None if yaw is None else (yaw, (b.stamp_ns - a.stamp_ns) * 1e-9)
+        return self._spans[key]
+
+    def _correct_gyroscope(self) -> None:
+        """The gyroscope's yaw drift, as the edges of objects and points measure it against
+        the gyroscope's yaw between the same keyframes (:func:`~rfm_core.mapping.averaging.gyro_drift`),
+        taken out of its yaw-only edges: a drift of a few tenths of a degree a second
+        otherwise turns a robot's map by degrees over a minute, against its loop closures."""
+        if not self._gyro:
+            return
+        spans, residuals, weights = [], [], []
+        kept = self.averager.edges.active
+        for index, edge in self._averaged.items():
+            span = self._span(edge.source, edge.target) if kept[index] and edge.source in self.keyframes and \
+                edge.target in self.keyframes else None
+            if span is not None:
+                spans.append(span[1])
+                residuals.append(wrap_angle(edge.pose.yaw - span[0]))
+                weights.append(self._weight(edge))
+        drift = gyro_drift(spans, residuals, weights, self.config.averaging)
+        if abs(drift - self.gyro_drift) * max(s for _, s in self._gyro.values()) < np.radians(0.05):
+            return
+        self.gyro_drift = drift
+        for index, (yaw, seconds) in self._gyro.items():
+            self.averager.set_yaw(index, yaw + drift * seconds)
 
     def add_edge(self, edge: EdgeRecord) -> bool:
         """Add a verified edge; False when ignored (localization mode, unknown keyframe,
@@ -369,6 +408,7 @@ class Mapper:
         start = time.perf_counter()
         stats = None
         if not self.config.posed:
+            self._correct_gyroscope()
             stats = self.averager.update(force_full)
             if self._recover():
                 stats = self.averager.update(force_full)
@@ -477,7 +517,7 @@ class Mapper:
             self.recovery.tried.pop(k, None)
         self.edges, self._pairs, self._averaged, self._edges_to = {}, {}, {}, {}
         reference = self.averager.reference    # a loaded map's keyframes, and those they were culled into
-        self.averager = IncrementalAverager(self.config.averaging)
+        self.averager, self._gyro = IncrementalAverager(self.config.averaging), {}
         self.averager.reference = {k for k in reference if k in self.keyframes} | {
             m.into for k, m in culled.items() if k in reference}
         ids = sorted(self.keyframes)
@@ -498,11 +538,13 @@ class Mapper:
 
     def _gyro_yaw(self, keyframe_id: int, poses: dict) -> float | None:
         """The yaw of T_map_k as the gyroscope gives it through the registered keyframe
-        nearest in time that shares its integration epoch (None without one)."""
+        nearest in time that shares its integration epoch (None without one), its drift
+        taken out."""
         obs = self.keyframes[keyframe_id]
         for k in sorted(poses, key=lambda k: abs(self.keyframes[k].stamp_ns - obs.stamp_ns)):
-            yaw = imu_relative_yaw(self.keyframes[k], obs)                    # of T_r_k
-            if yaw is not None:
+            span = self._span(k, keyframe_id)                                  # of T_r_k
+            if span is not None:
+                yaw = span[0] + self.gyro_drift * span[1]
                 return (Pose4(yaw, (0.0, 0.0, 0.0)).inverse() @ poses[k]).inverse().yaw
         return None
 
