@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, gyro_drift
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.culling import CullingConfig, Merged, protected_keyframes, redundant_keyframes
@@ -168,7 +168,7 @@ class Mapper:
                 edge.target in self.keyframes else None
             if span is not None:
                 spans.append(span[1])
-                residuals.append(wrap_angle(edge.pose.yaw - span[0]))
+                residuals.append(edge.pose.yaw - span[0])            # gyro_drift wraps them
                 weights.append(self._weight(edge))
         drift = gyro_drift(spans, residuals, weights, self.config.averaging)
         if abs(drift - self.gyro_drift) * max(s for _, s in self._gyro.values()) < np.radians(0.05):

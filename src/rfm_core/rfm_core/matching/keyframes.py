@@ -171,18 +171,18 @@ class NewKeyframe:
             if rel is not None and ((same and (i >= recent_from or i == last))
                                     or len(rel.inliers) >= cfg.min_retrieved_inliers):
                 edges.append(Edge(source.keyframe_id, keyframe.keyframe_id, rel))
-        if stream and g.keyframes and not any(e.source_id == g.reference.keyframe_id for e in edges):
+        # no edge from the reference the stream was tracked on: its motion edge, alone, or on
+        # a robot beside the edges objects of older keyframes gave (the odometry still
+        # measures that link, which outvotes a look-alike match of two objects among them)
+        if (stream and g.keyframes and not any(e.source_id == g.reference.keyframe_id for e in edges)
+                and (not edges or g.motion.carried(g.state, g.reference, obs) is not None)):
             motion = self.motion_edge(obs)
             if motion is not None and not edges:
-                edges.append(Edge(g.reference.keyframe_id, keyframe.keyframe_id, motion))
                 if not motion.on_points:                           # placed by the motion alone
                     g.motion_placed.add(keyframe.keyframe_id)
                 # the camera keeps its velocity through the new keyframe (a vector: rotated only)
                 g.motion.carry(keyframe.keyframe_id, yaw_matrix(motion.pose.yaw).T @ g.motion.velocity(g.state))
-            elif motion is not None and g.motion.carried(g.state, g.reference, obs) is not None:
-                # objects of older keyframes placed it, but not the reference the stream was
-                # tracked on: the robot's odometry still measures that link, which outvotes a
-                # look-alike match of two objects among the others
+            if motion is not None:
                 edges.append(Edge(g.reference.keyframe_id, keyframe.keyframe_id, motion))
         g.add_keyframe(keyframe, edges)
         g.stats.keyframes += 1
