@@ -55,6 +55,28 @@ def test_the_odometry_carries_a_robot_where_objects_and_points_do_not(robot_fram
     assert with_odometry['gross'] == 0 and with_odometry['ARE_median'] < 1.5, with_odometry
 
 
+def test_a_robots_map_starts_on_its_first_frame_whatever_it_sees(robot_frames):
+    """A robot whose camera sees one object or none for its first 6 s (facing a wall, a
+    lone chair): nothing can match, but its odometry links every frame to the first, so
+    the map starts there and those frames are placed; without odometry they cannot be."""
+    truth = {f.stamp_ns: f.pose_matrix for f in Capture(CaptureConfig(
+        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
+        noise=NoiseModel.realsense())).frames()}
+    frames = [o.subset(np.arange(min(len(o), i % 2))) if i < 60 else o for i, o in enumerate(robot_frames)]
+    first = {o.stamp_ns: truth[o.stamp_ns] for o in frames[:60]}
+    results = {}
+    for use in (True, False):
+        session = Session()
+        for obs in frames:
+            session.step(obs if use else dataclasses.replace(obs, odometry=None, odometry_epoch=0))
+        session.finish()
+        poses = session.mapper.frame_poses()
+        results[use] = trajectory_errors(poses, truth), trajectory_errors(poses, first)
+    (everything, start), (_, start_without) = results[True], results[False]
+    assert start['registered'] >= 0.95 and start_without['registered'] == 0, (start, start_without)
+    assert everything['gross'] == 0 and everything['ARE_median'] < 1.5, everything
+
+
 def test_every_keyframe_of_a_robot_is_linked_to_the_one_it_was_tracked_on(robot_frames):
     """A keyframe whose objects did not verify against the keyframe the stream was tracked
     on, but did against older ones, still gets the link its odometry measures from that one

@@ -63,6 +63,7 @@ class ViewGraphBuilder:
         self.motion = StreamMotion(self.config.motion, self.stats)
         self.keyframes: list = []
         self.descriptors = np.zeros((0, 0))      # keyframes' bag-of-objects, by index (grows by doubling)
+        self._dim: int | None = None             # their length
         self.next_id = 0
         self.ref = -1                            # index of the reference keyframe frames are tracked against
         self.neighbours: dict = {}               # keyframe index -> indices it shares a verified edge with
@@ -93,6 +94,8 @@ class ViewGraphBuilder:
         if not frame.stream:
             self.state = None                    # nothing predicts a separate view
         if len(obs) < self.config.keyframes.min_detections:           # too few objects to match
+            if not self.keyframes and obs.odometry is not None:
+                return self.new_keyframe(frame)   # a robot's map starts at once: odometry links on
             step = self.point_tracking(frame)
             self.stats.skipped += step is None
             return step if step is not None else GraphStep(None, [], None)
@@ -124,8 +127,8 @@ class ViewGraphBuilder:
 
     @property
     def embedding_dim(self) -> int | None:
-        """The length of the embeddings this graph holds (set by its first keyframe)."""
-        return self.descriptors.shape[1] if self.keyframes else None
+        """The length of the embeddings this graph holds (set by its first keyframe with objects)."""
+        return self._dim
 
     def predicted_pose(self, obs: FrameObservations) -> Pose4 | None:
         """T_reference_frame as the stream's motion predicts it (None: nothing predicts it)."""
@@ -177,11 +180,15 @@ class ViewGraphBuilder:
         """A new keyframe with its edges: indexed for retrieval, linked to its neighbours,
         and the reference from now on."""
         n = len(self.keyframes)
-        if n == 0:                                                 # first keyframe: sets the length
-            self.descriptors = np.zeros((64, len(keyframe.descriptor)))
+        if self._dim is None and len(keyframe.observations):      # the first with objects sets the length
+            self._dim = len(keyframe.descriptor)
+        width = self._dim or 1
+        if self.descriptors.shape[1] != width:                     # (a robot's object-less keyframes: zeros)
+            self.descriptors = np.zeros((max(64, 2 * n), width))
         elif n == len(self.descriptors):
             self.descriptors = np.vstack([self.descriptors, np.zeros_like(self.descriptors)])
-        self.descriptors[n] = keyframe.descriptor
+        if len(keyframe.descriptor) == width:
+            self.descriptors[n] = keyframe.descriptor
         self.keyframes.append(keyframe)
         self.ref = len(self.keyframes) - 1
         self._index[keyframe.keyframe_id] = self.ref
