@@ -12,11 +12,12 @@ the camera's velocity, which predicts where the next frame is; a robot's wheel o
 where the detector attached it, predicts it better, and carries the camera where objects and
 depth points place nothing (:meth:`StreamMotion.odometry`): as the odometry of a pose-graph
 SLAM system, it never lets the stream's map break apart, and objects seen again correct its
-drift. Across segments nothing is known of the motion.
+drift. A frame tracked on two objects alone is averaged with it
+(:meth:`StreamMotion.with_odometry`). Across segments nothing is known of the motion.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -53,6 +54,10 @@ class MotionConfig:
     odometry_drift_deg_s: float = setting(1.0, '... plus this yaw drift per second (deg/s) ...', lo=0.0, hi=90.0)
     odometry_slack_m: float = constant(0.1, "... plus a relative pose's own error (m; the averaging's outlier "
                                        'threshold)', lo=0.0, hi=10.0)
+    odometry_weight: float = constant(2.0, "On a robot, a frame tracked on fewer objects than an edge needs "
+                                      'unchecked takes the mean of that pose and the one the odometry carries '
+                                      'it to, the odometry weighing this many objects (as the averaging weighs '
+                                      'a motion link)', lo=0.0, hi=100.0)
 
 
 class StreamMotion:
@@ -151,6 +156,18 @@ class StreamMotion:
             if step is not None:
                 return prev.pose @ step
         return self.odometry(reference.observations, obs)
+
+    def with_odometry(self, rel: RelativePose, carried: Pose4 | None, min_objects: int) -> RelativePose:
+        """``rel`` (T_reference_frame, tracked on objects) as the weighted mean with the pose
+        the odometry carries the frame to, where ``rel`` rests on fewer than ``min_objects``
+        objects: two boxes fix a pose only as well as their noise, and a robot's odometry from
+        the frame tracked just before measures the same motion (``odometry_weight``)."""
+        if carried is None or len(rel.inliers) >= min_objects:
+            return rel
+        w = self.config.odometry_weight / (self.config.odometry_weight + len(rel.inliers))
+        yaw = rel.pose.yaw + w * wrap_angle(carried.yaw - rel.pose.yaw)
+        t = np.asarray(rel.pose.t) + w * (np.asarray(carried.t) - np.asarray(rel.pose.t))
+        return replace(rel, pose=Pose4(float(yaw), t))
 
     def reachable(self, motion: Pose4, stamp_a: int, stamp_b: int) -> bool:
         """The motion prior: a camera cannot turn or move arbitrarily fast. Catches the

@@ -105,7 +105,9 @@ class Tracking:
             ok = g.motion.reachable(prev.pose.inverse() @ rel.pose, prev.stamp_ns, obs.stamp_ns)
         else:
             ok = g.motion.reachable(rel.pose, last.observations.stamp_ns, obs.stamp_ns)
-        return rel if ok and g.motion.sensors_agree(rel.pose, last.observations, obs) else None
+        if not (ok and g.motion.sensors_agree(rel.pose, last.observations, obs)):
+            return None
+        return g.motion.with_odometry(rel, g.motion.carried(prev, last, obs), g.config.keyframes.min_retrieved_inliers)
 
 
 class PointTracking:
