@@ -30,19 +30,27 @@ def test_odometry_gives_the_relative_pose_between_gravity_aligned_frames():
     assert StreamMotion.odometry(a, dataclasses.replace(b, odometry=None, odometry_epoch=0)) is None
 
 
+ROBOT = dict(seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True)
+
+
 @pytest.fixture(scope='module')
 def robot_frames():
     # a tuning seed whose robot spins and drives past bare walls for long stretches
-    return detected_frames(seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
-                           noise=NoiseModel.realsense())
+    return detected_frames(**ROBOT, noise=NoiseModel.realsense())
 
 
-def test_the_odometry_carries_a_robot_where_objects_and_points_do_not(robot_frames):
+@pytest.fixture(scope='module')
+def robot_truth():
+    """The same capture's true camera poses by stamp: camera-to-map, and the gravity-aligned
+    frame's (no images kept)."""
+    frames = Capture(CaptureConfig(**ROBOT, noise=NoiseModel.realsense())).frames()
+    return {f.stamp_ns: (f.pose_matrix, f.aligned_from_map()) for f in frames}
+
+
+def test_the_odometry_carries_a_robot_where_objects_and_points_do_not(robot_frames, robot_truth):
     """A robot that spins and drives past bare walls: tracked through them by its odometry,
     and not without; objects seen again keep its drift from making poses wrong."""
-    truth = {f.stamp_ns: f.pose_matrix for f in Capture(CaptureConfig(
-        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
-        noise=NoiseModel.realsense())).frames()}
+    truth = {stamp: pose for stamp, (pose, _) in robot_truth.items()}
     results = {}
     for use in (True, False):
         session = Session()
@@ -56,13 +64,11 @@ def test_the_odometry_carries_a_robot_where_objects_and_points_do_not(robot_fram
     assert with_odometry['gross'] == 0 and with_odometry['ARE_median'] < 1.5, with_odometry
 
 
-def test_a_robots_map_starts_on_its_first_frame_whatever_it_sees(robot_frames):
+def test_a_robots_map_starts_on_its_first_frame_whatever_it_sees(robot_frames, robot_truth):
     """A robot whose camera sees one object or none for its first 6 s (facing a wall, a
     lone chair): nothing can match, but its odometry links every frame to the first, so
     the map starts there and those frames are placed; without odometry they cannot be."""
-    truth = {f.stamp_ns: f.pose_matrix for f in Capture(CaptureConfig(
-        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
-        noise=NoiseModel.realsense())).frames()}
+    truth = {stamp: pose for stamp, (pose, _) in robot_truth.items()}
     frames = [o.subset(np.arange(min(len(o), i % 2))) if i < 60 else o for i, o in enumerate(robot_frames)]
     first = {o.stamp_ns: truth[o.stamp_ns] for o in frames[:60]}
     results = {}
@@ -78,14 +84,12 @@ def test_a_robots_map_starts_on_its_first_frame_whatever_it_sees(robot_frames):
     assert everything['gross'] == 0 and everything['ARE_median'] < 1.5, everything
 
 
-def test_a_frame_tracked_on_two_objects_is_averaged_with_the_odometry(robot_frames):
+def test_a_frame_tracked_on_two_objects_is_averaged_with_the_odometry(robot_frames, robot_truth):
     """Two boxes fix a pose only as well as their noise; mid-turn a frame tracked on two of
     them can sit 10 cm off (a held-out robot room), and frames and keyframe links after it
     carry that on. Averaged with the pose the odometry carries it to, the map is closer to
     the truth than with the objects' pose alone."""
-    truth = {f.stamp_ns: f.pose_matrix for f in Capture(CaptureConfig(
-        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
-        noise=NoiseModel.realsense())).frames()}
+    truth = {stamp: pose for stamp, (pose, _) in robot_truth.items()}
     results = {}
     for weight in (2.0, 0.0):                   # the default, and the objects' pose alone
         graph = ViewGraphConfig()
@@ -101,14 +105,12 @@ def test_a_frame_tracked_on_two_objects_is_averaged_with_the_odometry(robot_fram
         (averaged, alone)
 
 
-def test_every_keyframe_of_a_robot_is_linked_to_the_one_it_was_tracked_on(robot_frames):
+def test_every_keyframe_of_a_robot_is_linked_to_the_one_it_was_tracked_on(robot_frames, robot_truth):
     """A keyframe whose objects did not verify against the keyframe the stream was tracked
     on, but did against older ones, still gets the link its odometry measures from that one
     (beside the older ones): without it two look-alike objects of an older keyframe could
     place it alone (a held-out robot capture: 75 frames 30 cm off)."""
-    aligned = {f.stamp_ns: f.aligned_from_map() for f in Capture(CaptureConfig(
-        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
-        noise=NoiseModel.realsense())).frames()}
+    aligned = {stamp: aligned for stamp, (_, aligned) in robot_truth.items()}
     session = Session()
     beside = []                                  # (error m, error deg) of odometry links beside object edges
     for obs in robot_frames:
@@ -126,13 +128,11 @@ def test_every_keyframe_of_a_robot_is_linked_to_the_one_it_was_tracked_on(robot_
     assert len(errors) >= 4 and np.all(errors < (0.05, 1.0)), errors      # and those links are right
 
 
-def test_the_gyroscopes_drift_is_measured_and_taken_out(robot_frames):
+def test_the_gyroscopes_drift_is_measured_and_taken_out(robot_frames, robot_truth):
     """A gyroscope that drifts 0.3 deg/s about the vertical (a MEMS zero-rate offset): its
     yaw edges would turn the robot's map against its objects by 9 deg over the capture. The
     mapper measures the drift from the objects' edges and takes it out of them."""
-    truth = {f.stamp_ns: f.pose_matrix for f in Capture(CaptureConfig(
-        seed=12, frames=300, fps=10, capture='robot', furniture='parts', clutter=True,
-        noise=NoiseModel.realsense())).frames()}
+    truth = {stamp: pose for stamp, (pose, _) in robot_truth.items()}
     drift, start = np.radians(0.3), robot_frames[0].stamp_ns
     frames = [dataclasses.replace(o, imu_rotation=yaw_matrix(drift * (o.stamp_ns - start) * 1e-9) @ o.imu_rotation)
               for o in robot_frames]
