@@ -47,16 +47,22 @@ def robot_truth():
     return {f.stamp_ns: (f.pose_matrix, f.aligned_from_map()) for f in frames}
 
 
+def mapped(frames, odometry: bool = True, **session_args) -> Session:
+    """A session that has mapped ``frames`` (``odometry`` False: without their odometry)."""
+    session = Session(**session_args)
+    for obs in frames:
+        session.step(obs if odometry else dataclasses.replace(obs, odometry=None, odometry_epoch=0))
+    session.finish()
+    return session
+
+
 def test_the_odometry_carries_a_robot_where_objects_and_points_do_not(robot_frames, robot_truth):
     """A robot that spins and drives past bare walls: tracked through them by its odometry,
     and not without; objects seen again keep its drift from making poses wrong."""
     truth = {stamp: pose for stamp, (pose, _) in robot_truth.items()}
     results = {}
     for use in (True, False):
-        session = Session()
-        for obs in robot_frames:
-            session.step(obs if use else dataclasses.replace(obs, odometry=None, odometry_epoch=0))
-        session.finish()
+        session = mapped(robot_frames, odometry=use)
         results[use] = trajectory_errors(session.mapper.frame_poses(), truth), session.graph.stats.odometry_tracked
     (with_odometry, carried), (without, _) = results[True], results[False]
     # more frames, none wrong
@@ -73,11 +79,7 @@ def test_a_robots_map_starts_on_its_first_frame_whatever_it_sees(robot_frames, r
     first = {o.stamp_ns: truth[o.stamp_ns] for o in frames[:60]}
     results = {}
     for use in (True, False):
-        session = Session()
-        for obs in frames:
-            session.step(obs if use else dataclasses.replace(obs, odometry=None, odometry_epoch=0))
-        session.finish()
-        poses = session.mapper.frame_poses()
+        poses = mapped(frames, odometry=use).mapper.frame_poses()
         results[use] = trajectory_errors(poses, truth), trajectory_errors(poses, first)
     (everything, start), (_, start_without) = results[True], results[False]
     assert start['registered'] >= 0.95 and start_without['registered'] == 0, (start, start_without)
@@ -94,11 +96,7 @@ def test_a_frame_tracked_on_two_objects_is_averaged_with_the_odometry(robot_fram
     for weight in (2.0, 0.0):                   # the default, and the objects' pose alone
         graph = ViewGraphConfig()
         graph = dataclasses.replace(graph, motion=dataclasses.replace(graph.motion, odometry_weight=weight))
-        session = Session(graph=graph)
-        for obs in robot_frames:
-            session.step(obs)
-        session.finish()
-        results[weight] = trajectory_errors(session.mapper.frame_poses(), truth)
+        results[weight] = trajectory_errors(mapped(robot_frames, graph=graph).mapper.frame_poses(), truth)
     averaged, alone = results[2.0], results[0.0]
     assert averaged['gross'] == 0 and averaged['registered'] == alone['registered'], (averaged, alone)
     assert averaged['ATE_rmse'] < 0.9 * alone['ATE_rmse'] and averaged['ARE_median'] < alone['ARE_median'], \
@@ -141,10 +139,7 @@ def test_the_gyroscopes_drift_is_measured_and_taken_out(robot_frames, robot_trut
         config = MapperConfig()
         config = dataclasses.replace(config, averaging=dataclasses.replace(config.averaging,
                                                                            gyro_bias_sigma_dps=prior_dps))
-        session = Session(config)
-        for obs in frames:
-            session.step(obs)
-        session.finish()
+        session = mapped(frames, config=config)
         results[prior_dps] = session.mapper.gyro_drift, trajectory_errors(session.mapper.frame_poses(), truth)
     (measured, corrected), (_, uncorrected) = results[0.5], results[1e-3]
     assert abs(measured + drift) < np.radians(0.05), np.degrees(measured)      # the correction undoes it
