@@ -70,6 +70,9 @@ class AveragingConfig:
     gyro_bias_sigma_dps: float = constant(0.5, "Prior std of the gyroscope's yaw drift (deg/s; a MEMS gyroscope's "
                                           'zero-rate offset): the drift the relative poses measure against it is '
                                           'taken out of its yaw edges', lo=1e-3, hi=10.0)
+    gyro_drift_update_deg: float = constant(0.05, "The gyroscope's yaw edges are re-set when the drift's estimate "
+                                            'moves them by more than this over the longest of them (deg)',
+                                            lo=0.0, hi=10.0)
     points_edge_weight: float = constant(2.0, 'Weight of an edge no object verified (a keyframe placed on its depth '
                                          'points, or by its motion refined on them), in verified objects: on tuning '
                                          'walks they are as accurate as edges of two objects or more', lo=0.0,

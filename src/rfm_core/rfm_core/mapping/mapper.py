@@ -171,7 +171,8 @@ class Mapper:
                 residuals.append(edge.pose.yaw - span[0])            # gyro_drift wraps them
                 weights.append(self._weight(edge))
         drift = gyro_drift(spans, residuals, weights, self.config.averaging)
-        if abs(drift - self.gyro_drift) * max(s for _, s in self._gyro.values()) < np.radians(0.05):
+        longest = max(s for _, s in self._gyro.values())
+        if abs(drift - self.gyro_drift) * longest < np.radians(self.config.averaging.gyro_drift_update_deg):
             return
         self.gyro_drift = drift
         for index, (yaw, seconds) in self._gyro.items():

@@ -157,12 +157,17 @@ class StreamMotion:
                 return prev.pose @ step
         return self.odometry(reference.observations, obs)
 
-    def with_odometry(self, rel: RelativePose, carried: Pose4 | None, min_objects: int) -> RelativePose:
+    def with_odometry(self, rel: RelativePose, prev: TrackState | None, reference: Keyframe,
+                      obs: FrameObservations, min_objects: int) -> RelativePose:
         """``rel`` (T_reference_frame, tracked on objects) as the weighted mean with the pose
-        the odometry carries the frame to, where ``rel`` rests on fewer than ``min_objects``
-        objects: two boxes fix a pose only as well as their noise, and a robot's odometry from
-        the frame tracked just before measures the same motion (``odometry_weight``)."""
-        if carried is None or len(rel.inliers) >= min_objects:
+        the odometry carries the frame to (:meth:`carried`), where ``rel`` rests on fewer
+        than ``min_objects`` objects: two boxes fix a pose only as well as their noise, and a
+        robot's odometry from the frame tracked just before measures the same motion
+        (``odometry_weight``)."""
+        if len(rel.inliers) >= min_objects:
+            return rel
+        carried = self.carried(prev, reference, obs)
+        if carried is None:
             return rel
         w = self.config.odometry_weight / (self.config.odometry_weight + len(rel.inliers))
         yaw = rel.pose.yaw + w * wrap_angle(carried.yaw - rel.pose.yaw)

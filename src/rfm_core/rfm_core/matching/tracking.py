@@ -107,7 +107,7 @@ class Tracking:
             ok = g.motion.reachable(rel.pose, last.observations.stamp_ns, obs.stamp_ns)
         if not (ok and g.motion.sensors_agree(rel.pose, last.observations, obs)):
             return None
-        return g.motion.with_odometry(rel, g.motion.carried(prev, last, obs), g.config.keyframes.min_retrieved_inliers)
+        return g.motion.with_odometry(rel, prev, last, obs, g.config.keyframes.min_retrieved_inliers)
 
 
 class PointTracking:
