@@ -118,3 +118,23 @@ def test_no_map_to_odom_without_odometry_near_the_image():
     buf, _ = robot_tree(np.random.default_rng(4))
     why = map_attachment(buf, np.eye(4), 'optical', 20 * S, 'map')
     assert isinstance(why, str) and 'odom -> optical' in why
+
+
+def test_a_frames_acceleration_from_its_positions_over_time():
+    """A base speeding up along x at 0.8 m/s^2 (odometry every 20 ms): the optical frame's
+    acceleration in odom, in its own axes, is the base's (the mount is static); the newest
+    moment /tf has the chain is the last odometry; nothing before two steps of odometry."""
+    rng = np.random.default_rng(3)
+    buf = TransformBuffer(cache_s=30.0)
+    optical = rigid(rng, 0.02)
+    buf.add('base_link', 'optical', 0, optical, static=True)
+    assert buf.newest('odom', 'optical') is None                  # not connected yet
+    step = S // 50
+    for i in range(51):
+        t = i * step / S
+        buf.add('odom', 'base_link', i * step, yaw_at(0.4 * t * t, 0.0))
+    assert buf.newest('odom', 'optical') == 50 * step
+    assert buf.newest('base_link', 'optical') is None             # static all the way
+    found = buf.acceleration('odom', 'optical', 40 * step, 3 * step)
+    np.testing.assert_allclose(found, optical[:3, :3].T @ [0.8, 0.0, 0.0], atol=1e-6)
+    assert buf.acceleration('odom', 'optical', step, step) is None    # the odometry begins at 0

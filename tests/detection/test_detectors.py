@@ -214,6 +214,28 @@ def test_an_occluded_bottom_is_recognised():
     assert det._bottom_hidden(low, np.full((120, 160), 2.0, np.float32), 2)
 
 
+def test_gravity_filter_takes_an_acceleration_measured_elsewhere_out():
+    """A level camera driven straight ahead (no rotation: the gyroscope reads nothing) at
+    1 m/s^2 for a second: its accelerometer leans 5.8 deg forward and passes for rest, so the
+    filter takes that lean for gravity. Given the acceleration (a robot's odometry), the
+    filter keeps gravity level and sees no unseen turn."""
+    from rfm_core.detection.gravity import GravityFilter
+    up = np.array([0.0, -9.80665, 0.0])           # optical frame, level camera: up is -y, ahead is +z
+    ahead = np.array([0.0, 0.0, 1.0])
+    errors = {}
+    for given in (False, True):
+        g = GravityFilter()
+        stamp = 0
+        for k in range(400):                      # 1 s at rest, then 1 s speeding up
+            stamp += 5_000_000
+            a = ahead * (1.0 if 200 <= k < 400 else 0.0)
+            g.add(stamp, up + a, [0.0, 0.0, 0.0], a if given else None)
+        cos = g.gravity() @ np.array([0.0, 1.0, 0.0])
+        errors[given] = (np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))), g.rest_resets)
+    assert errors[False][0] > 5.0 and errors[False][1] == 1     # the drive passed for an unseen tilt
+    assert errors[True][0] < 0.01 and errors[True][1] == 0
+
+
 def test_gravity_filter_follows_a_camera_turned_unseen_and_integrates_the_gyroscope():
     """The gyroscope's integrated orientation follows a turn; a camera turned while the
     gyroscope saw nothing (at rest before and after) gets its gravity from the resting

@@ -151,3 +151,45 @@ def test_a_robots_frame_without_time_for_it_goes_out_with_its_odometry(tmp_path)
     handheld = DetectorFrontend(make_detector('depth_clusters'), lambda *job: None, imu_wait_s=0.0, odom_frame='odom')
     _feed(handheld, messages)
     assert handheld.odometry_only(*frames[-1]) is None            # no odometry on /tf: dropped as before
+
+
+def test_a_robots_drive_does_not_tilt_gravity(tmp_path):
+    """A drive's start and stop add up to 1-2 m/s^2 to the accelerometer, which tilts the
+    IMU's gravity. With the camera's acceleration from the odometry on /tf taken out, gravity
+    stays within a degree at every frame, and most frames' error falls by 4x or more."""
+    from rosbags.highlevel import AnyReader
+
+    from rfm_core.evaluation.report import read_ground_truth
+    from rfm_core.io.messages import stamp_to_ns, transforms_from_msg
+
+    path = tmp_path / 'robot'
+    capture = Capture(CaptureConfig(seed=13, capture='robot', frames=60, fps=4, width=32, height=24))
+    capture.write_bag(path)
+    with AnyReader([path]) as reader:
+        messages = [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    down = {stamp: pose[:3, :3].T @ [0.0, 0.0, -1.0] for stamp, pose in read_ground_truth(path).camera_poses.items()}
+
+    def gravity_errors(odom_frame):
+        frontend = DetectorFrontend(make_detector('depth_clusters'), lambda *job: None, imu_wait_s=0.0,
+                                    odom_frame=odom_frame)
+        stamps, errors = [], []
+        for topic, msg in messages:
+            if topic in (TOPICS['tf'], TOPICS['tf_static']):
+                for link in transforms_from_msg(msg):
+                    frontend.add_transform(*link, topic == TOPICS['tf_static'])
+                frontend.poll_imu()
+            elif topic == TOPICS['imu']:
+                frontend.add_imu(msg)
+            elif topic == TOPICS['color']:
+                frontend.add_image(0, msg)
+                stamps.append(stamp_to_ns(msg.header.stamp))
+            while stamps and (frontend.gravity_filter.last_stamp_ns or 0) >= stamps[0]:
+                stamp = stamps.pop(0)
+                cos = frontend.gravity_filter.gravity_at(stamp) @ down[stamp]
+                errors.append(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+        return np.array(errors)
+
+    imu_only, with_odometry = gravity_errors(''), gravity_errors('odom')
+    assert len(with_odometry) >= 55 and len(imu_only) >= 55
+    assert np.percentile(imu_only, 90) > 0.3                 # the drives tilt the IMU's gravity
+    assert with_odometry.max() < 1.0 and np.percentile(with_odometry, 90) < 0.25 * np.percentile(imu_only, 90)

@@ -28,7 +28,7 @@ from rfm_core.detection.ground_truth import GroundTruthConfig
 from rfm_core.mapping.mapper import MODES, MapperConfig
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.view_graph import ViewGraphConfig
-from rfm_core.settings import Setting, markdown_table, same_setting, section, setting, settings_of
+from rfm_core.settings import Setting, constant, markdown_table, same_setting, section, setting, settings_of
 
 __all__ = ['DetectorNodeConfig', 'MatcherNodeConfig', 'MapperNodeConfig', 'RfmConfig', 'NODES', 'MATCHERS',
            'node_settings', 'launch_arguments', 'update_parameter_tables']
@@ -68,6 +68,13 @@ class DetectorNodeConfig:
     odom_frame: str = setting('odom', "A robot's odometry frame: where /tf links it to the camera frame, each "
                               "frame's detections carry the camera's pose in it (the matcher's motion prior); "
                               "'': none", read_only=True)
+    odometry_step_s: float = constant(0.05, "On a robot, the camera's acceleration in the odometry frame is the "
+                                      'second difference of its positions this far apart (s; /tf interpolates '
+                                      'the odometry linearly, so a step below its period sees spikes)', lo=0.005,
+                                      hi=0.5)
+    odometry_lag_s: float = constant(0.1, "On a robot, an IMU sample takes the camera's acceleration the newest "
+                                     'odometry on /tf gives, if that is at most this far from its stamp (s)',
+                                     lo=0.0, hi=1.0)
     imu_max_age_s: float = setting(1.0, 'Drop frames when the last IMU sample is older than this (s)',
                                    lo=0.01, hi=60.0)
     imu_wait_s: float = setting(0.05, "Wait up to this long for IMU samples up to a frame's stamp (s)",

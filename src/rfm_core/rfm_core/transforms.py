@@ -149,6 +149,27 @@ class TransformBuffer:
             return None
         return np.linalg.inv(b) @ a
 
+    def acceleration(self, target: str, source: str, stamp_ns: int, step_ns: int) -> np.ndarray | None:
+        """(3,) acceleration (m/s^2) of ``source``'s origin in ``target`` (a frame at rest, such
+        as a robot's odometry frame), in ``source``'s axes at ``stamp_ns``: the second difference
+        of its positions at ``stamp_ns`` and one and two ``step_ns`` before (so it is the
+        acceleration ``step_ns`` ago). None unless /tf has ``target`` -> ``source`` on both
+        sides of all three moments."""
+        poses = [self.lookup(target, source, stamp_ns - k * step_ns, exact=True) for k in range(3)]
+        if any(p is None for p in poses):
+            return None
+        a = (poses[0][:3, 3] - 2 * poses[1][:3, 3] + poses[2][:3, 3]) / (step_ns * 1e-9) ** 2
+        return poses[0][:3, :3].T @ a
+
+    def newest(self, ancestor: str, frame: str) -> int | None:
+        """The newest moment (ns) /tf has every link from ``frame`` up to ``ancestor``; None
+        when ``ancestor`` is not above ``frame`` or every link between them is static."""
+        chain = self._ancestors(frame)
+        if ancestor not in chain:
+            return None
+        stamps = [self.links[f].stamps[-1] for f in chain[:chain.index(ancestor)] if not self.links[f].static]
+        return min(stamps) if stamps else None
+
 
 @dataclass(frozen=True)
 class Attachment:

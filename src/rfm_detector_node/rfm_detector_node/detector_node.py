@@ -61,8 +61,8 @@ class DetectorNode(GuardedCallbacks, Node):
         self.frontend = DetectorFrontend(
             self.detector, self._submit, fixed_gravity=cfg.gravity if cfg.gravity_source == 'parameter' else None,
             sync_slop_s=cfg.sync_slop_s, queue_size=cfg.queue_size, every_nth_frame=cfg.every_nth_frame,
-            imu_tau_s=cfg.imu_tau_s, imu_max_age_s=cfg.imu_max_age_s, imu_wait_s=cfg.imu_wait_s, warn=self._warn,
-            poll_imu=self._take_imu, odom_frame=cfg.odom_frame)
+            warn=self._warn, poll_imu=self._take_imu, **{name: getattr(cfg, name) for name in (
+                'imu_tau_s', 'imu_max_age_s', 'imu_wait_s', 'odom_frame', 'odometry_step_s', 'odometry_lag_s')})
         self.imu_sub = None
         self._imu_lock = threading.Lock()
         self.counts = self.frontend.counts

@@ -5,7 +5,9 @@ stamp order (a jump far back, a looping bag, resets the state); gravity comes fr
 complementary filter (waiting briefly for the IMU to catch up with a frame, and dropping
 frames without recent IMU data) or a fixed vector; the gyroscope's orientation is attached
 to each frame's detections (the matcher checks relative yaws with it), and so is the camera's
-pose in a robot's odometry frame where /tf gives it (the matcher's motion prior). Messages are read by
+pose in a robot's odometry frame where /tf gives it (the matcher's motion prior). On a robot
+the camera's acceleration the odometry measures is taken out of the accelerometer, so a
+drive's start and stop do not tilt gravity. Messages are read by
 their fields (:mod:`rfm_core.io`), so rclpy and rosbags messages both work.
 
 :class:`FrameWorker` runs the detector on one thread with a short backlog (the oldest frame
@@ -51,7 +53,8 @@ class DetectorFrontend:
     def __init__(self, detector: Detector, on_frame: Callable, fixed_gravity=None, sync_slop_s: float = 0.05,
                  queue_size: int = 10, every_nth_frame: int = 1, imu_tau_s: float = 1.0, imu_max_age_s: float = 1.0,
                  imu_wait_s: float = 0.05, warn: Callable[[str], None] | None = None,
-                 poll_imu: Callable[[], None] | None = None, odom_frame: str = ''):
+                 poll_imu: Callable[[], None] | None = None, odom_frame: str = '',
+                 odometry_step_s: float = 0.05, odometry_lag_s: float = 0.1):
         self.detector = detector
         self.on_frame = on_frame
         self.fixed_gravity = None if fixed_gravity is None else np.asarray(fixed_gravity, float)
@@ -66,6 +69,9 @@ class DetectorFrontend:
         self.odom_frame = odom_frame          # a robot's odometry: the camera's pose in it goes with each frame
         self.tf = TransformBuffer()
         self._tf_lock = threading.Lock()      # /tf arrives on the node's thread, frames are detected on the worker's
+        self.odometry_step_ns, self.odometry_lag_ns = int(odometry_step_s * 1e9), int(odometry_lag_s * 1e9)
+        self._camera_frame = None             # the colour images' frame: the IMU is taken to sit at its origin
+        self._acceleration = (None, None)     # (stamp, the camera's acceleration then) of the newest odometry
         self.counts = dict(received=0, processed=0, published=0, points_only=0, odometry_only=0, dropped_busy=0,
                            dropped_invalid=0, dropped_no_gravity=0, dropped_out_of_order=0, skipped_nth=0)
         # colour, camera_info and depth when needed (ground truth arrives as one message)
@@ -99,6 +105,7 @@ class DetectorFrontend:
             self.counts['received'] += 1
             if not self._accept_stamp(stamp, 'image'):
                 return
+            self._camera_frame = msg.header.frame_id
         self.sync.add(index, stamp, msg)
 
     def _on_synced(self, *msgs) -> None:
@@ -115,8 +122,25 @@ class DetectorFrontend:
             self.on_frame('ground_truth', msg)
 
     def add_imu(self, msg) -> None:
-        if not self.gravity_filter.add(*imu_reading(msg)):
+        stamp, force, gyro = imu_reading(msg)
+        if not self.gravity_filter.add(stamp, force, gyro, self._odometry_acceleration(stamp)):
             self.warn('IMU sample dropped: not finite, not near 1 g, or out of order')
+
+    def _odometry_acceleration(self, stamp: int) -> np.ndarray | None:
+        """On a robot (the odometry frame above the camera's on /tf), the camera's acceleration
+        in the odometry frame, in the camera's axes, as the newest odometry has it, if that is
+        within ``odometry_lag_s`` of ``stamp`` (/tf comes later than the IMU); else None.
+        Computed once per odometry message."""
+        if not (self.odom_frame and self._camera_frame):
+            return None
+        with self._tf_lock:
+            newest = self.tf.newest(self.odom_frame, self._camera_frame)
+            if newest is None or abs(stamp - newest) > self.odometry_lag_ns:
+                return None
+            if self._acceleration[0] != newest:
+                self._acceleration = (newest, self.tf.acceleration(self.odom_frame, self._camera_frame, newest,
+                                                                   self.odometry_step_ns))
+            return self._acceleration[1]
 
     # ------------------------------------------------------------------ detection
 

@@ -25,6 +25,11 @@ was turned without the gyroscope seeing it (a stretch of samples lost, a camera 
 elsewhere): the estimate takes the accelerometer's mean at once, and the orientation
 starts a new epoch. (Taking it whenever the camera seems at rest was measured worse on
 handheld walks: slow motion passes for rest, and its acceleration tilts the estimate.)
+
+A robot's wheel odometry measures the acceleration a drive's start and stop add (1-2 m/s^2
+on a short drive: 6-12 deg of tilt, and a straight drive turns no gyroscope, so it passes for
+rest). The caller passes it with each sample (:meth:`add`'s ``acceleration``) and it is taken
+out before the sample is used, both by the filter and by the rest test.
 """
 from __future__ import annotations
 
@@ -78,12 +83,20 @@ class GravityFilter:
         self.rejected = 0
         self.rest_resets = 0              # times the resting accelerometer contradicted the gyroscope
 
-    def add(self, stamp_ns: int, specific_force, angular_velocity=None) -> bool:
+    def add(self, stamp_ns: int, specific_force, angular_velocity=None, acceleration=None) -> bool:
         """Add one IMU sample: specific force (m/s^2) and, optionally, angular velocity
-        (rad/s). Returns False (and ignores it) when invalid: non-finite, far from 1 g in
-        magnitude, or older than the last accepted sample."""
+        (rad/s) and the IMU's own acceleration (m/s^2, in its frame) where something else
+        measures it (a robot's wheel odometry): it is taken out of the specific force, which
+        leaves gravity (unless that leaves a force far from 1 g: a jump of the odometry). Returns False
+        (and ignores it) when invalid: non-finite, far from 1 g in magnitude, or older than
+        the last accepted sample."""
         f = np.asarray(specific_force, dtype=np.float64).reshape(-1)
         norm = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) if f.size == 3 else np.nan
+        if acceleration is not None and np.isfinite(norm):
+            g = f - np.asarray(acceleration, dtype=np.float64).reshape(3)
+            g_norm = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+            if 4.0 < g_norm < 20.0:
+                f, norm = g, g_norm
         if not np.isfinite(norm) or not 4.0 < norm < 20.0:
             self.rejected += 1
             return False
