@@ -62,6 +62,22 @@ def test_without_imu_frames_are_dropped_and_a_fixed_gravity_serves(bag_messages)
         DetectorFrontend(make_detector('depth_clusters'), lambda *job: None, fixed_gravity=[0.0, 0.0, 0.0])
 
 
+def test_a_frame_taken_late_keeps_its_gravity(bag_messages):
+    """A frame the detector takes after the IMU has run on past it by more than
+    imu_max_age_s is not stale: it gets gravity as it was at its stamp, not dropped."""
+    messages, truth = bag_messages
+    frames = []
+    frontend = DetectorFrontend(make_detector('depth_clusters'), lambda *job: frames.append(job), imu_wait_s=0.0,
+                                imu_max_age_s=0.3)
+    _feed(frontend, messages)
+    first = min(truth)
+    assert (frontend.gravity_filter.last_stamp_ns - first) * 1e-9 > 0.6          # the IMU is far past it
+    obs = frontend.detect(*frames[0])
+    assert obs is not None and obs.stamp_ns == first and frontend.counts['dropped_no_gravity'] == 0
+    down = truth[first].pose_matrix[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+    assert np.degrees(np.arccos(np.clip(obs.gravity_cam @ down, -1, 1))) < 2.0
+
+
 def test_every_nth_frame_and_a_looping_bag(bag_messages):
     messages, truth = bag_messages
     frames = []

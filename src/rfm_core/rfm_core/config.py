@@ -75,7 +75,7 @@ class DetectorNodeConfig:
     odometry_lag_s: float = constant(0.1, "On a robot, an IMU sample takes the camera's acceleration the newest "
                                      'odometry on /tf gives, if that is at most this far from its stamp (s)',
                                      lo=0.0, hi=1.0)
-    imu_max_age_s: float = setting(1.0, 'Drop frames when the last IMU sample is older than this (s)',
+    imu_max_age_s: float = setting(1.0, 'Drop a frame when the last IMU sample is older than it by more than this (s)',
                                    lo=0.01, hi=60.0)
     imu_wait_s: float = setting(0.05, "Wait up to this long for IMU samples up to a frame's stamp (s)",
                                 lo=0.0, hi=1.0)

@@ -207,5 +207,6 @@ class GravityFilter:
         return -self._force / np.linalg.norm(self._force)
 
     def age_s(self, stamp_ns: int) -> float:
-        """Seconds between the last sample and ``stamp_ns`` (inf before any sample)."""
-        return np.inf if self._stamp_ns is None else abs(stamp_ns - self._stamp_ns) * 1e-9
+        """Seconds the last sample is older than ``stamp_ns``: 0 when it is newer (a frame the
+        detector took late, whose gravity the recent samples still hold), inf before any."""
+        return np.inf if self._stamp_ns is None else max(stamp_ns - self._stamp_ns, 0) * 1e-9
