@@ -193,7 +193,6 @@ def test_a_robots_drive_does_not_tilt_gravity(tmp_path):
             if topic in (TOPICS['tf'], TOPICS['tf_static']):
                 for link in transforms_from_msg(msg):
                     frontend.add_transform(*link, topic == TOPICS['tf_static'])
-                frontend.poll_imu()
             elif topic == TOPICS['imu']:
                 frontend.add_imu(msg)
             elif topic == TOPICS['color']:
