@@ -87,9 +87,9 @@ class GravityFilter:
         """Add one IMU sample: specific force (m/s^2) and, optionally, angular velocity
         (rad/s) and the IMU's own acceleration (m/s^2, in its frame) where something else
         measures it (a robot's wheel odometry): it is taken out of the specific force, which
-        leaves gravity (unless that leaves a force far from 1 g: a jump of the odometry). Returns False
-        (and ignores it) when invalid: non-finite, far from 1 g in magnitude, or older than
-        the last accepted sample."""
+        leaves gravity (unless that leaves a force far from 1 g: a jump of the odometry).
+        Returns False (and ignores it) when invalid: non-finite, far from 1 g in magnitude,
+        or older than the last accepted sample."""
         f = np.asarray(specific_force, dtype=np.float64).reshape(-1)
         norm = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) if f.size == 3 else np.nan
         if acceleration is not None and np.isfinite(norm):
