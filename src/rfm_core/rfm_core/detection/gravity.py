@@ -61,6 +61,8 @@ class GravityFilter:
 
     #: standard gravity (m/s^2): the accelerometer's reading at rest
     G = 9.80665
+    #: (m/s^2) a specific force outside this range is no reading of gravity
+    FORCE_RANGE = (4.0, 20.0)
 
     def __init__(self, tau_s: float = 1.0, max_gap_s: float = 1.0, rest_window_s: float = 0.1,
                  rest_tolerance: float = 0.02, rest_gyro_rad_s: float = 0.05, rest_reset_deg: float = 5.0):
@@ -95,9 +97,9 @@ class GravityFilter:
         if acceleration is not None and np.isfinite(norm):
             g = f - np.asarray(acceleration, dtype=np.float64).reshape(3)
             g_norm = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
-            if 4.0 < g_norm < 20.0:
+            if self.FORCE_RANGE[0] < g_norm < self.FORCE_RANGE[1]:
                 f, norm = g, g_norm
-        if not np.isfinite(norm) or not 4.0 < norm < 20.0:
+        if not np.isfinite(norm) or not self.FORCE_RANGE[0] < norm < self.FORCE_RANGE[1]:
             self.rejected += 1
             return False
         if self._stamp_ns is not None and stamp_ns < self._stamp_ns:
