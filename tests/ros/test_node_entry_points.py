@@ -64,3 +64,41 @@ def test_nodes_start_join_the_graph_and_stop_on_sigint():
         outputs = [stop(p) for p in procs]
     for p, out in zip(procs, outputs):
         assert p.returncode == 0, out
+
+
+def test_a_signal_while_a_node_is_built_stops_it_once_built_and_sigterm_stops_a_spinning_one():
+    """Ctrl-C that lands inside a node's constructor (its models loading) does not fail the
+    build on a shut-down context: the node is built, closed and destroyed, and run_node
+    returns. SIGTERM (kill, docker stop) stops a spinning node the same way, between callbacks."""
+    import rclpy.executors  # noqa: F401 - run_node spins one
+    from rclpy.node import Node
+    from std_msgs.msg import Empty
+
+    from rfm_core.io.entry import run_node
+
+    built, closed, ticks = [], [], []
+
+    def interrupted_build():
+        node = Node('rfm_entry_test')
+        os.kill(os.getpid(), signal.SIGINT)                         # Ctrl-C mid-build
+        node.create_publisher(Empty, 'rfm_entry_test', 1)          # ... which goes on
+        built.append(node)
+        return node
+
+    def tick():
+        ticks.append(time.monotonic())
+        if len(ticks) == 3:
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    def ticking():
+        node = Node('rfm_entry_test')
+        node.create_timer(0.05, tick)
+        built.append(node)
+        return node
+
+    handler = signal.getsignal(signal.SIGINT)
+    for make in (interrupted_build, ticking):
+        run_node(rclpy, make, 'test', close=closed.append)
+        assert closed == built and not rclpy.ok()
+    assert len(built) == 2 and len(ticks) == 3                   # the spinning one stopped after its third tick
+    assert signal.getsignal(signal.SIGINT) is handler

@@ -23,10 +23,9 @@ from __future__ import annotations
 import threading
 import time
 
-import rclpy
+import rclpy.executors  # (binds rclpy; run_node spins its executor)
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rfm_msgs.msg import FrameDetections
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, Imu
@@ -36,6 +35,7 @@ from visualization_msgs.msg import MarkerArray
 from rfm_core.config import DetectorNodeConfig
 from rfm_core.detection import make_detector
 from rfm_core.detection.frontend import DetectorFrontend, FrameWorker
+from rfm_core.io.entry import run_node
 from rfm_core.io.guard import GuardedCallbacks
 from rfm_core.io.messages import detection_markers_msg, diagnostics_msg, frame_detections_to_msg, transforms_from_msg
 from rfm_core.io.parameters import declare_config
@@ -181,19 +181,7 @@ class DetectorNode(GuardedCallbacks, Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = DetectorNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:                 # a bad parameter: say which, exit non-zero
-        raise SystemExit(f'detector: {exc}') from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(rclpy, DetectorNode, 'detector', args)
 
 
 if __name__ == '__main__':

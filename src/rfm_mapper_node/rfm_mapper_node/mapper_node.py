@@ -8,11 +8,10 @@ rfm/reset, rfm/set_mode. Messages in, rfm_core.mapper_core.MapperCore, messages 
 """
 from __future__ import annotations
 
-import rclpy
+import rclpy.executors  # (binds rclpy; run_node spins its executor)
 from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import Path
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rfm_msgs.msg import FrameDetections, Keyframe, MapperStatus, ObjectMap, TrackedFrame, ViewGraphEdge
 from rfm_msgs.srv import LoadMap, Relocalize, SaveMap, SetMode
@@ -22,6 +21,7 @@ from visualization_msgs.msg import MarkerArray
 
 from rfm_core.config import MapperNodeConfig
 from rfm_core.io import messages as m
+from rfm_core.io.entry import run_node
 from rfm_core.io.guard import GuardedCallbacks, decoded
 from rfm_core.io.parameters import declare_config
 from rfm_core.io.qos import GRAPH, LATCHED, RELIABLE, STREAM, TF, qos
@@ -130,20 +130,7 @@ class MapperNode(GuardedCallbacks, Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = MapperNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:                 # a bad parameter: say which, exit non-zero
-        raise SystemExit(f'mapper: {exc}') from None
-    finally:
-        if node is not None:
-            node.core.close()
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(rclpy, MapperNode, 'mapper', args, close=lambda node: node.core.close())
 
 
 if __name__ == '__main__':

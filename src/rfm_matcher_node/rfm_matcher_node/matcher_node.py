@@ -17,14 +17,14 @@ from __future__ import annotations
 import random
 import time
 
-import rclpy
+import rclpy.executors  # (binds rclpy; run_node spins its executor)
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rfm_msgs.msg import FrameDetections, Keyframe, TrackedFrame, ViewGraphEdge
 
 from rfm_core.config import MatcherNodeConfig
+from rfm_core.io.entry import run_node
 from rfm_core.io.guard import GuardedCallbacks
 from rfm_core.io.messages import (diagnostics_msg, edge_msg, frame_detections_from_msg, frame_detections_to_msg,
                                   stamp_to_ns, tracked_frame_to_msg)
@@ -118,19 +118,7 @@ class MatcherNode(GuardedCallbacks, Node):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
-    try:
-        node = MatcherNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except ValueError as exc:                 # a bad parameter: say which, exit non-zero
-        raise SystemExit(f'matcher: {exc}') from None
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
+    run_node(rclpy, MatcherNode, 'matcher', args)
 
 
 if __name__ == '__main__':
