@@ -146,14 +146,32 @@ def test_map_to_odom_never_goes_out_twice_at_one_stamp(tmp_path):
     assert again.stamp_ns == 11 * 10**8 + 1
 
 
-def test_the_maps_own_broadcast_heard_before_tf_static_does_not_take_the_cameras_place():
-    """The first camera pose comes before the latched /tf_static: the map attaches to the
-    camera frame, hears its own broadcast back, and once the mount arrives moves up to the
-    root of the camera's tree (it stayed on the camera frame for good, a second parent)."""
+def test_the_map_waits_for_a_late_mount_before_taking_the_camera_frame_as_its_child():
+    """The first camera poses come before the latched /tf_static (discovery is slow under
+    load): the map is not broadcast for camera_tf_wait_s, and once the mount arrives it
+    attaches to the root of the camera's tree, the camera frame never getting a second parent."""
     from rfm_core.session import CameraPose
-    core = MapperCore(MapperNodeConfig(), clock=_Clock())
-    first = core.attach(CameraPose(10**9, 'camera_optical', np.eye(4)))
+    clock = _Clock()
+    core = MapperCore(MapperNodeConfig(), clock=clock)
+    assert core.attach(CameraPose(10**9, 'camera_optical', np.eye(4))) is None
+    clock.now = 0.9 * MapperNodeConfig().camera_tf_wait_s
+    assert core.attach(CameraPose(2 * 10**9, 'camera_optical', np.eye(4))) is None
+    core.transform('camera_link', 'camera_optical', 0, np.eye(4), True)                # the mount, late
+    assert core.attach(CameraPose(3 * 10**9, 'camera_optical', np.eye(4))).child == 'camera_link'
+    assert any('waiting' in line for line in core.tick().log)
+
+
+def test_a_camera_without_tf_gets_the_map_as_its_parent_and_its_own_broadcast_never_takes_its_place():
+    """A camera frame still without /tf after camera_tf_wait_s: the map attaches to it. The
+    map's broadcast heard back does not make the camera frame the root for good: a mount that
+    arrives later still moves the map up to the root of the camera's tree."""
+    from rfm_core.session import CameraPose
+    clock = _Clock()
+    core = MapperCore(MapperNodeConfig(), clock=clock)
+    assert core.attach(CameraPose(10**9, 'camera_optical', np.eye(4))) is None
+    clock.now = MapperNodeConfig().camera_tf_wait_s
+    first = core.attach(CameraPose(2 * 10**9, 'camera_optical', np.eye(4)))
     assert first.child == 'camera_optical'
     core.transform('map', 'camera_optical', first.stamp_ns, first.matrix, False)      # its own, heard back
-    core.transform('camera_link', 'camera_optical', 0, np.eye(4), True)                # the mount, late
-    assert core.attach(CameraPose(11 * 10**8, 'camera_optical', np.eye(4))).child == 'camera_link'
+    core.transform('camera_link', 'camera_optical', 0, np.eye(4), True)                # the mount, later still
+    assert core.attach(CameraPose(3 * 10**9, 'camera_optical', np.eye(4))).child == 'camera_link'

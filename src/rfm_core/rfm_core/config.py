@@ -128,6 +128,11 @@ class MapperNodeConfig:
                                            'this far ahead (s), so that a lookup at the newest odometry finds it',
                                            lo=0.0, hi=10.0, read_only=True)
     tf_publish_period_s: float = setting(0.05, '... this often (s)', lo=0.005, hi=10.0, read_only=True)
+    camera_tf_wait_s: float = setting(2.0, 'Where the camera frame has no /tf yet, wait this long (s, steady clock) '
+                                      'from the first camera pose before broadcasting map -> the camera frame '
+                                      "itself: a camera mount's latched /tf_static heard late would otherwise give "
+                                      'the camera frame a second parent for a while', lo=0.0, hi=60.0,
+                                      read_only=True)
     map_publish_period_s: float = setting(1.0, 'Rebuild and publish the object map at most this often (s)',
                                           lo=0.05, hi=60.0)
     map_max_cpu_share: float = setting(0.2, 'Rebuilding the object map may take at most this share of the time',

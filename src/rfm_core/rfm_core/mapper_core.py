@@ -172,6 +172,7 @@ class MapperCore:
         self.held_stamp_ns = 0                # the image stamp it was computed at
         self._tf_stamps = deque(maxlen=64)    # the stamps the map's attachment went out with lately
         self._attached_to = None              # the frame the map last attached to (logged when it changes)
+        self._bare_since = None               # clock time of the first camera pose whose frame had no /tf
         lookup = {'topic': self.external_poses, 'tf': self._lookup_tf}.get(config.pose_source)
         mapper = replace(config.mapper, posed=bool(config.pose_source))
         self.session = MapSession(mapper, matcher=matcher, pose_lookup=lookup,
@@ -272,6 +273,16 @@ class MapperCore:
             return None
         found = map_attachment(self.tf, camera.matrix, camera.frame_id, camera.stamp_ns, self.config.map_frame,
                                self.config.odom_frame)
+        if not isinstance(found, str) and found.child == camera.frame_id:      # no /tf for the camera frame: yet?
+            if self._bare_since is None:
+                self._bare_since = self.clock()
+            if self.clock() - self._bare_since < self.config.camera_tf_wait_s:
+                if self._attached_to != '':                # '': waiting (said once)
+                    self._attached_to = ''
+                    self._log.append(f'TF: no /tf for {camera.frame_id} yet; waiting up to '
+                                     f'{self.config.camera_tf_wait_s:g} s for its mount before broadcasting the map '
+                                     'as its parent')
+                return None
         if isinstance(found, str):
             if self._attached_to != found.split(' at ')[0]:
                 self._attached_to = found.split(' at ')[0]
