@@ -81,6 +81,24 @@ def test_old_transforms_leave_the_cache():
     assert buf.lookup('odom', 'base_link', 3 * S) is None
 
 
+def test_a_link_whose_time_goes_back_starts_again():
+    """A bag that loops (or a simulator that restarts) sends its first stamps again: the
+    odometry is looked up on the new pass (kept beside the old one, each new transform was
+    cut at once and the robot had no odometry until the new pass caught up), while a
+    transform a little out of order is still kept, and the static mount stays."""
+    buf = TransformBuffer(cache_s=5.0)
+    mount = yaw_at(0.1, 0.0)
+    buf.add('base_link', 'camera_link', 0, mount, static=True)
+    for i in range(11):
+        buf.add('odom', 'base_link', i * S, yaw_at(float(i), 10.0 * i))
+    buf.add('odom', 'base_link', 9 * S + S // 2, yaw_at(9.5, 95.0))            # out of order, within the cache
+    np.testing.assert_allclose(buf.lookup('odom', 'base_link', 9 * S + S // 2)[0, 3], 9.5)
+    for i in range(2):                                                          # the bag again, 2 m further on
+        buf.add('odom', 'base_link', i * S, yaw_at(float(i) + 2.0, 10.0 * i))
+    assert buf.links['base_link'].stamps == [0, S]
+    np.testing.assert_allclose(buf.lookup('odom', 'camera_link', S // 2), yaw_at(2.5, 5.0) @ mount, atol=1e-9)
+
+
 @pytest.mark.parametrize('tree', ['none', 'mount', 'robot'])
 def test_the_map_hangs_from_the_root_of_the_cameras_tree(tree):
     rng = np.random.default_rng(3)

@@ -4,7 +4,8 @@ frames at a moment, and where the map attaches to it (REP 105).
 :class:`TransformBuffer` keeps, per child frame, its parent and the transforms received:
 static ones (``/tf_static``) hold at all times; dynamic ones are kept for ``cache_s`` and
 interpolated between the two around the moment asked (translation linearly, rotation by
-slerp), never extrapolated beyond ``tolerance_s``. Every frame has one parent: a transform
+slerp), never extrapolated beyond ``tolerance_s``; a link whose time goes back by more than
+``cache_s`` starts again. Every frame has one parent: a transform
 that gives a frame a second parent is refused and reported (tf2 would keep re-parenting it).
 
 :func:`map_attachment` is where the mapper hangs the map on a robot's tree: the map frame is
@@ -72,6 +73,10 @@ class TransformBuffer:
         if static or link.static:
             link.static, link.stamps, link.matrices = True, [0], [m]
             return None
+        if link.stamps and int(stamp_ns) < link.stamps[-1] - self.cache_ns:
+            # time went back (a bag loops, a simulator restarts): start the link again, as tf2
+            # clears its buffer on a jump back (kept, the new transform would be cut at once)
+            link.stamps, link.matrices = [], []
         i = bisect.bisect_right(link.stamps, int(stamp_ns))
         if i and link.stamps[i - 1] == int(stamp_ns):
             link.matrices[i - 1] = m
