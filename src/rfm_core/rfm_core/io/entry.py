@@ -17,7 +17,7 @@ __all__ = ['run_node']
 
 
 def run_node(rclpy, make_node: Callable, name: str, args=None, close: Callable | None = None,
-             poll_s: float = 0.1) -> None:
+             poll_s: float = 0.25) -> None:
     """Build ``make_node()`` and spin it until Ctrl-C or SIGTERM (or the context ends), then
     ``close(node)`` (when given) and destroy it; the signal handlers it found are put back. A
     ValueError from the build (a bad parameter) exits non-zero, saying which."""
