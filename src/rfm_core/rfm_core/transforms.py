@@ -5,8 +5,8 @@ frames at a moment, and where the map attaches to it (REP 105).
 static ones (``/tf_static``) hold at all times; dynamic ones are kept for ``cache_s`` and
 interpolated between the two around the moment asked (translation linearly, rotation by
 slerp), never extrapolated beyond ``tolerance_s``; a link whose time goes back by more than
-``cache_s`` starts again. Every frame has one parent: a transform
-that gives a frame a second parent is refused and reported (tf2 would keep re-parenting it).
+``cache_s`` starts again. Every frame has one parent: a transform that gives a frame a second
+parent is refused and reported (tf2 would keep re-parenting it).
 
 :func:`map_attachment` is where the mapper hangs the map on a robot's tree: the map frame is
 the parent of the root of the camera frame's tree, so the tree stays a tree. On a robot with
