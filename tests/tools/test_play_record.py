@@ -157,6 +157,30 @@ def test_paced_play_waits_for_each_image_to_be_answered(small_bag):
     assert arrival[-1] - arrival[0] < 19 * 0.3 + 3.0  # and no longer: 1.9 s of bag at 50x is 0.04 s
 
 
+def test_play_waits_for_as_many_subscribers_as_asked(small_bag):
+    """`rfm play --wait-for TOPIC=N` (rfm run: /tf and /tf_static for the recorder, the mapper
+    and the detector): a subscriber that comes 2 s after the first still gets every message
+    (with one asked for, 20 frames at 5x were over in 0.4 s, before it came)."""
+    from sensor_msgs.msg import Image
+    rclpy.init()
+    node = Node('rfm_wait_test')
+    reliable = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+    first, second, late = [], [], []
+    node.create_subscription(Image, TOPICS['color'], first.append, reliable)
+    start = time.monotonic()
+
+    def late_subscriber():
+        if not late and time.monotonic() - start > 2.0:
+            late.append(node.create_subscription(Image, TOPICS['color'], second.append, reliable))
+    try:
+        play_bag(node, small_bag, '--rate', '5', '--topics', TOPICS['color'], '--wait-for', f'{TOPICS["color"]}=2',
+                 delay=0.0, on_spin=late_subscriber)
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    assert late and len(first) == len(second) == 20
+
+
 def test_the_recorder_stops_a_topic_at_its_size_cap(tmp_path):
     """`rfm run --live --record-images MB`: images are recorded up to the cap, the rest of
     the outputs go on (before: every colour image, without limit; #19 row 10)."""

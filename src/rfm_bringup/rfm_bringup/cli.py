@@ -782,8 +782,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument('--no-clock', action='store_true', help='do not publish /clock')
     p.add_argument('--clock-hz', type=float, default=40.0,
                    help='/clock rate (every node with use_sim_time wakes up for each /clock message)')
-    p.add_argument('--wait-for', nargs='+', metavar='TOPIC',
-                   help='before playing, wait (up to 30 s) until each of these bag topics has a subscriber')
+    p.add_argument('--wait-for', nargs='+', metavar='TOPIC[=N]',
+                   help='before playing, wait (up to 30 s) until each of these bag topics has a subscriber '
+                        '(TOPIC=N: N subscribers)')
     p.add_argument('--delay', type=float, default=0.0,
                    help='seconds to wait before playing (lets subscribers connect)')
     p.add_argument('--pace', nargs=2, metavar=('TOPIC', 'ANSWER'),

@@ -54,7 +54,7 @@ class PlayOptions:
     clock_hz: float = 40.0            #: /clock rate (as ros2 bag play's --clock): every node
                                       #: with use_sim_time wakes up for each /clock message
     delay: float = 0.0                #: seconds to wait (for subscribers) before playing
-    wait_for: list = field(default_factory=list)  #: bag topics that need a subscriber first
+    wait_for: list = field(default_factory=list)  #: bag topics that need a subscriber first (TOPIC=N: N)
     wait_timeout: float = 30.0        #: ... waited for at most this long (s)
     progress: bool | None = None      #: status line on stderr (default: if a terminal)
     pace_topic: str = ''              #: bag topic whose messages wait for the previous one's answer
@@ -138,12 +138,14 @@ class BagPlayer(Node):
             self._clock_pub.publish(msg)
 
     def _wait_for_subscribers(self) -> None:
-        """Until every ``wait_for`` topic in the bag has a subscriber (discovery takes a
-        moment; a message published before it completes is lost), at most ``wait_timeout``."""
-        topics = [t for t in self.options.wait_for if t in self._bag_publishers]
+        """Until every ``wait_for`` topic in the bag has a subscriber, or ``TOPIC=N`` N of
+        them (discovery takes a moment; a message published before it completes is lost),
+        at most ``wait_timeout``."""
+        wanted = dict((t, int(n or 1)) for t, _, n in (w.partition('=') for w in self.options.wait_for))
+        topics = [t for t in wanted if t in self._bag_publishers]
         deadline = time.monotonic() + self.options.wait_timeout
         while topics and time.monotonic() < deadline:
-            topics = [t for t in topics if self._bag_publishers[t].get_subscription_count() == 0]
+            topics = [t for t in topics if self._bag_publishers[t].get_subscription_count() < wanted[t]]
             if topics:
                 time.sleep(0.05)
         if topics:

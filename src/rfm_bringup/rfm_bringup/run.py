@@ -209,6 +209,20 @@ def _check_bag(bag: Path, params: dict, remaps: dict) -> None:
                          'optical frame)')
 
 
+def _tf_subscribers(params: dict) -> int:
+    """How many subscriptions /tf and /tf_static have in the graph: the recorder's, the
+    mapper's (where it broadcasts the map or reads posed poses from /tf) and the detector's
+    (where it reads a robot's odometry). The player waits for them all: a /tf message sent
+    before a node discovered the player is lost to it (a robot's first seconds without
+    odometry), a latched /tf_static comes late."""
+    from rfm_core.config import DetectorNodeConfig, MapperNodeConfig  # noqa: PLC0415
+
+    mapper, detector = params['mapper'], params['detector']
+    reads = (mapper.get('publish_tf', MapperNodeConfig.publish_tf)
+             or mapper.get('pose_source', MapperNodeConfig.pose_source) == 'tf')
+    return 1 + bool(reads) + bool(detector.get('odom_frame', DetectorNodeConfig.odom_frame))
+
+
 def _detector_inputs(backend: str, remaps: dict) -> list:
     """The bag topics the detector subscribes to (the player waits for their subscribers)."""
     colour = 'rgb/image/compressed' if 'rgb/image/compressed' in remaps else 'rgb/image'
@@ -526,7 +540,8 @@ def run_graph(args) -> int:
             # a steady clock): 10 Hz instead of 40 spares each node 30 wake-ups a second
             rate = args.rate if args.rate is not None else (PACED_RATE if args.paced else 1.0)
             cmd = [rfm, 'play', str(bag), '--delay', '0.5', '--quiet', '--rate', str(rate), '--clock-hz', '10',
-                   '--wait-for', *_detector_inputs(args.backend, remaps)]
+                   '--wait-for', *_detector_inputs(args.backend, remaps),
+                   *(f'{topic}={_tf_subscribers(params)}' for topic in ('/tf', '/tf_static'))]
             if args.paced:                      # each colour image once the detector answered the one before
                 cmd += ['--pace', _detector_inputs(args.backend, remaps)[0], '/rfm/detections']
             if args.posed:
