@@ -181,6 +181,14 @@ def test_play_waits_for_as_many_subscribers_as_asked(small_bag):
     assert late and len(first) == len(second) == 20
 
 
+def test_a_subscriber_count_to_wait_for_must_be_a_positive_number():
+    from rfm_bringup.player import PlayOptions
+    assert PlayOptions(wait_for=['/a', '/tf=3']).wait_for == ['/a', '/tf=3']
+    for bad in ('/tf=0', '/tf=x', '/tf=-1'):
+        with pytest.raises(ValueError, match='TOPIC=N'):
+            PlayOptions(wait_for=[bad])
+
+
 def test_the_recorder_stops_a_topic_at_its_size_cap(tmp_path):
     """`rfm run --live --record-images MB`: images are recorded up to the cap, the rest of
     the outputs go on (before: every colour image, without limit; #19 row 10)."""
