@@ -69,10 +69,17 @@ class PlayOptions:
             raise ValueError('start offset and delay must be >= 0')
         if bool(self.pace_topic) != bool(self.answer_topic):
             raise ValueError('pacing needs both a topic to pace and a topic that answers it')
+        self.subscribers_wanted()                 # refuses a malformed entry
+
+    def subscribers_wanted(self) -> dict:
+        """{topic: how many subscribers to wait for} from ``wait_for`` (TOPIC: 1, TOPIC=N: N)."""
+        wanted = {}
         for entry in self.wait_for:
-            count = entry.partition('=')[2]
+            topic, _, count = entry.partition('=')
             if count and not (count.isdigit() and int(count) >= 1):
                 raise ValueError(f'--wait-for {entry}: expected TOPIC or TOPIC=N, N a number of subscribers >= 1')
+            wanted[topic] = int(count or 1)
+        return wanted
 
 
 class BagPlayer(Node):
@@ -145,7 +152,7 @@ class BagPlayer(Node):
         """Until every ``wait_for`` topic in the bag has a subscriber, or ``TOPIC=N`` N of
         them (discovery takes a moment; a message published before it completes is lost),
         at most ``wait_timeout``."""
-        wanted = {t: int(n or 1) for t, _, n in (w.partition('=') for w in self.options.wait_for)}
+        wanted = self.options.subscribers_wanted()
         topics = [t for t in wanted if t in self._bag_publishers]
         deadline = time.monotonic() + self.options.wait_timeout
         while topics and time.monotonic() < deadline:
