@@ -354,3 +354,44 @@ def test_frames_with_noisy_depth_are_tracked_on_their_points_as_clean_ones_are()
     errors = np.array(errors).reshape(-1, 2)
     assert len(errors) >= 22, len(errors)
     assert np.median(errors[:, 0]) < 0.015 and errors[:, 0].max() < 0.04 and errors[:, 1].max() < 1.0, errors
+
+
+def _partial(obs, rng):
+    """``obs`` as a detector of visible parts gives it: ``boxes`` each cut to 25-40% of its
+    length along one of its axes, on a random side (another part from each view), the whole
+    boxes as ``full_boxes``."""
+    boxes = obs.boxes.copy()
+    for b in boxes:
+        axis = rng.integers(2)
+        keep = rng.uniform(0.25, 0.4)
+        shift = (1 - keep) / 2 * b[3 + axis] * rng.choice([-1.0, 1.0])
+        direction = np.array([np.cos(b[6]), np.sin(b[6])]) if axis == 0 else np.array([-np.sin(b[6]), np.cos(b[6])])
+        b[:2] += shift * direction
+        b[3 + axis] *= keep
+    return replace(obs, boxes=boxes, full_boxes=obs.boxes.copy())
+
+
+def test_separate_views_are_related_by_the_objects_full_boxes(stream):
+    """Photos (frames 2 s apart) whose fitted boxes are other parts of each object from view to
+    view: related on their full boxes, every edge is exact; on the fitted boxes alone, some
+    are degrees off."""
+    det = make_detector('ground_truth', preset='perfect', seed=4)
+    rng = np.random.default_rng(7)
+    views = [_partial(replace(det.perturb(f.ground_truth), stamp_ns=f.ground_truth.stamp_ns + int(i * 1.75e9)), rng)
+             for i, f in enumerate(stream)]
+    errors = {}
+    for name, observations in (('full', views), ('fitted', [replace(v, full_boxes=None) for v in views])):
+        graph = ViewGraphBuilder()
+        truth, edges = {}, []
+        for frame, obs in zip(stream, observations):
+            keyframe, new_edges, _ = graph.add(obs)
+            if keyframe is not None:
+                truth[keyframe.keyframe_id] = frame
+            edges += new_edges
+        assert graph.stats.segments == len(stream) and len(edges) >= 10
+        errors[name] = np.array([
+            (np.degrees(e.relative.pose.angle_to(expected)), np.linalg.norm(e.relative.pose.t - expected.t))
+            for e in edges
+            for expected in [truth[e.source_id].aligned_from_map() @ truth[e.target_id].aligned_from_map().inverse()]])
+    assert errors['full'][:, 0].max() < 0.5 and errors['full'][:, 1].max() < 0.02
+    assert errors['fitted'][:, 0].max() > 2.0
