@@ -144,10 +144,8 @@ class ViewGraphBuilder:
         depth points. ``stream``: the two frames belong to one stream segment, so the
         gyroscope's rotation between them (when both carry it) constrains the yaw;
         ``predicted``: the motion's prediction of it (the depth points are aligned from it too).
-        When the frame being added is a separate view (:attr:`separate`), a pair of two segments
-        is matched on the full boxes (:meth:`matching_view`) and related by whichever boxes,
-        fitted or full, verify more objects (the fitted on a tie: their yaw is the more precise)."""
-        apart = self.separate and not stream and _full(source) and _full(target)
+        When the frame being added is a separate view (:attr:`separate`), the objects are matched
+        on their full boxes (:meth:`matching_view`); the pose is the fitted boxes' still."""
         if matches is None:
             matches = self.matcher.match(self.matching_view(target), self.matching_view(source))
         prior = None
@@ -155,10 +153,6 @@ class ViewGraphBuilder:
         if measured is not None:
             prior = YawPrior(measured[0], np.radians(measured[1]))
         rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching, prior)
-        if apart:
-            full = estimate_relative_pose(target.full_boxes, source.full_boxes, matches, self.matching, prior)
-            if full is not None and (rel is None or len(full.inliers) > len(rel.inliers)):
-                rel, full.corner_inliers = full, []          # (corners of the full boxes, not of ``boxes``)
         if rel is None:
             return None
         rel.swap_index_order()                                       # as (source, target) index pairs
