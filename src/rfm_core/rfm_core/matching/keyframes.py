@@ -157,8 +157,7 @@ class NewKeyframe:
         # where the motion prior has checked the pose
         recent_from = len(g.keyframes) - cfg.recent_keyframes
         others = [i for i in cand if i != last]            # matched in one batch
-        views = [g.matching_view(g.keyframes[i].observations) for i in others]
-        batched = dict(zip(others, g.matcher.match_many(g.matching_view(obs), views)))
+        batched = dict(zip(others, g.matcher.match_many(obs, [g.keyframes[i].observations for i in others])))
         for i in cand:
             source = g.keyframes[i]
             same = source.segment == keyframe.segment

@@ -66,8 +66,7 @@ class Revisit:
                  if i != ref and i not in cand]
         found, verified = None, []
         if cand:
-            views = [g.matching_view(g.keyframes[i].observations) for i in cand]
-            matches = g.matcher.match_many(g.matching_view(obs), views)
+            matches = g.matcher.match_many(obs, [g.keyframes[i].observations for i in cand])
             for i, m in zip(cand, matches):
                 source = g.keyframes[i].observations
                 rel = g.relative(source, obs, m, stream=False)

@@ -21,7 +21,6 @@ every relative pose within it. Each localizer is a small class with its options 
 """
 from __future__ import annotations
 
-import copy
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,7 +66,6 @@ class ViewGraphBuilder:
         self._dim: int | None = None             # their length
         self.next_id = 0
         self.ref = -1                            # index of the reference keyframe frames are tracked against
-        self.separate = False                    # the frame being added is a separate view (no stream before it)
         self.neighbours: dict = {}               # keyframe index -> indices it shares a verified edge with
         self.edge_pose: dict = {}                # (index i, index j) -> T_i_j of their verified edge
         self.motion_placed: set = set()          # keyframes placed by a motion edge alone
@@ -93,7 +91,6 @@ class ViewGraphBuilder:
                              f'{dim}-value ones (one detector backend per graph)')
         self.stats.frames += 1
         frame = Frame(obs, self.motion.continues(obs))
-        self.separate = not frame.stream
         if not frame.stream:
             self.state = None                    # nothing predicts a separate view
         if len(obs) < self.config.keyframes.min_detections:           # too few objects to match
@@ -143,11 +140,9 @@ class ViewGraphBuilder:
         target against source, already computed), corrected by the floor, the walls and the
         depth points. ``stream``: the two frames belong to one stream segment, so the
         gyroscope's rotation between them (when both carry it) constrains the yaw;
-        ``predicted``: the motion's prediction of it (the depth points are aligned from it too).
-        When the frame being added is a separate view (:attr:`separate`), the objects are matched
-        on their full boxes (:meth:`matching_view`); the pose is the fitted boxes' still."""
+        ``predicted``: the motion's prediction of it (the depth points are aligned from it too)."""
         if matches is None:
-            matches = self.matcher.match(self.matching_view(target), self.matching_view(source))
+            matches = self.matcher.match(target, source)
         prior = None
         measured = self.motion.imu_yaw(source, target) if stream else None     # (of T_source_target)
         if measured is not None:
@@ -157,19 +152,6 @@ class ViewGraphBuilder:
             return None
         rel.swap_index_order()                                       # as (source, target) index pairs
         return with_surfaces(rel, source, target, self.matching, predicted=predicted)
-
-    def matching_view(self, obs: FrameObservations) -> FrameObservations:
-        """``obs`` as the frame being added is matched against it: with its full boxes in place of
-        ``boxes`` when that frame is a separate view (no motion links it to the frame before: a
-        photo; :attr:`separate`) and ``obs`` has them. Seen from far apart, the fitted boxes
-        (``boxes``: the visible part of each object, which repeats from frame to frame of a
-        stream) are different parts of one object; its full boxes, the detector's completion,
-        are the same object (docs/design-notes.md)."""
-        if not self.separate or not _full(obs):
-            return obs
-        view = copy.copy(obs)
-        view.boxes = np.asarray(obs.full_boxes, np.float64)
-        return view
 
     def verified_through(self, keyframe_id: int) -> int | None:
         """``verified_ns`` of a frame localized against ``keyframe_id``: objects place it
@@ -219,8 +201,3 @@ class ViewGraphBuilder:
                 self.edge_pose[self.ref, i] = e.relative.pose.inverse()
         for e in edges:
             self.count_pair(e)
-
-
-def _full(obs: FrameObservations) -> bool:
-    """Whether the detector gave ``obs``'s full boxes apart from its fitted ones."""
-    return obs.full_boxes is not None and len(obs.full_boxes) == len(obs.boxes)
