@@ -539,12 +539,12 @@ def run_graph(args) -> int:
             # /clock only stamps status and diagnostics here (the nodes' timers that pace work run on
             # a steady clock): 10 Hz instead of 40 spares each node 30 wake-ups a second
             rate = args.rate if args.rate is not None else (PACED_RATE if args.paced else 1.0)
-            tf_subscribers = _tf_subscribers(params)
+            tf_subscribers, inputs = _tf_subscribers(params), _detector_inputs(args.backend, remaps)
             cmd = [rfm, 'play', str(bag), '--delay', '0.5', '--quiet', '--rate', str(rate), '--clock-hz', '10',
-                   '--wait-for', *_detector_inputs(args.backend, remaps),
+                   '--wait-for', *inputs,
                    *(f'{topic}={tf_subscribers}' for topic in ('/tf', '/tf_static'))]
             if args.paced:                      # each colour image once the detector answered the one before
-                cmd += ['--pace', _detector_inputs(args.backend, remaps)[0], '/rfm/detections']
+                cmd += ['--pace', inputs[0], '/rfm/detections']
             if args.posed:
                 cmd += ['--remap', '/ground_truth/camera_pose:=/rfm/external_pose']
             player = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
