@@ -314,6 +314,29 @@ def test_a_part_that_outgrows_the_registered_one_changes_the_map_frame_and_says_
     assert 15 in av.poses and av.frame_changes == 1
 
 
+def test_culled_keyframes_still_count_for_the_part_that_is_the_map():
+    """A part whose keyframes were culled into three still stands for the six it held: a
+    second part of five does not outgrow it, and the map frame stays (the frame changed back
+    and forth on a tuning walk as culling thinned whichever part the camera walked on). Six
+    keyframes of the second part tie with it (the map stays), seven outgrow it."""
+    step = Pose4(0.1, (0.5, 0.0, 0.0))
+    av = IncrementalAverager()
+    for k in range(2):
+        av.add_edge(k, k + 1, step, 3.0)
+    av.sizes = {0: 2, 1: 2, 2: 2}                   # each carries a keyframe culled into it
+    av.update()
+    for k in range(10, 14):                         # five keyframes, joined to nothing
+        av.add_edge(k, k + 1, step, 3.0)
+    av.update(force_full=True)
+    assert set(av.poses) == {0, 1, 2} and av.frame_changes == 0
+    av.add_edge(14, 15, step, 3.0)                  # six
+    av.update(force_full=True)
+    assert set(av.poses) == {0, 1, 2} and av.frame_changes == 0
+    av.add_edge(15, 16, step, 3.0)                  # seven
+    av.update(force_full=True)
+    assert set(av.poses) == set(range(10, 17)) and av.frame_changes == 1
+
+
 def test_a_loaded_map_keeps_every_keyframe_where_it_was_saved():
     """A loaded map's keyframes are held where the map file put them, and an edge between
     two of them is never dropped: its residual says nothing about the new session (both ends

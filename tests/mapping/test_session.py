@@ -278,6 +278,10 @@ def test_redundant_keyframes_are_culled_and_carried_by_their_neighbours(round_wa
     loaded = Mapper()
     load_map(loaded, path)
     assert loaded.merged.keys() == mapper.merged.keys() and loaded.carried == mapper.carried
+    # the keyframes left stand for every keyframe the map had, when the averaging picks the map's part
+    for target in (mapper, loaded):
+        sizes = target.averager.sizes
+        assert sum(sizes.get(k, 1) for k in target.keyframes) == len(target.keyframes) + len(target.merged)
     assert len(loaded.tracks()) == len(mapper.tracks())
     for target in (mapper, loaded):
         assert target.add_edge(edge)

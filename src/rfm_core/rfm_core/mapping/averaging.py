@@ -132,9 +132,11 @@ def gyro_drift(seconds, residuals, weights, cfg: AveragingConfig) -> float:
 
 
 def largest_component(nodes: np.ndarray, src: np.ndarray, dst: np.ndarray,
-                      reference: np.ndarray | None = None) -> np.ndarray:
+                      reference: np.ndarray | None = None, sizes: np.ndarray | None = None) -> np.ndarray:
     """Mask over ``nodes`` (indices 0..n-1) of the largest connected component of the edges;
-    ties go to the component holding the lowest index. ``reference`` (a mask over the
+    ties go to the component holding the lowest index. ``sizes``: how many keyframes each
+    node stands for (itself and those culled into it; 1 each when not given), so that
+    culling a component's keyframes does not shrink it. ``reference`` (a mask over the
     nodes: a loaded map's keyframes): the component holding the most of them, where one
     holds two or more, whatever its size (a second session does not take the map over)."""
     n = len(nodes)
@@ -142,7 +144,7 @@ def largest_component(nodes: np.ndarray, src: np.ndarray, dst: np.ndarray,
         return np.zeros(0, bool)
     graph = sp.coo_matrix((np.ones(len(src)), (src, dst)), shape=(n, n))
     _, labels = connected_components(graph, directed=False)
-    counts = np.bincount(labels)
+    counts = np.bincount(labels, weights=sizes)
     if reference is not None and np.any(reference):
         held = np.bincount(labels[reference], minlength=len(counts))
         if held.max() >= 2:
@@ -487,11 +489,11 @@ def _bridges(candidates, edges, src, dst, n) -> np.ndarray:
 
 
 def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, reference=None,
-               fixed=None):
+               fixed=None, sizes=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
     mask, component mask, and the mask of the edges the cycle check dropped. ``yaw_only``
     edges (the gyroscope's) count in the yaw stage only: they neither place nor connect
-    keyframes. ``reference``: see :func:`largest_component`. ``fixed`` (theta, centres):
+    keyframes. ``reference``, ``sizes``: see :func:`largest_component`. ``fixed`` (theta, centres):
     the reference keyframes' poses (NaN elsewhere), held where they are: the rest grows from
     and is solved around them."""
     active = np.ones(len(src), bool)
@@ -511,7 +513,7 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     def component(active, seed=None):
         """The component to register, and the keyframe it is grown from: the first in
         ``order`` (the anchor), or the source of the ``seed`` edge where it is in it."""
-        c = largest_component(np.arange(n), src[active & full], dst[active & full], reference)
+        c = largest_component(np.arange(n), src[active & full], dst[active & full], reference, sizes)
         if seed is not None and c[src[seed]] and c[dst[seed]]:
             return c, int(src[seed])
         return c, int(next(k for k in order if c[k]))
@@ -661,6 +663,7 @@ class IncrementalAverager:
         self.frame_changes = 0               # full solves whose registered part shares no keyframe with the last's
         self.stats = UpdateStats()
         self.reference: set = set()          # a loaded map's keyframes: their component stays the map
+        self.sizes: dict = {}                # keyframe id -> keyframes it stands for (culled ones merged into it; 1 if absent)
 
     # ------------------------------------------------------------------ input
 
@@ -790,7 +793,12 @@ class IncrementalAverager:
         src, dst = src[~self.edges.yaw_only], dst[~self.edges.yaw_only]
         linked = np.zeros(len(self.ids), bool)
         linked[src] = linked[dst] = True
-        return np.count_nonzero(linked & ~self._registered) > np.count_nonzero(self._registered)
+        sizes = self._sizes()
+        return sizes[linked & ~self._registered].sum() > sizes[self._registered].sum()
+
+    def _sizes(self) -> np.ndarray:
+        """How many keyframes each keyframe (by index) stands for (:attr:`sizes`)."""
+        return np.array([self.sizes.get(k, 1) for k in self.ids], np.float64)
 
     def _holds_reference(self) -> bool:
         """Whether the registered component holds keyframes of a loaded map (it stays the map)."""
@@ -821,7 +829,7 @@ class IncrementalAverager:
             fixed = (np.where(hold, self._theta[node], np.nan), np.where(hold[:, None], self._centres[node], np.nan))
         theta, centres, active, comp, cycle = _solve_all(
             len(self.ids), rank[src][edge], rank[dst][edge], yaw[edge], trans[edge], weight[edge], self.config,
-            order, self.edges.yaw_only[edge], reference, fixed)
+            order, self.edges.yaw_only[edge], reference, fixed, self._sizes()[node])
         anchor = next((node[k] for k in order if comp[k]), None)
         back = np.empty_like(edge)
         back[edge] = np.arange(len(edge))                    # store index -> canonical position

@@ -521,6 +521,7 @@ def load_map(mapper: Mapper, path, use_config: bool = True) -> dict:
         raise MapFileError(f'{path}: inconsistent map file ({type(exc).__name__}: {exc})') from None
     fresh.origins = content['origins']
     fresh.averager.reference = set(content['poses'])      # the loaded map stays the map (a second session joins it)
+    fresh.averager.sizes = fresh.culled_sizes()
     fresh._cull_due = set()                                # its keyframes are as they were saved
     fresh.revision = content['header'].get('revision', 0) + 1
     fresh.mode = mapper.mode

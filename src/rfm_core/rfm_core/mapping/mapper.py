@@ -518,9 +518,12 @@ class Mapper:
             self.recovery.tried.pop(k, None)
         self.edges, self._pairs, self._averaged, self._edges_to = {}, {}, {}, {}
         reference = self.averager.reference    # a loaded map's keyframes, and those they were culled into
+        changes = self.averager.frame_changes
         self.averager, self._gyro = IncrementalAverager(self.config.averaging), {}
+        self.averager.frame_changes = changes
         self.averager.reference = {k for k in reference if k in self.keyframes} | {
             m.into for k, m in culled.items() if k in reference}
+        self.averager.sizes = self.culled_sizes()
         ids = sorted(self.keyframes)
         for i, k in enumerate(ids):
             self.averager.add_keyframe(k)
@@ -536,6 +539,17 @@ class Mapper:
         mask = np.array([active.get(i, True) for i in range(len(self.averager.edges))], bool)
         self.averager.restore({k: p for k, p in poses.items() if k in self.keyframes}, mask, fold=False)
         self._changed()
+
+    def culled_sizes(self) -> dict:
+        """{keyframe id: keyframes it stands for}: itself and those culled into it, for the
+        averaging's choice of the part of the graph that is the map
+        (:attr:`~rfm_core.mapping.averaging.IncrementalAverager.sizes`). Culling thins the part
+        the camera walks on; without these counts a part it had outgrown took the map frame
+        back, and the frame went back and forth."""
+        sizes: dict = {}
+        for m in self.merged.values():
+            sizes[m.into] = sizes.get(m.into, 1) + 1
+        return sizes
 
     def _gyro_yaw(self, keyframe_id: int, poses: dict) -> float | None:
         """The yaw of T_map_k as the gyroscope gives it through the registered keyframe
