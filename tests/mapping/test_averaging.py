@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from rfm_core.evaluation.trajectory import trajectory_errors
-from rfm_core.geometry import Pose4
+from rfm_core.geometry import Pose4, wrap_angle
 from rfm_core.mapping.averaging import (AveragingConfig, IncrementalAverager, average_poses, cycle_inconsistent,
                                         gyro_drift)
 from rfm_core.mapping.synthetic import synthetic_view_graph
@@ -312,6 +312,29 @@ def test_a_part_that_outgrows_the_registered_one_changes_the_map_frame_and_says_
     av.add_edge(14, 15, step, 3.0)                  # the map grows on: the same frame
     av.update(force_full=True)
     assert 15 in av.poses and av.frame_changes == 1
+
+
+def test_a_part_that_takes_the_map_over_keeps_the_gyroscopes_heading():
+    """A part that outgrows the map and is linked to it by the gyroscope alone (tracking
+    lost, the rotation measured throughout) takes the frame over turned as the gyroscope says
+    and placed where the old part's last keyframe was: the frame changes by the distance
+    walked in the gap, not by an arbitrary heading (a tuning walk's jumped 92 deg and 2 m)."""
+    step = Pose4(0.1, (0.5, 0.0, 0.0))
+    av = IncrementalAverager()
+    for k in range(2):
+        av.add_edge(k, k + 1, step, 3.0)
+    av.update()
+    before = av.pose(2)
+    av.add_edge(2, 10, Pose4(0.3, (0.0, 0.0, 0.0)), 10.0, yaw_only=True)     # T_2_10's yaw, measured
+    for k in range(10, 14):
+        av.add_edge(k, k + 1, step, 3.0)
+    av.update()
+    assert set(av.poses) == set(range(10, 15)) and av.frame_changes == 1
+    after = av.pose(10)
+    assert abs(wrap_angle(before.yaw - after.yaw - 0.3)) < 1e-9             # theta_2 - theta_10 = yaw of T_2_10
+    np.testing.assert_allclose(after.inverse().t, before.inverse().t, atol=1e-9)
+    moved = av.pose(11).inverse().t - after.inverse().t                     # the part itself is as measured
+    np.testing.assert_allclose(np.linalg.norm(moved), 0.5, atol=1e-9)
 
 
 def test_culled_keyframes_still_count_for_the_part_that_is_the_map():

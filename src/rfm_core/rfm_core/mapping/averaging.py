@@ -844,7 +844,25 @@ class IncrementalAverager:
             # another part of the graph outgrew the registered one and nothing joins them: the
             # map frame is now that part's, and poses given out before are in a frame that is gone
             self.frame_changes += 1
+            link = self._gyroscope_link(comp)
+            if link is not None:
+                theta, centres = _regauge(theta, centres, *link)
         return theta, centres, active, comp
+
+    def _gyroscope_link(self, comp):
+        """Where the gyroscope puts a part of the graph that takes the map over (``comp``, by
+        index) in the frame it takes over: (keyframe index, yaw, centre) from the newest
+        gyroscope edge between the two parts, its yaw measured and its centre where the old
+        part's keyframe was (the translation between them is unknown); None without one."""
+        e = self.edges
+        old, new = self._registered[e.src] & comp[e.dst], comp[e.src] & self._registered[e.dst]
+        link = np.flatnonzero(e.yaw_only & (old | new))
+        if not len(link):
+            return None
+        i = link[np.argmax(np.maximum(e.src[link], e.dst[link]))]
+        a, b = (e.src[i], e.dst[i]) if old[i] else (e.dst[i], e.src[i])
+        yaw = self._theta[a] - e.yaw[i] if old[i] else self._theta[a] + e.yaw[i]      # theta_src - theta_dst = yaw
+        return int(b), float(wrap_angle(yaw)), self._centres[a].copy()
 
     def _full(self):
         theta, centres, active, comp = self._solve()
