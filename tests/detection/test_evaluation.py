@@ -153,3 +153,26 @@ def test_a_wrongly_placed_part_is_counted_and_does_not_move_the_alignment():
     assert np.median(ls) > 0.1                               # what the plain fit did to the right frames
     posed = trajectory_errors({i: truth[i] @ Pose4(0.0, (0.3, 0, 0)).matrix() for i in range(5)}, truth, align=False)
     assert posed['gross'] == 5 and posed['registered'] == 5 / 60 and GROSS == (5.0, 0.25)
+
+
+def test_a_refit_that_holds_fewer_frames_than_its_proposal_is_not_kept():
+    """Two groups of frames 2 m apart, the second 24 cm off (within the gross bound): one
+    frame's alignment holds every frame, but the least-squares refit on them all turns the
+    yaw 5.5 deg to split the 24 cm between the groups and leaves every frame more than 5 deg
+    off. The refit is kept only while it holds as many frames: none is wrong. (A tuning walk's
+    live poses were all counted wrong this way.)"""
+    from rfm_core.evaluation.trajectory import trajectory_errors
+    from rfm_core.geometry import Pose4
+
+    rng = np.random.default_rng(0)
+    optical = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1]], float)   # looking along x
+    truth, estimated = {}, {}
+    for i in range(40):
+        x = 0.0 if i < 20 else 2.0
+        truth[i] = Pose4(rng.uniform(-0.3, 0.3), (x + rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05),
+                                                  1.5)).matrix() @ optical
+        estimated[i] = truth[i].copy()
+        if i >= 20:
+            estimated[i][1, 3] += 0.24
+    e = trajectory_errors(estimated, truth)
+    assert e['gross'] == 0 and e['ARE_median'] < 1e-6 and e['ATE_median'] < 0.25, e

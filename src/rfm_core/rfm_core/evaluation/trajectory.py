@@ -80,7 +80,10 @@ def align_robust(est: np.ndarray, gt: np.ndarray, gross=GROSS, hypotheses: int =
     """(R, t) as :func:`align_4dof`, fitted on the frames the trajectory's consensus holds: each
     of up to ``hypotheses`` frames proposes the 4-DoF alignment that lays it on its truth;
     the proposal under which most frames are within ``gross`` (deg, m) wins, and the fit is
-    redone on those frames (twice). Without a consensus of two frames: the fit on all."""
+    redone on those frames (twice). A refit that holds fewer than half the frames it was
+    fitted on is no fit of them and is not kept (a trajectory in two parts a few decimetres
+    apart pulled the least-squares fit between them and put every frame a few degrees off).
+    Without a consensus of two frames: the fit on all."""
     n = len(est)
     if n < 3:
         return align_4dof(est, gt)
@@ -91,20 +94,21 @@ def align_robust(est: np.ndarray, gt: np.ndarray, gross=GROSS, hypotheses: int =
         yaw = np.arctan2(d[1, 0] - d[0, 1], d[0, 0] + d[1, 1])
         c, s = np.cos(yaw), np.sin(yaw)
         r = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        ate, are = _errors(est, gt, r, gt[i, :3, 3] - r @ est[i, :3, 3])
+        proposal = (r, gt[i, :3, 3] - r @ est[i, :3, 3])
+        ate, are = _errors(est, gt, *proposal)
         inliers = (ate <= gross[1]) & (are <= gross[0])
         if inliers.sum() > best_count:
-            best, best_count = inliers, int(inliers.sum())
+            best, best_count, kept = inliers, int(inliers.sum()), proposal
     if best is None:
         return align_4dof(est, gt)
-    r, t = align_4dof(est[best], gt[best])
-    for _ in range(2):
-        ate, are = _errors(est, gt, r, t)
+    for _ in range(3):
+        fit = align_4dof(est[best], gt[best])
+        ate, are = _errors(est, gt, *fit)
         inliers = (ate <= gross[1]) & (are <= gross[0])
-        if inliers.sum() < 2:
+        if 2 * inliers.sum() < best_count or inliers.sum() < 2:
             break
-        r, t = align_4dof(est[inliers], gt[inliers])
-    return r, t
+        best, best_count, kept = inliers, int(inliers.sum()), fit
+    return kept
 
 
 def _matched(estimated: dict, truth: dict):
