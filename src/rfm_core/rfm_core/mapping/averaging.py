@@ -664,6 +664,7 @@ class IncrementalAverager:
         self.stats = UpdateStats()
         self.reference: set = set()          # a loaded map's keyframes: their component stays the map
         self.sizes: dict = {}                # keyframe id -> keyframes it stands for (culled ones merged into it; 1 if absent)
+        self.last_seen = None                # (keyframe id, Pose4 T_k_camera): the newest frame placed in the registered part
 
     # ------------------------------------------------------------------ input
 
@@ -852,8 +853,9 @@ class IncrementalAverager:
     def _gyroscope_link(self, comp):
         """Where the gyroscope puts a part of the graph that takes the map over (``comp``, by
         index) in the frame it takes over: (keyframe index, yaw, centre) from the newest
-        gyroscope edge between the two parts, its yaw measured and its centre where the old
-        part's keyframe was (the translation between them is unknown); None without one."""
+        gyroscope edge between the two parts, its yaw measured and its centre where the camera
+        was last seen in the old part (:attr:`last_seen`, else that edge's keyframe there: the
+        walk since is unknown); None without one."""
         e = self.edges
         old, new = self._registered[e.src] & comp[e.dst], comp[e.src] & self._registered[e.dst]
         link = np.flatnonzero(e.yaw_only & (old | new))
@@ -862,7 +864,12 @@ class IncrementalAverager:
         i = link[np.argmax(np.maximum(e.src[link], e.dst[link]))]
         a, b = (e.src[i], e.dst[i]) if old[i] else (e.dst[i], e.src[i])
         yaw = self._theta[a] - e.yaw[i] if old[i] else self._theta[a] + e.yaw[i]      # theta_src - theta_dst = yaw
-        return int(b), float(wrap_angle(yaw)), self._centres[a].copy()
+        centre = self._centres[a].copy()
+        seen = self._index.get(self.last_seen[0]) if self.last_seen is not None else None
+        if seen is not None and self._registered[seen]:
+            t_map_k = Pose4.from_centre(float(self._theta[seen]), self._centres[seen]).inverse()
+            centre = (t_map_k @ self.last_seen[1]).t
+        return int(b), float(wrap_angle(yaw)), centre
 
     def _full(self):
         theta, centres, active, comp = self._solve()
