@@ -664,7 +664,7 @@ class IncrementalAverager:
         self.stats = UpdateStats()
         self.reference: set = set()          # a loaded map's keyframes: their component stays the map
         self.sizes: dict = {}                # keyframe id -> keyframes it stands for (culled ones merged into it; 1 if absent)
-        self.last_seen = None                # (keyframe id, Pose4 T_k_camera): the newest frame placed in the registered part
+        self.last_seen = None                # the newest frame placed in the registered part (a FrameTrack: keyframe_id, pose)
 
     # ------------------------------------------------------------------ input
 
@@ -865,10 +865,10 @@ class IncrementalAverager:
         a, b = (e.src[i], e.dst[i]) if old[i] else (e.dst[i], e.src[i])
         yaw = self._theta[a] - e.yaw[i] if old[i] else self._theta[a] + e.yaw[i]      # theta_src - theta_dst = yaw
         centre = self._centres[a].copy()
-        seen = self._index.get(self.last_seen[0]) if self.last_seen is not None else None
+        seen = self._index.get(self.last_seen.keyframe_id) if self.last_seen is not None else None
         if seen is not None and self._registered[seen]:
             t_map_k = Pose4.from_centre(float(self._theta[seen]), self._centres[seen]).inverse()
-            centre = (t_map_k @ self.last_seen[1]).t
+            centre = (t_map_k @ self.last_seen.pose).t                          # T_map_k T_k_camera
         return int(b), float(wrap_angle(yaw)), centre
 
     def _full(self):

@@ -266,7 +266,7 @@ class Mapper:
             return False
         self.frames.add(track)
         if self.averager.pose(track.keyframe_id) is not None:
-            self.averager.last_seen = (track.keyframe_id, track.pose)      # where a part taking over starts
+            self.averager.last_seen = track            # where a part taking over starts
         if track.continuous:
             self.streamed.add(track.keyframe_id)
         self._newest_stamp_ns = max(self._newest_stamp_ns, track.stamp_ns)
@@ -523,9 +523,7 @@ class Mapper:
         changes, seen = self.averager.frame_changes, self.averager.last_seen
         self.averager, self._gyro = IncrementalAverager(self.config.averaging), {}
         self.averager.frame_changes = changes
-        if seen is not None and seen[0] in self.merged:                      # (T_into_k T_k_camera)
-            seen = (self.merged[seen[0]].into, self.merged[seen[0]].pose @ seen[1])
-        self.averager.last_seen = seen
+        self.averager.last_seen = None if seen is None else self._resolved_track(seen)
         self.averager.reference = {k for k in reference if k in self.keyframes} | {
             m.into for k, m in culled.items() if k in reference}
         self.averager.sizes = self.culled_sizes()
