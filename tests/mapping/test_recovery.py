@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 from rfm_core.evaluation.pipeline import detections_for
-from rfm_core.evaluation.trajectory import trajectory_errors
+from rfm_core.evaluation.trajectory import map_to_truth, trajectory_errors
 from rfm_core.geometry import gravity_aligned_rotation
+from rfm_core.mapping.frame_log import pose_from_camera
 from rfm_core.mapping.mapper import MapperConfig
-from rfm_core.mapping.relocalization import match_to_map
+from rfm_core.mapping.relocalization import MotionPrior, match_to_map
 from rfm_core.session import Session
 from rfm_core.sim.capture import Capture, CaptureConfig
 
@@ -99,6 +100,32 @@ def test_a_view_is_matched_to_the_map_without_a_keyframe_or_gyroscope_in_common(
     assert not any(accepted(detect(frame)) for frame in other.frames())
 
 
+def test_a_view_of_a_stream_is_matched_only_where_the_camera_can_have_walked(gap_capture):
+    """match_to_map under a motion prior (the gyroscope's yaw, the camera within what it can
+    walk since the map last saw it): a view after the gap is placed right where the prior
+    admits its true pose, and not at all where the prior holds the camera 3 m away: no pose
+    outside its reach is proposed, however many of the view's objects it would explain."""
+    observations, truth = gap_capture
+    before = [o for o in observations if o.stamp_ns < observations[0].stamp_ns + GAP_S[0] * 1e9]
+    mapper = _run(before, recovery=False).mapper
+    cfg, index = mapper.config.relocalization, mapper.map_index()
+    world = map_to_truth(mapper.frame_poses(), truth).matrix()
+    placed = away = 0
+    for obs in observations[len(before):len(before) + 30:3]:
+        true = pose_from_camera(np.linalg.inv(world) @ truth[obs.stamp_ns], obs.gravity_cam, atol=0.2)
+        t_map_view = true.inverse()                                           # where the camera is
+        there = MotionPrior(float(t_map_view.yaw), t_map_view.t + [0.5, 0.0, 0.0], 1.0, np.radians(10.0))
+        far = MotionPrior(float(t_map_view.yaw), t_map_view.t + [3.0, 0.0, 0.0], 1.0, np.radians(10.0))
+        match = match_to_map(obs, index, mapper.config.matching, cfg, there)
+        if match is not None and match.accepted(cfg):
+            placed += 1
+            assert np.linalg.norm(match.pose.inverse().t - t_map_view.t) < 0.25
+        match = match_to_map(obs, index, mapper.config.matching, cfg, far)
+        away += match is not None and match.accepted(cfg)
+        assert match is None or np.linalg.norm(match.pose.inverse().t - far.centre) <= far.reach_m
+    assert placed >= 5 and away == 0, (placed, away)
+
+
 @pytest.fixture(scope='module')
 def second_session(tmp_path_factory):
     """A map saved from one walk (tuning seed 40), and a second session of the room an hour
@@ -107,7 +134,6 @@ def second_session(tmp_path_factory):
     from dataclasses import replace  # noqa: PLC0415
 
     from rfm_core.evaluation.pipeline import run_capture  # noqa: PLC0415
-    from rfm_core.evaluation.trajectory import map_to_truth  # noqa: PLC0415
     from rfm_core.mapping.map_io import save_map  # noqa: PLC0415
 
     first = CaptureConfig(seed=40, frames=50, fps=5)

@@ -14,6 +14,7 @@ map is matched against the map's objects (:mod:`rfm_core.mapping.recovery`).
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import asdict, dataclass, replace
 
@@ -433,7 +434,7 @@ class Mapper:
         poses = self.averager.poses
         if self.mode != 'mapping' or not poses:
             return False
-        found = self.recovery.edges(self.keyframes, poses, self._newest_stamp_ns, self.map_index, self._gyro_yaw,
+        found = self.recovery.edges(self.keyframes, poses, self._newest_stamp_ns, self.map_index, self._gyro_prior,
                                     self.config.relocalization, self.config.matching)
         if self.averager.reference:             # a loaded map: keyframes of this session join it
             found += self.recovery.joining_edges(
@@ -554,16 +555,21 @@ class Mapper:
             sizes[m.into] = sizes.get(m.into, 1) + 1
         return sizes
 
-    def _gyro_yaw(self, keyframe_id: int, poses: dict) -> float | None:
-        """The yaw of T_map_k as the gyroscope gives it through the registered keyframe
-        nearest in time that shares its integration epoch (None without one), its drift
-        taken out."""
-        obs = self.keyframes[keyframe_id]
+    def _gyro_prior(self, keyframe_id: int, poses: dict) -> MotionPrior | None:
+        """Where keyframe ``keyframe_id`` can be, through the registered keyframe nearest in
+        time that shares its integration epoch (None without one): T_map_k's yaw as the
+        gyroscope gives it (its drift taken out), the camera within what it can walk in the
+        time between them (``relocalization.stream_speed_mps``, ``stream_slack_m``) of that
+        keyframe."""
+        obs, cfg = self.keyframes[keyframe_id], self.config.relocalization
         for k in sorted(poses, key=lambda k: abs(self.keyframes[k].stamp_ns - obs.stamp_ns)):
             span = self._span(k, keyframe_id)                                  # of T_r_k
             if span is not None:
                 yaw = span[0] + self.gyro_drift * span[1]
-                return (Pose4(yaw, (0.0, 0.0, 0.0)).inverse() @ poses[k]).inverse().yaw
+                t_map_r = poses[k].inverse()
+                return MotionPrior(float((Pose4(yaw, (0.0, 0.0, 0.0)).inverse() @ poses[k]).inverse().yaw),
+                                   t_map_r.t.copy(), cfg.stream_speed_mps * abs(span[1]) + cfg.stream_slack_m,
+                                   math.radians(cfg.map_yaw_tolerance_deg))
         return None
 
     # ------------------------------------------------------------------ output

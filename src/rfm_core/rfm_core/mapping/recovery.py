@@ -4,7 +4,8 @@ track goes on in the map instead of starting a component that nothing joins.
 
 Each such keyframe with enough detections is matched (:func:`~rfm_core.mapping.
 relocalization.match_to_map`: every box correspondence with the map's objects proposes a pose
-under the gyroscope's yaw through the nearest registered keyframe of its integration epoch)
+under the gyroscope's yaw through the nearest registered keyframe of its integration epoch,
+within what the camera can walk from that keyframe in the time between them)
 once a keyframe or frame newer than it has arrived, and again whenever the registered map
 has doubled since; a match it accepts (:meth:`~rfm_core.mapping.relocalization.MapMatch.
 accepted`) gives the edge that joins it. Not before something newer: the keyframe's own
@@ -91,25 +92,27 @@ class TrackingRecovery:
         return self.recoverable(obs, config) and keyframe_id not in self.tried
 
     def edges(self, keyframes: dict, poses: dict, newest_stamp_ns: int, index: Callable[[], MapIndex],
-              gyro_yaw: Callable[[int, dict], float | None], config: RelocalizationConfig,
+              gyro_prior: Callable[[int, dict], MotionPrior | None], config: RelocalizationConfig,
               matching: MatchingConfig) -> list:
         """The edges that join keyframes outside the registered map to it (see the module):
         ``keyframes`` {id: FrameObservations}, ``poses`` the registered ones' {id: Pose4},
-        ``index()`` the map indexed for relocalization, ``gyro_yaw(id, poses)`` the yaw of a
-        keyframe's T_map_k as the gyroscope gives it (None without)."""
+        ``index()`` the map indexed for relocalization, ``gyro_prior(id, poses)`` where a
+        keyframe can be (T_map_k's yaw as the gyroscope gives it, its centre within what the
+        camera can walk from the map keyframe nearest in time of its integration epoch; None
+        without one)."""
         due = []
         for k, obs in keyframes.items():
             if (k in poses or not self.recoverable(obs, config) or obs.stamp_ns >= newest_stamp_ns
                     or len(poses) < 2 * self.tried.get(k, len(poses) / 2)):
                 continue
             self.tried[k] = len(poses)
-            gyro = gyro_yaw(k, poses)
-            if gyro is not None:
-                due.append((k, gyro))
+            prior = gyro_prior(k, poses)
+            if prior is not None:
+                due.append((k, prior))
         found = []
         mapped = index() if due else None
-        for k, gyro in due:
-            match = match_to_map(keyframes[k], mapped, matching, config, gyro)
+        for k, prior in due:
+            match = match_to_map(keyframes[k], mapped, matching, config, prior)
             if match is not None and match.accepted(config):
                 found.append(EdgeRecord.from_edge(Edge(match.keyframe_id, k, match.relative)))
         return found

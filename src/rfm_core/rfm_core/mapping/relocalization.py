@@ -17,7 +17,8 @@ mapper (and its node's ``rfm/relocalize`` service, and localization mode) call
 
 :func:`match_to_map` matches a view against the map's objects instead of its keyframes (a
 view may share objects with the map but with no single keyframe): the mapper's tracking
-recovery joins a keyframe that nothing else links to the map with it.
+recovery joins a keyframe that nothing else links to the map with it, only where the camera
+can have walked since the map last saw it.
 :func:`match_on_points` places a query no keyframe places from the same pose hypotheses,
 aligned on its depth points to the map's.
 """
@@ -349,12 +350,13 @@ def _hits(query_boxes: np.ndarray, track_boxes_: np.ndarray, compatible: np.ndar
 
 
 def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingConfig, config: RelocalizationConfig,
-                 yaw_prior: float | None = None, why: list | None = None) -> MapMatch | None:
+                 prior: MotionPrior | None = None, why: list | None = None) -> MapMatch | None:
     """Match a view against the map's object tracks rather than one keyframe (its objects may
     be in no single keyframe's view). Each detection's ``config.map_correspondences`` most
     similar tracks of compatible size (:meth:`MapIndex.similar`) propose a pose each
-    (T_map_view's yaw from ``yaw_prior``, the gyroscope's, or else from the two boxes' yaws up
-    to quarter turns; the translation from their centres); the
+    (T_map_view's yaw from ``prior``, the gyroscope's, or else from the two boxes' yaws up
+    to quarter turns; the translation from their centres); with a ``prior`` only the poses it
+    admits (where the camera can have got to). The
     ``config.map_hypotheses`` distinct poses that land the most view boxes on tracks are each
     verified with the paper's test against the registered keyframe that saw most of the
     matched tracks, and scored against the whole map (:func:`explained`). The best is returned
@@ -365,7 +367,7 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
         why.append('fewer than two detections, or no map to match')
         return None
     qb = np.asarray(query.map_boxes, float)
-    hypotheses, compatible = _map_hypotheses(query, index, matching, config, yaw_prior)
+    hypotheses, compatible = _map_hypotheses(query, index, matching, config, prior)
     if hypotheses is None:
         why.append('no detection the size of a mapped object')
         return None
@@ -375,9 +377,11 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
         if result is not None:
             rel, k = result
             pose = rel.pose.inverse() @ index.poses[k]                       # T_view_k T_k_map
-            found.append((explained(query, pose, index, matching), len(rel.inliers), pose, k, rel))
+            if prior is None or prior.admits(pose):
+                found.append((explained(query, pose, index, matching), len(rel.inliers), pose, k, rel))
     if not found:
-        why.append(f'no pose from the map\'s objects verified against a keyframe ({len(hypotheses)} tried)')
+        why.append(f'no pose from the map\'s objects verified against a keyframe ({len(hypotheses)} tried'
+                   + (', where the camera can be)' if prior is not None else ')'))
         return None
     found.sort(key=lambda f: (-f[0], -f[1]))
     best = found[0]
@@ -386,21 +390,27 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
 
 
 def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: MatchingConfig,
-                    config: RelocalizationConfig, yaw_prior: float | None = None) -> tuple:
+                    config: RelocalizationConfig, prior: MotionPrior | None = None) -> tuple:
     """:func:`match_to_map`'s pose hypotheses (T_map_view), most supported first, at most
     ``config.map_hypotheses`` distinct ones (None: no detection the size of a mapped object),
-    and the (query box, track) size compatibility they were found with."""
+    and the (query box, track) size compatibility they were found with. With a ``prior``:
+    its yaw, and only camera centres within its reach."""
     qb = np.asarray(query.map_boxes, float)
     tb = index.boxes
     ii, jj = index.similar(qb, query.embeddings, matching.size_ratio_gate, config.map_correspondences)
     if not len(ii):
         return None, None
-    if yaw_prior is not None:
-        yaws = np.full((len(ii), 1), float(yaw_prior))
+    if prior is not None:
+        yaws = np.full((len(ii), 1), float(prior.yaw))                # the gyroscope's
     else:                                       # box yaws are known up to quarter turns
         yaws = (tb[jj, 6] - qb[ii, 6])[:, None] + 0.5 * np.pi * np.arange(4)[None]
     hi, hj, hy = np.repeat(ii, yaws.shape[1]), np.repeat(jj, yaws.shape[1]), yaws.reshape(-1)
-    trans = tb[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(hy), qb[hi, :3])
+    trans = tb[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(hy), qb[hi, :3])      # the camera centres
+    if prior is not None:
+        near = np.linalg.norm(trans - prior.centre, axis=1) <= prior.reach_m
+        hy, trans = hy[near], trans[near]
+        if not len(hy):
+            return [], None
     # a hypothesis' support: view boxes landing on the tracks some detection proposed
     play = np.unique(jj)
     compatible = size_similarity(qb, tb) >= matching.size_ratio_gate
