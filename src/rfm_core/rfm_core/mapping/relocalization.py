@@ -74,8 +74,9 @@ class RelocalizationConfig:
                                         'with (the most similar of compatible size)', lo=1, hi=10000)
     stream_max_gap_s: float = setting(2.0, 'Localization mode: a track of localized frames lives this long without '
                                       'a pose (s)', lo=0.1, hi=60.0)
-    stream_speed_mps: float = setting(1.5, '... the fastest the camera moves between two frames (m/s)',
-                                      lo=0.0, hi=100.0)
+    stream_speed_mps: float = setting(1.5, '... the fastest the camera moves between two frames (m/s); also '
+                                      'where tracking recovery looks for a keyframe its stream lost', lo=0.0,
+                                      hi=100.0)
     stream_turn_dps: float = constant(180.0, '... the fastest it turns where no gyroscope measured the turn (deg/s)',
                                       lo=0.0, hi=3600.0)
     stream_slack_m: float = constant(0.3, '... plus this much: the error of two relocalized poses (m)',
