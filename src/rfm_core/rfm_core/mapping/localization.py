@@ -55,7 +55,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from rfm_core.geometry import Pose4, wrap_angle
-from rfm_core.mapping.relocalization import MotionPrior, Relocalization, RelocalizationConfig, same_view
+from rfm_core.mapping.relocalization import (MotionPrior, Relocalization, RelocalizationConfig, same_view,
+                                             walking_reach)
 from rfm_core.matching.relative_pose import track_on_points
 from rfm_core.observations import FrameObservations, imu_relative_yaw
 
@@ -96,7 +97,7 @@ def motion_prior(track: list, obs: FrameObservations, config: RelocalizationConf
             if speed > config.stream_speed_mps:
                 velocity *= config.stream_speed_mps / speed
             predicted = t_map_last.t + velocity * dt
-    return MotionPrior(float(yaw), t_map_last.t.copy(), config.stream_slack_m + config.stream_speed_mps * dt,
+    return MotionPrior(float(yaw), t_map_last.t.copy(), walking_reach(config, dt),
                        min(math.radians(tolerance), math.pi), predicted)
 
 

@@ -28,7 +28,8 @@ from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.culling import CullingConfig, Merged, protected_keyframes, redundant_keyframes
 from rfm_core.mapping.frame_log import FrameLog
 from rfm_core.mapping.localization import on_points
-from rfm_core.mapping.relocalization import MapIndex, MotionPrior, Relocalization, RelocalizationConfig, relocalize
+from rfm_core.mapping.relocalization import (MapIndex, MotionPrior, Relocalization, RelocalizationConfig,
+                                             relocalize, walking_reach)
 from rfm_core.mapping.frame_log import camera_to_map as _camera_to_map
 from rfm_core.mapping.recovery import TrackingRecovery
 from rfm_core.mapping.tracks import TrackConfig, build_tracks
@@ -566,9 +567,8 @@ class Mapper:
             span = self._span(k, keyframe_id)                                  # of T_r_k
             if span is not None:
                 yaw = span[0] + self.gyro_drift * span[1]
-                t_map_r = poses[k].inverse()
-                return MotionPrior(float((Pose4(yaw, (0.0, 0.0, 0.0)).inverse() @ poses[k]).inverse().yaw),
-                                   t_map_r.t.copy(), cfg.stream_speed_mps * abs(span[1]) + cfg.stream_slack_m,
+                yaw_map_k = (Pose4(yaw, (0.0, 0.0, 0.0)).inverse() @ poses[k]).inverse().yaw
+                return MotionPrior(float(yaw_map_k), poses[k].inverse().t.copy(), walking_reach(cfg, span[1]),
                                    math.radians(cfg.map_yaw_tolerance_deg))
         return None
 

@@ -39,7 +39,7 @@ from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_re
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import constant, setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize',
+__all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize', 'walking_reach',
            'same_view', 'detections_needed', 'match_to_map', 'match_on_points', 'refine_on_tracks', 'explained',
            'track_boxes']
 
@@ -108,6 +108,12 @@ class MotionPrior:
         t_map_view = pose.inverse()
         return (float(np.linalg.norm(t_map_view.t - self.centre)) <= self.reach_m
                 and abs(wrap_angle(t_map_view.yaw - self.yaw)) <= self.yaw_tolerance)
+
+
+def walking_reach(config: RelocalizationConfig, seconds: float) -> float:
+    """How far a camera can have got in ``seconds`` (m): ``stream_speed_mps`` for the time,
+    plus ``stream_slack_m`` for the error of the poses it is measured between."""
+    return config.stream_slack_m + config.stream_speed_mps * abs(seconds)
 
 
 @dataclass
