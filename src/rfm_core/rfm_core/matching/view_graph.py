@@ -32,7 +32,8 @@ from rfm_core.matching.graph import (Edge, Frame, GraphStats, GraphStep, Keyfram
                                      without_objects)
 from rfm_core.matching.keyframes import Bridge, KeyframeConfig, NewKeyframe, weak
 from rfm_core.matching.motion import MotionConfig, StreamMotion
-from rfm_core.matching.relative_pose import RelativePose, YawPrior, estimate_relative_pose, with_surfaces
+from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_on_full_boxes, estimate_relative_pose,
+                                            with_surfaces)
 from rfm_core.matching.revisits import Revisit, RevisitConfig, RevisitOnPoints
 from rfm_core.matching.tracking import PointTracking, Tracking, TrackingConfig
 from rfm_core.observations import FrameObservations
@@ -66,6 +67,7 @@ class ViewGraphBuilder:
         self._dim: int | None = None             # their length
         self.next_id = 0
         self.ref = -1                            # index of the reference keyframe frames are tracked against
+        self.separate = False                    # the frame being added is a separate view (no stream before it)
         self.neighbours: dict = {}               # keyframe index -> indices it shares a verified edge with
         self.edge_pose: dict = {}                # (index i, index j) -> T_i_j of their verified edge
         self.motion_placed: set = set()          # keyframes placed by a motion edge alone
@@ -91,6 +93,7 @@ class ViewGraphBuilder:
                              f'{dim}-value ones (one detector backend per graph)')
         self.stats.frames += 1
         frame = Frame(obs, self.motion.continues(obs))
+        self.separate = not frame.stream
         if not frame.stream:
             self.state = None                    # nothing predicts a separate view
         if len(obs) < self.config.keyframes.min_detections:           # too few objects to match
@@ -140,7 +143,10 @@ class ViewGraphBuilder:
         target against source, already computed), corrected by the floor, the walls and the
         depth points. ``stream``: the two frames belong to one stream segment, so the
         gyroscope's rotation between them (when both carry it) constrains the yaw;
-        ``predicted``: the motion's prediction of it (the depth points are aligned from it too)."""
+        ``predicted``: the motion's prediction of it (the depth points are aligned from it too).
+        A separate view (:attr:`separate`) that the fitted boxes do not relate to a keyframe of
+        another segment by ``min_retrieved_inliers`` objects is related by the full boxes where
+        its visible surfaces agree (:func:`estimate_on_full_boxes`)."""
         if matches is None:
             matches = self.matcher.match(target, source)
         prior = None
@@ -148,9 +154,14 @@ class ViewGraphBuilder:
         if measured is not None:
             prior = YawPrior(measured[0], np.radians(measured[1]))
         rel = estimate_relative_pose(target.boxes, source.boxes, matches, self.matching, prior)
+        if rel is not None:
+            rel.swap_index_order()                                   # as (source, target) index pairs
+        few = rel is None or len(rel.inliers) < self.config.keyframes.min_retrieved_inliers
+        if self.separate and not stream and few:
+            full = estimate_on_full_boxes(target, source, self.matcher, self.matching)
+            rel = rel if full is None else full.swap_index_order()
         if rel is None:
             return None
-        rel.swap_index_order()                                       # as (source, target) index pairs
         return with_surfaces(rel, source, target, self.matching, predicted=predicted)
 
     def verified_through(self, keyframe_id: int) -> int | None:
