@@ -55,7 +55,8 @@ class MatchingConfig:
     full_box_yaw_tolerance_deg: float = constant(3.0, "A separate view's pose from the objects' full boxes is kept "
                                                  'where two of its verified objects turn their fitted boxes (the '
                                                  'visible surfaces) by its yaw within this, up to a quarter turn, '
-                                                 'and turned by their mean disagreement (deg; 0: never)', lo=0.0, hi=45.0)
+                                                 'and turned by their mean disagreement (deg; 0: never)',
+                                                 lo=0.0, hi=45.0)
     wall_sigma_m: float = constant(0.02, "Error of a wall plane's offset (m)", lo=1e-4, hi=10.0)
     box_translation_sigma_m: float = constant(0.1, "Error of the boxes' horizontal translation per axis (m), as it "
                                               'is weighed against walls', lo=1e-4, hi=10.0)
