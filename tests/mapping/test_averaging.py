@@ -405,3 +405,35 @@ def test_the_gyroscopes_drift_from_edges_against_it():
     noise = rng.normal(0, np.radians(cfg.pose_sigma_deg), 3)
     assert abs(gyro_drift(short, np.radians(0.3) * short + noise, np.ones(3), cfg)) < np.radians(0.05)
     assert gyro_drift([], [], [], cfg) == 0.0
+
+
+def test_a_loaded_map_is_the_gauge_when_a_part_it_did_not_register_joins():
+    """A saved map whose first keyframes (0-2, the lowest ids) were a part it never registered:
+    a second session joins that part to the map, and a full solve with one more edge moves
+    it. The loaded map's registered keyframes (10-14) stay where they were saved: they are the
+    map's frame. The solve kept its gauge on the earliest registered keyframe, keyframe 0,
+    which had moved, and carried the loaded map 0.2 m with it."""
+    def pose(x, y):
+        return Pose4.from_centre(0.0, np.array([x, y, 0.0]))
+
+    truth = {k: pose(0.5 * k, 2.0) for k in range(3)}
+    truth.update({k: pose(0.5 * (k - 10), 0.0) for k in range(10, 15)})
+    truth[20] = pose(1.0, 1.0)
+    inc = IncrementalAverager(AveragingConfig())
+    for k in (0, 1, 2, 10, 11, 12, 13, 14):
+        inc.add_keyframe(k)
+    for s, t in ((0, 1), (1, 2), (10, 11), (11, 12), (12, 13), (13, 14)):
+        inc.add_edge(s, t, truth[s] @ truth[t].inverse(), 2.0)
+    saved = {k: truth[k] for k in range(10, 15)}
+    inc.restore(saved, np.ones(6, bool))
+    inc.reference = set(saved)                                # as load_map sets it: the registered ones
+    inc.add_keyframe(20)
+    inc.add_edge(12, 20, truth[12] @ truth[20].inverse(), 2.0)
+    inc.add_edge(20, 1, truth[20] @ truth[1].inverse(), 2.0)
+    inc.update(force_full=True)
+    assert all(inc.pose(k) is not None for k in (0, 1, 2, 20))
+    off = Pose4.from_centre(0.0, np.array([0.2, 0.0, 0.0]))
+    inc.add_edge(14, 2, truth[14] @ (off @ truth[2]).inverse(), 4.0)   # moves the joined part
+    inc.update(force_full=True)
+    for k, expected in saved.items():
+        assert np.allclose(inc.pose(k).t, expected.t, atol=1e-6) and abs(inc.pose(k).yaw - expected.yaw) < 1e-9, k

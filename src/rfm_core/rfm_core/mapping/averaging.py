@@ -837,6 +837,9 @@ class IncrementalAverager:
         theta, centres, comp = theta[rank], centres[rank], comp[rank]
         active, cycle = active[back], cycle[back]
         self.cycle_dropped = int(np.count_nonzero(cycle))
+        held = np.array([k in self.reference for k in self.ids], bool) & self._registered
+        if np.any(held & comp):
+            return theta, centres, active, comp     # a loaded map's keyframes, held where saved, are the gauge
         if np.any(self._registered & comp):
             # keep the previous gauge: express the new solution relative to the anchor's old pose
             if self._registered[anchor]:
