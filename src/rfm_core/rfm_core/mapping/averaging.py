@@ -824,7 +824,7 @@ class IncrementalAverager:
         reg = self._registered[node]
         order = np.r_[np.flatnonzero(reg), np.flatnonzero(~reg)]
         reference = np.array([k in self.reference for k in ids[node]], bool) if self.reference else None
-        fixed = None
+        fixed, hold = None, np.zeros(len(node), bool)
         if reference is not None:           # held where they are (registered: the loaded map's poses)
             hold = reference & self._registered[node]
             fixed = (np.where(hold, self._theta[node], np.nan), np.where(hold[:, None], self._centres[node], np.nan))
@@ -832,13 +832,13 @@ class IncrementalAverager:
             len(self.ids), rank[src][edge], rank[dst][edge], yaw[edge], trans[edge], weight[edge], self.config,
             order, self.edges.yaw_only[edge], reference, fixed, self._sizes()[node])
         anchor = next((node[k] for k in order if comp[k]), None)
+        held = bool(np.any(hold & comp))    # (canonical order, as comp is here)
         back = np.empty_like(edge)
         back[edge] = np.arange(len(edge))                    # store index -> canonical position
         theta, centres, comp = theta[rank], centres[rank], comp[rank]
         active, cycle = active[back], cycle[back]
         self.cycle_dropped = int(np.count_nonzero(cycle))
-        held = np.array([k in self.reference for k in self.ids], bool) & self._registered
-        if np.any(held & comp):
+        if held:
             return theta, centres, active, comp     # a loaded map's keyframes, held where saved, are the gauge
         if np.any(self._registered & comp):
             # keep the previous gauge: express the new solution relative to the anchor's old pose

@@ -39,9 +39,9 @@ from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_re
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import constant, setting
 
-__all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize', 'walking_reach',
-           'same_view', 'detections_needed', 'match_to_map', 'match_on_points', 'refine_on_tracks', 'explained',
-           'track_boxes']
+__all__ = ['RelocalizationConfig', 'Relocalization', 'MotionPrior', 'MapMatch', 'MapIndex', 'relocalize',
+           'walking_reach', 'same_view', 'detections_needed', 'match_to_map', 'match_on_points', 'refine_on_tracks',
+           'explained', 'track_boxes']
 
 
 #: two cameras further apart than this see nothing in common (twice a depth camera's reach)

@@ -38,8 +38,8 @@ from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 from rfm_core.matching.points import align_points
 
-__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'estimate_on_full_boxes', 'turned_to_surfaces',
-           'with_points', 'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
+__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'estimate_on_full_boxes', 'with_points',
+           'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
 
 
 @dataclass
@@ -160,7 +160,7 @@ def estimate_on_full_boxes(obs_a, obs_b, matcher, config: MatchingConfig | None 
     """T_b_a as :func:`estimate_relative_pose` of ``obs_a``'s and ``obs_b``'s boxes gives it, but
     matched (``matcher``) and verified on the objects' full boxes (the detector's completion),
     and kept only where the fitted boxes' directions agree with its yaw, turned to them
-    (:func:`turned_to_surfaces`); None where either frame has no full boxes. Seen from far
+    (:func:`_turned_to_surfaces`); None where either frame has no full boxes. Seen from far
     apart, the fitted boxes (the visible part of each object, which repeats from frame to
     frame of a stream) are different parts of one object and verify half the pairs of photos
     the full boxes verify; the full boxes' yaw is the looser, and the poses they get wrong are
@@ -175,8 +175,7 @@ def estimate_on_full_boxes(obs_a, obs_b, matcher, config: MatchingConfig | None 
     if rel is None:
         return None
     rel.corner_inliers = []                                  # (corners of the full boxes, not of ``boxes``)
-    rel = turned_to_surfaces(rel.swap_index_order(), obs_b, obs_a, cfg)
-    return None if rel is None else rel.swap_index_order()
+    return _turned_to_surfaces(rel, obs_a, obs_b, cfg)
 
 
 def has_full_boxes(obs) -> bool:
@@ -184,25 +183,23 @@ def has_full_boxes(obs) -> bool:
     return obs.full_boxes is not None and len(obs.full_boxes) == len(obs.boxes)
 
 
-def turned_to_surfaces(rel: RelativePose, source, target, config: MatchingConfig | None = None) -> RelativePose | None:
-    """``rel`` (T_source_target, (source, target) index pairs) from boxes whose yaw is loose (the
-    objects' full boxes), checked and turned by the fitted boxes (``boxes``: the visible
-    surfaces' directions, precise where their extents are different parts of each object):
-    None unless at least two verified objects turn their fitted boxes by ``rel``'s yaw within
-    ``full_box_yaw_tolerance_deg`` (up to a quarter turn, a box's symmetry); else ``rel``
-    turned by those objects' mean disagreement about the centroid of its verified target
-    boxes, which keep their place (in place; returns ``rel``)."""
-    cfg = config or MatchingConfig()
+def _turned_to_surfaces(rel: RelativePose, obs_a, obs_b, config: MatchingConfig) -> RelativePose | None:
+    """``rel`` (T_b_a from the full boxes, (a, b) index pairs) checked and turned by the fitted
+    boxes (``boxes``: the visible surfaces' directions, precise where their extents are
+    different parts of each object): None unless at least two verified objects turn their
+    fitted boxes by ``rel``'s yaw within ``full_box_yaw_tolerance_deg`` (up to a quarter turn,
+    a box's symmetry); else ``rel`` turned by those objects' mean disagreement about the
+    centroid of its verified full boxes in frame a, which keep their place (in place; returns
+    ``rel``)."""
     inl = np.asarray(rel.inliers, int).reshape(-1, 2)
-    turn = (np.asarray(source.boxes, np.float64)[inl[:, 0], 6] - np.asarray(target.boxes, np.float64)[inl[:, 1], 6]
+    turn = (np.asarray(obs_b.boxes, np.float64)[inl[:, 1], 6] - np.asarray(obs_a.boxes, np.float64)[inl[:, 0], 6]
             - rel.pose.yaw)
     turn = (turn + np.pi / 4) % (np.pi / 2) - np.pi / 4             # from the nearest quarter turn
-    agree = np.abs(turn) <= np.radians(cfg.full_box_yaw_tolerance_deg)
+    agree = np.abs(turn) <= np.radians(config.full_box_yaw_tolerance_deg)
     if np.sum(agree) < 2:
         return None
     yaw, correction = float(rel.pose.yaw), float(np.mean(turn[agree]))
-    pivot = np.asarray(target.full_boxes if target.full_boxes is not None else target.boxes,
-                       np.float64)[inl[:, 1], :3].mean(0)
+    pivot = np.asarray(obs_a.full_boxes, np.float64)[inl[:, 0], :3].mean(0)
     t = np.asarray(rel.pose.t, np.float64) + (yaw_matrix(yaw) - yaw_matrix(yaw + correction)) @ pivot
     rel.pose = Pose4(float(wrap_angle(yaw + correction)), t)
     return rel
