@@ -78,6 +78,33 @@ def test_a_frame_taken_late_keeps_its_gravity(bag_messages):
     assert np.degrees(np.arccos(np.clip(obs.gravity_cam @ down, -1, 1))) < 2.0
 
 
+def test_a_frame_taken_seconds_late_keeps_the_gyroscopes_orientation(tmp_path):
+    """A detector behind its camera (a slow machine) takes a frame after seconds of IMU
+    samples have come in since: the frame still gets the gyroscope's orientation at its stamp
+    (the gyroscope's yaw edges of the map need it) and its gravity as it was then."""
+    from rosbags.highlevel import AnyReader
+
+    from rfm_core.observations import imu_relative_yaw
+
+    capture = Capture(CaptureConfig(seed=45, frames=16, fps=5))                 # 3 s: 600 IMU samples
+    capture.write_bag(tmp_path / 'late')
+    truth = {f.stamp_ns: f for f in capture.frames()}
+    with AnyReader([tmp_path / 'late']) as reader:
+        messages = [(c.topic, reader.deserialize(raw, c.msgtype)) for c, _, raw in reader.messages()]
+    frames = []
+    frontend = DetectorFrontend(make_detector('depth_clusters'), lambda *job: frames.append(job), imu_wait_s=0.0)
+    _feed(frontend, messages)
+    first, last = frontend.detect(*frames[0]), frontend.detect(*frames[-1])
+    assert (last.stamp_ns - first.stamp_ns) * 1e-9 > 2.5
+    assert first.imu_rotation is not None and first.imu_epoch == last.imu_epoch > 0
+    down = truth[first.stamp_ns].pose_matrix[:3, :3].T @ np.array([0.0, 0.0, -1.0])
+    assert np.degrees(np.arccos(np.clip(first.gravity_cam @ down, -1, 1))) < 2.0
+    aligned = [truth[o.stamp_ns].pose_matrix[:3, :3] @ o.rotation_aligned_from_camera.T for o in (first, last)]
+    turn = aligned[0].T @ aligned[1]                                 # the gravity-aligned frames' T_first_last
+    true = np.arctan2(turn[1, 0], turn[0, 0])
+    assert abs(np.degrees(np.angle(np.exp(1j * (imu_relative_yaw(first, last) - true))))) < 1.0
+
+
 def test_every_nth_frame_and_a_looping_bag(bag_messages):
     messages, truth = bag_messages
     frames = []

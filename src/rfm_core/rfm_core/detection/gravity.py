@@ -33,6 +33,7 @@ out before the sample is used, both by the filter and by the rest test.
 """
 from __future__ import annotations
 
+import bisect
 import math
 from collections import deque
 
@@ -63,6 +64,11 @@ class GravityFilter:
     G = 9.80665
     #: (m/s^2) a specific force outside this range is no reading of gravity
     FORCE_RANGE = (4.0, 20.0)
+    #: (s) how far back the samples go that a frame's gravity and orientation are read from: a
+    #: detector behind its camera on a slow machine takes frames seconds late
+    HISTORY_S = 10.0
+    #: at most this many of them (an IMU at several kHz)
+    HISTORY_MAX = 20000
 
     def __init__(self, tau_s: float = 1.0, max_gap_s: float = 1.0, rest_window_s: float = 0.1,
                  rest_tolerance: float = 0.02, rest_gyro_rad_s: float = 0.05, rest_reset_deg: float = 5.0):
@@ -79,7 +85,7 @@ class GravityFilter:
         self._since_start = 0              # samples since the estimate (re)started
         self._stamp_ns = None
         self._orientation = None          # IMU frame -> integration frame, None without gyroscope
-        self._history = deque(maxlen=256)  # recent (stamp_ns, epoch, orientation or None, force)
+        self._history = deque(maxlen=self.HISTORY_MAX)  # (stamp_ns, epoch, orientation or None, force), HISTORY_S
         self.epoch = 0                    # integration epoch of the orientation (0: none yet)
         self.samples = 0
         self.rejected = 0
@@ -132,6 +138,8 @@ class GravityFilter:
             self._orientation = np.eye(3)
             self.epoch += 1
         self._history.append((int(stamp_ns), self.epoch, self._orientation, self._force.copy()))
+        while stamp_ns - self._history[0][0] > self.HISTORY_S * 1e9:
+            self._history.popleft()
         self._stamp_ns = int(stamp_ns)
         self.samples += 1
         return True
@@ -164,10 +172,11 @@ class GravityFilter:
 
     def _nearest(self, stamp_ns: int, max_gap_s: float):
         """The recent sample nearest ``stamp_ns``, if within ``max_gap_s`` of it; else None."""
-        history = list(self._history)          # (a copy: the IMU callback may be appending)
+        history = list(self._history)          # (a copy: the IMU callback may be appending), by stamp
         if not history:
             return None
-        nearest = min(history, key=lambda h: abs(h[0] - stamp_ns))
+        i = bisect.bisect_left(history, stamp_ns, key=lambda h: h[0])
+        nearest = min(history[max(i - 1, 0):i + 1], key=lambda h: abs(h[0] - stamp_ns))
         return nearest if abs(nearest[0] - stamp_ns) <= max_gap_s * 1e9 else None
 
     def orientation_at(self, stamp_ns: int, max_gap_s: float = 0.02):
