@@ -355,6 +355,31 @@ def test_the_objects_overrule_a_track_that_the_points_alone_would_carry_on(saved
     assert _close(moved[-1][1].pose, views[far][1])
 
 
+def test_a_frame_the_points_alone_place_does_not_end_the_poses_held_against_the_track(saved):
+    """A frame whose objects contradict the track is held; the next frame has depth points
+    only, which carry the track on (and place the held frame on it, walking back). It
+    confirms nothing: the held pose stays held, and a third frame whose objects agree with it
+    replaces the track where the objects put both, the held frame placed again."""
+    mapper, room = _room_map(saved)
+    views = _views(mapper)
+    centres = np.array([p.inverse().t for _, p in views])
+    far = int(np.argmax(np.linalg.norm(centres - centres[1], axis=1)))
+    stream = StreamLocalizer(mapper)
+    for view, _ in views[:2]:
+        stream.step(view)
+    near, stamp = views[1][1], views[1][0].stamp_ns + STEP_NS
+    frame = replace(views[far][0], stamp_ns=stamp, imu_rotation=None, imu_epoch=0,
+                    cloud=_points_of(room, near, views[1][0], stamp).cloud)
+    assert stream.step(frame) == [] and len(stream.held) == 1
+    points_only = _points_of(room, near, views[1][0], stamp + STEP_NS, seed=1)
+    carried = stream.step(points_only)
+    assert [o.stamp_ns for o, _ in carried] == [stamp, points_only.stamp_ns] and len(stream.held) == 1
+    again = replace(frame, stamp_ns=stamp + 2 * STEP_NS)
+    moved = stream.step(again)
+    assert [o.stamp_ns for o, _ in moved] == [stamp, again.stamp_ns]
+    assert _close(moved[0][1].pose, views[far][1]) and _close(moved[-1][1].pose, views[far][1])
+
+
 def test_a_frame_no_keyframe_saw_all_of_is_placed_on_the_maps_merged_points(saved):
     """Each keyframe saw one slice of the room (by bearing from its centre); the query sees
     all of it. No single keyframe's points place it (too little of the view lies on them),

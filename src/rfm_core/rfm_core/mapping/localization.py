@@ -41,7 +41,10 @@ does with its odometry:
 - **The objects have the last word.** Points alone can slide a track along a wall, a frame
   at a time, 0.5 m off in a few seconds while each alignment fits well. A frame the points
   place whose objects, relocalized against the whole map, place it somewhere else is taken
-  as contradicting the track (held, and two such frames that agree replace it).
+  as contradicting the track (held, and two such frames that agree replace it). Frames the
+  points alone place confirm nothing: they carry the track on (and walk it back over the
+  frames before them), but the poses held against it stay held, and a later frame that
+  agrees with one replaces the track and places the held frame again.
 
 No ROS here: :class:`rfm_core.session.MapSession` calls :meth:`StreamLocalizer.step` for
 each frame in localization mode (``rfm/detections``), and ``rfm eval-reloc --offline`` does
@@ -174,14 +177,17 @@ class StreamLocalizer:
         return (bool(self.track)
                 and abs(obs.stamp_ns - self.track[-1][0].stamp_ns) * 1e-9 <= self.config.stream_max_gap_s)
 
-    def _accept(self, *frames) -> list:
+    def _accept(self, *frames, by_objects: bool = True) -> list:
         """The track goes on with ``frames`` ((observations, Relocalization), oldest first),
         after the unplaced frames between its last one and them, walked back over
-        (:meth:`_walk_back`); all of those, oldest first."""
+        (:meth:`_walk_back`); all of those, oldest first. Frames the objects placed
+        (``by_objects``) end the poses held against the track; a frame its depth points alone
+        placed confirms nothing, and they stay held."""
         after = self.track[-1][0].stamp_ns if self.track else None
         frames = self._walk_back(*frames[0], after) + list(frames)
         self.track = (self.track + [(o, r.pose) for o, r in frames])[-TRACK:]
-        self.held = []
+        if by_objects:
+            self.held = []
         placed = {id(o) for o, _ in frames}
         self.unplaced = [o for o in self.unplaced if id(o) not in placed]
         return frames
@@ -234,7 +240,7 @@ class StreamLocalizer:
                 alone = relocalize(obs, []) if len(obs) >= 2 else None
                 if alone is None or same_view(alone.pose.inverse(), by_points.pose.inverse(), cfg):
                     self.counts['points'] += 1
-                    return self._accept((obs, by_points))
+                    return self._accept((obs, by_points), by_objects=False)
                 reloc = alone
         self.unplaced = (self.unplaced + [obs])[-UNPLACED:]        # until something places it
         if reloc is None:
