@@ -32,7 +32,11 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
     out = tmp_path / 'runs' / 'out'
     cmd = [shutil.which('rfm'), 'run', '--bag', str(short_bag), '--output', 'runs/out', '--backend', 'ground_truth',
            '--quiet', '--settle', '2']          # a relative output folder, as make demo gives
-    cmd.append('--processes' if processes else '--no-processes')
+    # in one process the first frames' warm-up can keep the detector busy past the next frame on
+    # a slow machine, and which frame it drops changes the keyframes and every live pose after
+    # them (the share within 2 sigma 82% -> 61%); paced play gives it every frame, so the
+    # accuracy below is the graph's, not the machine's speed. As processes: real time.
+    cmd += ['--processes'] if processes else ['--no-processes', '--paced']
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=240, cwd=tmp_path)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     for name in ('map.rfm', 'trajectory.tum', 'objects.json', 'report.md', 'top_down.png',
