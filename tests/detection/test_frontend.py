@@ -105,6 +105,23 @@ def test_a_frame_taken_seconds_late_keeps_the_gyroscopes_orientation(tmp_path):
     assert abs(np.degrees(np.angle(np.exp(1j * (imu_relative_yaw(first, last) - true))))) < 1.0
 
 
+def test_gravity_long_after_is_not_turned_back_through_the_gyroscopes_drift():
+    """A camera at rest, its gyroscope reading 1 deg/s of bias: the gravity of a frame taken
+    3 s late is the estimate the filter had then (0.5 deg off), not the newest turned back
+    through 3 s of the bias (2 deg off); one taken 0.1 s late is turned back."""
+    from rfm_core.detection.gravity import GravityFilter
+
+    down = np.array([0.0, 0.3, 1.0]) / np.linalg.norm([0.0, 0.3, 1.0])
+    bias = np.radians([1.0, 0.0, 0.0])
+    imu = GravityFilter(rest_reset_deg=45.0)
+    for i in range(800):                                             # 4 s at 200 Hz
+        imu.add(i * 5_000_000, -GravityFilter.G * down, bias)
+
+    def off(stamp_ns):
+        return np.degrees(np.arccos(np.clip(imu.gravity_at(stamp_ns) @ down, -1, 1)))
+    assert off(1_000_000_000) < 1.5 and off(3_900_000_000) < 1.5
+
+
 def test_every_nth_frame_and_a_looping_bag(bag_messages):
     messages, truth = bag_messages
     frames = []

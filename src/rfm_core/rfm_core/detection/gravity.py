@@ -190,14 +190,17 @@ class GravityFilter:
     def gravity_at(self, stamp_ns: int, max_gap_s: float = 0.02) -> np.ndarray:
         """Unit gravity ("down") in the IMU frame at ``stamp_ns``: the newest estimate turned
         back by the gyroscope to the recent sample nearest ``stamp_ns`` (within ``max_gap_s``;
-        without a gyroscope between them, the estimate that sample left). A frame detected
-        after later IMU samples arrived gets gravity as it was when the frame was taken, not
-        as the camera has turned since. Without such a sample: :meth:`gravity`."""
+        without a gyroscope between them, or more than ``tau_s`` before the newest sample, the
+        estimate that sample left: the gyroscope's drift over a longer turn back costs more
+        than the newer samples' averaging gains). A frame detected after later IMU samples
+        arrived gets gravity as it was when the frame was taken, not as the camera has turned
+        since. Without such a sample: :meth:`gravity`."""
         found = self._nearest(stamp_ns, max_gap_s)
         if found is None:
             return self.gravity()
-        _, epoch, orientation, force = found
-        if orientation is not None and self._orientation is not None and epoch == self.epoch:
+        sample_ns, epoch, orientation, force = found
+        if (orientation is not None and self._orientation is not None and epoch == self.epoch
+                and (self._stamp_ns - sample_ns) * 1e-9 <= self.tau_s):
             # a fixed direction in the integration frame, seen from the body at the sample
             force = _orthonormal(orientation).T @ (_orthonormal(self._orientation) @ self._force)
         return -force / np.linalg.norm(force)
