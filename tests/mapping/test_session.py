@@ -1,4 +1,6 @@
 """MapSession: keyframe ids from a view graph that restarts, or that meets a loaded map (#19)."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from sim_frames import detected_frames
@@ -366,3 +368,51 @@ def test_a_keyframe_where_another_already_is_is_culled(round_walk):
     assert on_errors['ATE_median'] <= max(1.3 * off_errors['ATE_median'], 0.05), (on_errors, off_errors)
     assert on_errors['ARE_median'] <= max(1.3 * off_errors['ARE_median'], 1.5), (on_errors, off_errors)
     assert len(on.tracks()) >= 0.8 * len(off.tracks())
+
+
+def test_a_keyframe_is_solved_and_given_out_once_the_edges_sent_with_it_are_in(observations):
+    """The matcher sends a keyframe, then its edges, then its tracked frame, each a message on
+    its own topic, and the mapper's solve timer can run between them. A keyframe solved (or
+    placed provisionally) on the first of its edges alone is placed where that edge says and
+    published there: a wrong first edge put a graph run's keyframes 0.8-1.0 m off. The
+    keyframe says how many edges come with it; nothing of it is solved or given out before
+    they are in, or :data:`EDGES_WAIT_S` has passed."""
+    from rfm_core.session import EDGES_WAIT_S
+    graph, now = ViewGraphBuilder(), [0.0]
+    session = MapSession(clock=lambda: now[0])
+    for obs in observations:
+        keyframe, edges, track = graph.add(obs)
+        if keyframe is not None and len(edges) >= 3:
+            break
+        if keyframe is not None:
+            session.add_keyframe(keyframe.keyframe_id, keyframe.observations, edges=len(edges))
+        for e in edges:
+            session.add_edge(EdgeRecord.from_edge(e))
+        if track is not None:
+            session.add_frame(track)
+        session.tick()
+    else:
+        pytest.fail('no keyframe with three edges')
+    records = [EdgeRecord.from_edge(e) for e in edges]
+    right = session.mapper.pose(records[-1].source)
+    wrong = replace(records[0], pose=Pose4(records[0].pose.yaw + 0.8, records[0].pose.t + np.array([1.0, 0.5, 0.0])))
+    session.add_keyframe(keyframe.keyframe_id, keyframe.observations, edges=len(edges))
+    session.add_edge(wrong)                                  # the first edge to arrive is wrong
+    assert session.tick() is False                           # the others are on their way: no solve
+    assert session.add_frame(track) is None                  # and no provisional pose on the wrong one
+    for record in records[1:]:
+        session.add_edge(record)
+    camera = session.tick()
+    expect = (records[-1].pose.inverse() @ right).inverse().t    # the keyframe's centre by a right edge
+    assert right is not None and camera is not None and camera.stamp_ns == keyframe.observations.stamp_ns
+    assert np.linalg.norm(camera.matrix[:3, 3] - expect) < 0.05
+    # an edge lost on the way holds the solve for EDGES_WAIT_S at most
+    keyframe, edges, track = next((k, e, t) for k, e, t in map(graph.add, observations[observations.index(obs) + 1:])
+                                  if k is not None and e)
+    session.add_keyframe(keyframe.keyframe_id, keyframe.observations, edges=len(edges) + 1)
+    for e in edges:
+        session.add_edge(EdgeRecord.from_edge(e))
+    assert session.tick() is False and session.mapper.pose(keyframe.keyframe_id) is None
+    now[0] += EDGES_WAIT_S
+    session.tick()
+    assert session.mapper.pose(keyframe.keyframe_id) is not None

@@ -223,10 +223,12 @@ class MapperCore:
                                     'queue or a dropped connection; the map has a gap there')
             self.warn(self.session.message)
 
-    def keyframe(self, keyframe_id: int, obs: FrameObservations | None, session: int = 0, sequence: int = 0) -> None:
+    def keyframe(self, keyframe_id: int, obs: FrameObservations | None, session: int = 0, sequence: int = 0,
+                 edges: int = 0) -> None:
+        """A keyframe; ``edges``: how many edges the matcher publishes with it (solved with them)."""
         self.delivered('keyframes', session, sequence)
         if obs is not None:
-            self.session.add_keyframe(keyframe_id, obs, int(session))
+            self.session.add_keyframe(keyframe_id, obs, int(session), edges=edges)
 
     def edge(self, edge, session: int = 0, sequence: int = 0) -> None:
         self.delivered('edges', session, sequence)

@@ -37,6 +37,7 @@ __all__ = ['MapSession', 'Session', 'Step', 'CameraPose', 'ExternalPoses', 'Sequ
 PENDING_EDGES = 5000            #: edges (and tracked frames) waiting for their keyframes (oldest dropped first)
 PENDING_EDGE_AGE_S = 30.0       #: ... for at most this long
 PENDING_KEYFRAMES = 100         #: posed keyframes waiting for their poses
+EDGES_WAIT_S = 1.0              #: a keyframe is solved once the edges sent with it are in, or this long after it
 MAX_KEYFRAME_ID = 2 ** 40       #: larger incoming ids get the next free map id (track ids stay in 64 bits)
 RELOCALIZE_TIMES_KEPT = 1000    #: relocalization queries whose wall time is kept (for the latency reported)
 
@@ -128,6 +129,7 @@ class MapSession:
         self.pending_edges: list = []         # (arrival time, EdgeRecord) waiting for keyframes
         self.pending_keyframes: list = []     # posed: (id, observations) waiting for a pose
         self.pending_frames: list = []        # (arrival time, FrameTrack) waiting for their keyframe
+        self.awaiting: dict = {}              # map id -> [edges sent with the keyframe not yet in, arrival time]
         self.dirty = False                    # keyframes or edges not yet solved
         self.since_save = 0                   # keyframes added since the map was last saved
         self._full_solve_due = None           # clock time of the idle full re-solve
@@ -157,9 +159,13 @@ class MapSession:
 
     # ------------------------------------------------------------------ mapping input
 
-    def add_keyframe(self, keyframe_id: int, obs: FrameObservations, source: int = 0) -> bool:
+    def add_keyframe(self, keyframe_id: int, obs: FrameObservations, source: int = 0, edges: int = 0) -> bool:
         """A keyframe from the view graph session ``source`` (0: unnumbered; posed: it waits
-        for its pose). False: ignored (localization mode, or a keyframe already received)."""
+        for its pose). False: ignored (localization mode, or a keyframe already received).
+        ``edges``: how many edges the view graph sent with it; :meth:`tick` does not solve
+        until they are in (or :data:`EDGES_WAIT_S` has passed): they arrive as separate
+        messages, and a keyframe solved on the first of them alone is placed on that edge
+        alone, and published there."""
         if self.mode != 'mapping':
             return False
         map_id = self._new_map_id(int(keyframe_id), obs.stamp_ns, int(source))
@@ -171,6 +177,8 @@ class MapSession:
             return True
         if not self.mapper.add_keyframe(map_id, obs):
             return False
+        if edges > 0:
+            self.awaiting[map_id] = [int(edges), self.clock()]
         self._keyframe_added()
         return True
 
@@ -224,6 +232,11 @@ class MapSession:
                 self.pending_edges.pop(0)
                 self.counts['dropped'] += 1
             return
+        for k in (mapped.source, mapped.target):
+            if k in self.awaiting:
+                self.awaiting[k][0] -= 1
+                if self.awaiting[k][0] <= 0:
+                    del self.awaiting[k]
         try:
             if self.mapper.add_edge(mapped):
                 self.counts['edges'] += 1
@@ -293,6 +306,8 @@ class MapSession:
         self._latest_track = track
         if self.mapper.awaits_recovery(map_id):
             self.dirty = True                   # the next update tries to recover its keyframe
+        if map_id in self.awaiting:
+            return None                         # placed on part of its keyframe's edges: the tick after them says
         return self._latest_camera()
 
     def _latest_camera(self) -> CameraPose | None:
@@ -331,7 +346,11 @@ class MapSession:
         been idle for ``idle_full_solve_s`` after incremental updates. False: nothing to do;
         otherwise the poses changed and the result is the newest frame's new camera pose (or
         None). Never raises: a failed solve is kept in :attr:`message`."""
-        idle = (not self.dirty and self._full_solve_due is not None and self.clock() >= self._full_solve_due)
+        now = self.clock()
+        self.awaiting = {k: w for k, w in self.awaiting.items() if now - w[1] < EDGES_WAIT_S}
+        if self.awaiting:
+            return False                                    # a keyframe's edges are still on their way
+        idle = (not self.dirty and self._full_solve_due is not None and now >= self._full_solve_due)
         if not (self.dirty or idle):
             return False
         try:

@@ -71,7 +71,7 @@ class MapperNode(GuardedCallbacks, Node):
 
     def _on_keyframe(self, msg) -> None:
         obs = decoded(m.frame_detections_from_msg, msg.detections, f'keyframe {msg.keyframe_id}', self.core.dropped)
-        self.core.keyframe(int(msg.keyframe_id), obs, msg.session, msg.sequence)
+        self.core.keyframe(int(msg.keyframe_id), obs, msg.session, msg.sequence, edges=int(msg.num_edges))
 
     def _on_edge(self, msg) -> None:
         self.core.edge(decoded(m.edge_record_from_msg, msg, 'edge', self.core.dropped), msg.session, msg.sequence)

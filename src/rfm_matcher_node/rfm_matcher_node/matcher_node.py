@@ -94,7 +94,7 @@ class MatcherNode(GuardedCallbacks, Node):
             detections = msg if keyframe.observations is obs else frame_detections_to_msg(keyframe.observations)
             self.keyframe_pub.publish(self._numbered(Keyframe(header=detections.header,
                                                               keyframe_id=keyframe.keyframe_id,
-                                                              detections=detections)))
+                                                              detections=detections, num_edges=len(edges))))
             self.get_logger().debug(f'keyframe {keyframe.keyframe_id}: {len(edges)} edges')
         for edge in edges:                        # the keyframe's, or those a revisiting frame measured
             self.edge_pub.publish(self._numbered(edge_msg(edge, obs.stamp_ns)))

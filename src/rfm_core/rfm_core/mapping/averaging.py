@@ -656,6 +656,7 @@ class IncrementalAverager:
         self._registered = np.zeros(0, bool)
         self._new: list = []
         self._new_edges = False
+        self._solved_edges = 0               # edges added before the last update (the later ones are new)
         self._since_full = 0
         self._needs_full = False
         self._loop_votes = 0
@@ -759,6 +760,7 @@ class IncrementalAverager:
                 kind = 'local' if self._local() else 'full'
             self._new = []
             self._new_edges = False
+            self._solved_edges = len(self.edges)
         self.stats = UpdateStats(kind, time.perf_counter() - start, int(self._registered.sum()),
                                  int(np.count_nonzero(~self.edges.active)))
         return self.stats
@@ -771,6 +773,7 @@ class IncrementalAverager:
         if fold:
             self.update()                        # fold pending input first, then overwrite
         self._new, self._new_edges = [], False
+        self._solved_edges = len(self.edges)
         e = self.edges
         e.active[:] = np.asarray(active, bool).reshape(len(e)) | e.yaw_only
         self._registered[:] = False
@@ -892,6 +895,7 @@ class IncrementalAverager:
         registered = self._registered.copy()
         active = self.edges.active.copy()
         full = ~self.edges.yaw_only
+        self._revote(registered, active, src, dst, full)
         # place new keyframes from their edges to registered ones (robust vote)
         # (edges with an unregistered end: a chain of new keyframes is placed link by link)
         use = active & full & ~(registered[src] & registered[dst])
@@ -930,6 +934,31 @@ class IncrementalAverager:
             self._full()
             return False
         return True
+
+    def _revote(self, registered, active, src, dst, full) -> None:
+        """Keyframes of the window that new edges reach, placed before from fewer of their
+        edges, are placed again (``registered`` cleared in place, their edges to registered
+        keyframes active again) by the vote over all of them: a keyframe's edges arrive as
+        separate messages, and a solve between two of them must not make the first the judge
+        of the rest (its residual check would drop the later ones, which agree with each
+        other, as outliers of a keyframe one wrong edge placed). The newer end of each new
+        edge (by arrival) is placed again; never the anchor or a loaded map's keyframe."""
+        new = np.arange(self._solved_edges, len(self.edges))
+        new = new[full[new]]
+        if not len(new):
+            return
+        reg = np.flatnonzero(registered)
+        window = set(reg[-self.config.window:].tolist()) - {int(reg[0])} if len(reg) else set()
+        window -= {self._index[k] for k in self.reference if k in self._index}
+        again = {int(v) for v in np.maximum(src[new], dst[new]) if int(v) in window}
+        if not again:
+            return
+        again = np.fromiter(again, np.int64)
+        registered[again] = False
+        touch = np.isin(src, again) | np.isin(dst, again)
+        back = touch & full & (registered[src] | registered[dst])
+        active[back] = True
+        self.edges.active[back] = True
 
 
 def _regauge(theta, centres, anchor, old_theta, old_centre):
