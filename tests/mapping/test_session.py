@@ -400,12 +400,17 @@ def test_a_keyframe_is_solved_and_given_out_once_the_edges_sent_with_it_are_in(o
     session.add_edge(wrong)                                  # the first edge to arrive is wrong
     assert session.tick() is False                           # the others are on their way: no solve
     assert session.add_frame(track) is None                  # and no provisional pose on the wrong one
+    later = replace(track, stamp_ns=track.stamp_ns + 10**8, is_keyframe=False, pose=Pose4(0.0, (0.1, 0.0, 0.0)))
+    assert session.add_frame(later) is None
     for record in records[1:]:
         session.add_edge(record)
     camera = session.tick()
     expect = (records[-1].pose.inverse() @ right).inverse().t    # the keyframe's centre by a right edge
-    assert right is not None and camera is not None and camera.stamp_ns == keyframe.observations.stamp_ns
-    assert np.linalg.norm(camera.matrix[:3, 3] - expect) < 0.05
+    assert right is not None and camera is not None and camera.stamp_ns == later.stamp_ns
+    # the frame held before the newest is given out too, first, with its covariance
+    held, = session.released
+    assert held.stamp_ns == keyframe.observations.stamp_ns and held.covariance is not None
+    assert np.linalg.norm(held.matrix[:3, 3] - expect) < 0.05
     # an edge lost on the way holds the solve for EDGES_WAIT_S at most
     keyframe, edges, track = next((k, e, t) for k, e, t in map(graph.add, observations[observations.index(obs) + 1:])
                                   if k is not None and e)

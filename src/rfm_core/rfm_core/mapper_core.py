@@ -111,6 +111,7 @@ class Tick:
 
     keyframe_poses: tuple | None = None       #: the poses changed: :meth:`MapperCore.keyframe_poses`
     camera: CameraPose | None = None          #: the newest frame's new camera pose
+    earlier: list = field(default_factory=list)   #: frames held for their keyframe's edges, to publish first
     object_map: tuple | None = None           #: the object map was due: :meth:`MapperCore.object_map`
     saved: str | None = None                  #: the autosave written
     log: list = field(default_factory=list)   #: lines for the node's log (recovery, culling)
@@ -349,6 +350,7 @@ class MapperCore:
             out.log.append(f'culled {len(merged)} redundant keyframe(s) ('
                            + ', '.join(f'{k} into {a}' for k, a in sorted(merged.items()))
                            + f'); the map holds {len(mapper.keyframes)}, {len(mapper.merged)} culled')
+        out.earlier = self.session.released
         if changed is not False:
             out.camera = changed
             self.throttle.pending = True

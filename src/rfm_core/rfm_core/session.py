@@ -130,6 +130,8 @@ class MapSession:
         self.pending_keyframes: list = []     # posed: (id, observations) waiting for a pose
         self.pending_frames: list = []        # (arrival time, FrameTrack) waiting for their keyframe
         self.awaiting: dict = {}              # map id -> [edges sent with the keyframe not yet in, arrival time]
+        self._held: list = []                 # tracked frames not given out while their keyframe's edges came
+        self.released: list = []              # their CameraPoses, given out by the last tick before its own
         self.dirty = False                    # keyframes or edges not yet solved
         self.since_save = 0                   # keyframes added since the map was last saved
         self._full_solve_due = None           # clock time of the idle full re-solve
@@ -306,8 +308,9 @@ class MapSession:
         self._latest_track = track
         if self.mapper.awaits_recovery(map_id):
             self.dirty = True                   # the next update tries to recover its keyframe
-        if map_id in self.awaiting:
-            return None                         # placed on part of its keyframe's edges: the tick after them says
+        if map_id in self.awaiting or self._held:
+            self._held.append(track)            # placed on part of its keyframe's edges (or after one that is):
+            return None                         # the solve after them gives them out, in order
         return self._latest_camera()
 
     def _latest_camera(self) -> CameraPose | None:
@@ -331,6 +334,21 @@ class MapSession:
         self._last_camera = pose
         return pose
 
+    def _release_held(self, newest: CameraPose | None, after_ns: int) -> list:
+        """The camera poses of the frames held while their keyframe's edges were on their way,
+        now solved: those between the last pose handed out before (``after_ns``) and ``newest``,
+        in time order (the stream never goes back)."""
+        held, self._held = self._held, []
+        until = newest.stamp_ns if newest is not None else float('inf')
+        out = []
+        for track in sorted(held, key=lambda t: t.stamp_ns):
+            cam = self.mapper.frame_pose(track)
+            if cam is not None and after_ns < track.stamp_ns < until and not self.mapper.alone(track):
+                out.append(CameraPose(track.stamp_ns, track.frame_id, cam, self.mapper.frame_covariance(track)))
+        if out and newest is None:
+            self._last_camera = out[-1]
+        return out
+
     # ------------------------------------------------------------------ solving
 
     def update(self, force_full: bool = False):
@@ -345,23 +363,30 @@ class MapSession:
         """Solve what arrived since the last tick, or all poses at once when the input has
         been idle for ``idle_full_solve_s`` after incremental updates. False: nothing to do;
         otherwise the poses changed and the result is the newest frame's new camera pose (or
-        None). Never raises: a failed solve is kept in :attr:`message`."""
+        None). Never raises: a failed solve is kept in :attr:`message`. :attr:`released`: the
+        frames held for their keyframe's edges, given out now, before the result."""
         now = self.clock()
+        self.released = []
         self.awaiting = {k: w for k, w in self.awaiting.items() if now - w[1] < EDGES_WAIT_S}
         if self.awaiting:
             return False                                    # a keyframe's edges are still on their way
+        after = self._last_camera.stamp_ns if self._last_camera is not None else -1
         idle = (not self.dirty and self._full_solve_due is not None and now >= self._full_solve_due)
         if not (self.dirty or idle):
+            self.released = self._release_held(None, after)
             return False
         try:
             stats = self.update(force_full=idle)
         except Exception as exc:                           # noqa: BLE001 - a solve never kills the node
             self.message = f'update failed: {exc}'
             self.warn(self.message)
+            self.released = self._release_held(None, after)
             return False
         if stats is not None and stats.kind == 'local' and self.idle_full_solve_s > 0:
             self._full_solve_due = self.clock() + self.idle_full_solve_s
-        return self._latest_camera()
+        newest = self._latest_camera()
+        self.released = self._release_held(newest, after)
+        return newest
 
     # ------------------------------------------------------------------ localization
 

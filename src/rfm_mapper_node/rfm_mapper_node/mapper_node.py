@@ -103,6 +103,8 @@ class MapperNode(GuardedCallbacks, Node):
         tick = self.core.tick()
         for line in tick.log:
             self.get_logger().info(line)
+        for camera in tick.earlier:                 # frames held until their keyframe's edges were in
+            self._publish_camera(camera)
         self._publish(m.tick_outputs(tick, self.config.map_frame, self.core.attach(tick.camera)))
 
     def _publish_camera(self, camera) -> None:
