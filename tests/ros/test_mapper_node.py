@@ -390,3 +390,55 @@ def test_on_a_robot_the_map_hangs_above_the_odometry_and_the_tf_tree_stays_a_tre
     yaws = np.degrees([np.arctan2(m[1, 0], m[0, 0]) for m in at_images.values()])
     positions = np.array([m[:3, 3] for m in at_images.values()])
     assert np.ptp(yaws) < 4.0 and np.max(np.linalg.norm(positions - np.median(positions, axis=0), axis=1)) < 0.3
+
+
+@pytest.mark.slow
+def test_a_keyframe_is_published_only_once_the_edges_sent_with_it_are_in():
+    """The matcher's keyframe says how many edges follow it. Here one keyframe's first edge to
+    arrive is wrong (1 m, 46 deg) and its tracked frame comes before the others, which come
+    half a second (five solves) later: the node neither publishes that keyframe's frames nor
+    solves it on the wrong edge alone, and no published camera pose is wrong."""
+    from rfm_mapper_node.mapper_node import MapperNode
+    from rfm_msgs.msg import Keyframe, TrackedFrame
+
+    messages, truth, frames = _graph_messages()
+    for i, msg in enumerate(messages):                  # as the matcher sends it: the count of edges after it
+        if isinstance(msg, Keyframe):
+            msg.num_edges = next((j for j, m in enumerate(messages[i + 1:]) if isinstance(m, (Keyframe, TrackedFrame))),
+                                 len(messages) - i - 1)
+    at = next(i for i, m in enumerate(messages) if isinstance(m, Keyframe) and m.keyframe_id >= 3 and m.num_edges >= 3)
+    edges = messages[at + 1:at + 1 + messages[at].num_edges]
+    edges.sort(key=lambda e: len(e.inliers))            # the weakest first, made wrong
+    wrong = edges[0]
+    wrong.yaw += 0.8
+    wrong.translation.x += 1.0
+    track = messages[at + 1 + len(edges)]
+    assert isinstance(track, TrackedFrame) and track.is_keyframe
+    rclpy.init()
+    h = None
+    try:
+        mapper = MapperNode(parameter_overrides=[Parameter('autosave_every_n_keyframes', value=0)])
+        h = _Harness(mapper)
+        assert h.wait(lambda: h.kf_pub.get_subscription_count() > 0 and h.track_pub.get_subscription_count() > 0)
+        order = messages[:at + 1] + [wrong, track, 'pause'] + edges[1:] + messages[at + 2 + len(edges):]
+        for msg in order:
+            if msg == 'pause':
+                time.sleep(0.5)
+                assert mapper.core.mapper.pose(messages[at].keyframe_id) is None      # not solved meanwhile
+                continue
+            pub = {Keyframe: h.kf_pub, TrackedFrame: h.track_pub}.get(type(msg), h.edge_pub)
+            pub.publish(msg)
+            if isinstance(msg, TrackedFrame):
+                time.sleep(0.05)
+        assert h.wait(lambda: mapper.core.session.counts['frames'] == len(frames) and not mapper.core.session.dirty)
+        frame_truth = {f.stamp_ns: f.pose_matrix for f, _ in frames}
+        assert h.wait(lambda: stamp_to_ns(h.cameras[-1].header.stamp) == frames[-1][0].stamp_ns if h.cameras else False)
+        cams = {stamp_to_ns(c.header.stamp): pose_to_matrix(c.pose.pose) for c in h.cameras}
+        assert stamp_to_ns(track.header.stamp) in cams                # given out once its edges were in
+        assert [stamp_to_ns(c.header.stamp) for c in h.cameras] == sorted(cams)
+        err = trajectory_errors(cams, frame_truth)
+        assert len(cams) >= 0.9 * len(frames) and err['gross'] == 0, err
+    finally:
+        if h is not None:
+            h.close()
+        rclpy.try_shutdown()
