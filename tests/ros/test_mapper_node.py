@@ -396,7 +396,7 @@ def test_on_a_robot_the_map_hangs_above_the_odometry_and_the_tf_tree_stays_a_tre
 def test_a_keyframe_is_published_only_once_the_edges_sent_with_it_are_in():
     """The matcher's keyframe says how many edges follow it. Here one keyframe's first edge to
     arrive is wrong (1 m, 46 deg) and its tracked frame comes before the others, which come
-    half a second (five solves) later: the node neither publishes that keyframe's frames nor
+    0.3 s (three solves) later: the node neither publishes that keyframe's frames nor
     solves it on the wrong edge alone, and no published camera pose is wrong."""
     from rfm_mapper_node.mapper_node import MapperNode
     from rfm_msgs.msg import Keyframe, TrackedFrame
@@ -423,7 +423,7 @@ def test_a_keyframe_is_published_only_once_the_edges_sent_with_it_are_in():
         order = messages[:at + 1] + [wrong, track, 'pause'] + edges[1:] + messages[at + 2 + len(edges):]
         for msg in order:
             if msg == 'pause':
-                time.sleep(0.5)
+                time.sleep(0.3)
                 assert mapper.core.mapper.pose(messages[at].keyframe_id) is None      # not solved meanwhile
                 continue
             pub = {Keyframe: h.kf_pub, TrackedFrame: h.track_pub}.get(type(msg), h.edge_pub)
