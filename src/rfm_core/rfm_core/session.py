@@ -342,8 +342,10 @@ class MapSession:
         until = newest.stamp_ns if newest is not None else float('inf')
         out = []
         for track in sorted(held, key=lambda t: t.stamp_ns):
+            if not after_ns < track.stamp_ns < until:
+                continue
             cam = self.mapper.frame_pose(track)
-            if cam is not None and after_ns < track.stamp_ns < until and not self.mapper.alone(track):
+            if cam is not None and not self.mapper.alone(track):
                 out.append(CameraPose(track.stamp_ns, track.frame_id, cam, self.mapper.frame_covariance(track)))
         if out and newest is None:
             self._last_camera = out[-1]
@@ -372,20 +374,18 @@ class MapSession:
             return False                                    # a keyframe's edges are still on their way
         after = self._last_camera.stamp_ns if self._last_camera is not None else -1
         idle = (not self.dirty and self._full_solve_due is not None and now >= self._full_solve_due)
-        if not (self.dirty or idle):
-            self.released = self._release_held(None, after)
-            return False
-        try:
-            stats = self.update(force_full=idle)
-        except Exception as exc:                           # noqa: BLE001 - a solve never kills the node
-            self.message = f'update failed: {exc}'
-            self.warn(self.message)
-            self.released = self._release_held(None, after)
-            return False
-        if stats is not None and stats.kind == 'local' and self.idle_full_solve_s > 0:
-            self._full_solve_due = self.clock() + self.idle_full_solve_s
-        newest = self._latest_camera()
-        self.released = self._release_held(newest, after)
+        newest = False
+        if self.dirty or idle:
+            try:
+                stats = self.update(force_full=idle)
+            except Exception as exc:                       # noqa: BLE001 - a solve never kills the node
+                self.message = f'update failed: {exc}'
+                self.warn(self.message)
+            else:
+                if stats is not None and stats.kind == 'local' and self.idle_full_solve_s > 0:
+                    self._full_solve_due = self.clock() + self.idle_full_solve_s
+                newest = self._latest_camera()
+        self.released = self._release_held(newest or None, after)
         return newest
 
     # ------------------------------------------------------------------ localization

@@ -905,14 +905,7 @@ class IncrementalAverager:
                                                     None, cfg, theta, centres, registered,
                                                     yaw_edges=(src[gyro], dst[gyro], yaw[gyro], weight[gyro]))
         # window: the latest registered keyframes (by arrival) plus the new ones
-        reg_idx = np.flatnonzero(registered)
-        free = np.zeros(n, bool)
-        free[reg_idx[-cfg.window:]] = True
-        free[[self._index[k] for k in self._new if registered[self._index[k]]]] = True
-        anchor = np.flatnonzero(self._registered)
-        if len(anchor):
-            free[anchor[0]] = False
-        free[[self._index[k] for k in self.reference if k in self._index]] = False     # a loaded map holds
+        free = self._window(registered, [self._index[k] for k in self._new if registered[self._index[k]]])
         use = active & registered[src] & registered[dst] & (free[src] | free[dst])
         if not np.any(use):
             self._theta, self._centres, self._registered = theta, centres, registered
@@ -935,6 +928,19 @@ class IncrementalAverager:
             return False
         return True
 
+    def _window(self, registered, also=()) -> np.ndarray:
+        """(n,) bool: the keyframes a local solve moves: the latest ``window`` registered ones
+        (by arrival) and ``also`` (indices), never the anchor (the first keyframe registered
+        before this update) or a loaded map's keyframes."""
+        free = np.zeros(len(self.ids), bool)
+        free[np.flatnonzero(registered)[-self.config.window:]] = True
+        free[list(also)] = True
+        anchor = np.flatnonzero(self._registered)
+        if len(anchor):
+            free[anchor[0]] = False
+        free[[self._index[k] for k in self.reference if k in self._index]] = False     # a loaded map holds
+        return free
+
     def _revote(self, registered, active, src, dst, full) -> None:
         """Keyframes of the window that new edges reach, placed before from fewer of their
         edges, are placed again (``registered`` cleared in place, their edges to registered
@@ -947,13 +953,10 @@ class IncrementalAverager:
         new = new[full[new]]
         if not len(new):
             return
-        reg = np.flatnonzero(registered)
-        window = set(reg[-self.config.window:].tolist()) - {int(reg[0])} if len(reg) else set()
-        window -= {self._index[k] for k in self.reference if k in self._index}
-        again = {int(v) for v in np.maximum(src[new], dst[new]) if int(v) in window}
-        if not again:
+        again = np.maximum(src[new], dst[new])
+        again = np.unique(again[self._window(registered)[again]])
+        if not len(again):
             return
-        again = np.fromiter(again, np.int64)
         registered[again] = False
         touch = np.isin(src, again) | np.isin(dst, again)
         back = touch & full & (registered[src] | registered[dst])
