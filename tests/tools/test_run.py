@@ -87,6 +87,7 @@ def test_rfm_run_on_a_bag_writes_every_output_and_maps_the_room(short_bag, tmp_p
         assert row['scene'] == 'scene_handheld' and row['detections'] >= 0.9 * 40 and row['wrong'] == 0, row
         assert row['registered'] >= 0.9 and row['ATE_median'] < 0.06, row
         assert row['published'] >= 0.8 * 40 and row['within_2sigma'] >= 0.8, row
+        assert 0.5 * 40 <= row['relatable'] <= row['frames'], row        # a walk's frames see their neighbours'
 
 
 def _children(pid: int) -> list:
@@ -130,7 +131,18 @@ def test_the_nodes_die_with_rfm_run_however_it_dies(short_bag, tmp_path):
     deadline = time.monotonic() + 5
     while time.monotonic() < deadline and any(map(_alive, children)):
         time.sleep(0.1)
-    assert not [pid for pid in children if _alive(pid)]
+    alive = [pid for pid in children if _alive(pid)]
+    assert not alive, [_described(pid) for pid in alive] + [
+        f'{log.name}: {log.read_text()[-400:]}' for log in sorted((tmp_path / 'out').glob('*.log'))]
+
+
+def _described(pid: int) -> str:
+    """A live process for a failure message: its command line and state."""
+    try:
+        cmdline = Path(f'/proc/{pid}/cmdline').read_bytes().replace(b'\0', b' ').decode(errors='replace')
+        return f'{pid} ({Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]}): {cmdline[:200]}'
+    except OSError:
+        return f'{pid} (gone)'
 
 
 def _transforms(out):
@@ -255,18 +267,6 @@ def test_rfm_run_on_a_bag_without_ground_truth_writes_every_output(short_bag, tm
     mapper = Mapper()
     load_map(mapper, out / 'map.rfm')
     assert len(mapper.frame_poses()) == len(tum)
-
-
-def _children(pid: int) -> list:
-    """The processes whose parent is ``pid`` (Linux /proc)."""
-    out = []
-    for stat in Path('/proc').glob('[0-9]*/stat'):
-        try:
-            if int(stat.read_text().rsplit(')', 1)[1].split()[1]) == pid:
-                out.append(int(stat.parent.name))
-        except (OSError, IndexError, ValueError):
-            pass
-    return out
 
 
 @pytest.mark.slow

@@ -701,7 +701,8 @@ def cmd_replay(args) -> int:
                   f"ATE {100 * r['ATE_median']:5.1f} cm  wrong {r['gross']} ({100 * r['wrong']:.1f}%)  on points "
                   f"{r['point_tracked']:4d}  keyframes {r['keyframes']}  published {r['published']} (wrong "
                   f"{r['published_gross']}, within 2 sigma {100 * r['within_2sigma']:3.0f}%, sigma "
-                  f"{100 * r['sigma_m']:.1f} cm {r['sigma_deg']:.2f} deg)", flush=True)
+                  f"{100 * r['sigma_m']:.1f} cm {r['sigma_deg']:.2f} deg)  three detections shared "
+                  f"{100 * r['relatable'] / max(r['frames'], 1):.0f}%", flush=True)
         for capture in sorted({r['scene'].rsplit('_', 1)[-1] for r in rows}):
             sel = [r for r in rows if r['scene'].endswith('_' + capture)]
             print(f"{capture} ({len(sel)}): localized {100 * np.mean([r['registered'] for r in sel]):.1f}% (mean); "
@@ -710,7 +711,9 @@ def cmd_replay(args) -> int:
                   f"{100 * np.mean([r['wrong'] for r in sel]):.1f}% (medians, mean; {sum(r['gross'] for r in sel)} "
                   f"frames); as published: {sum(r['published_gross'] for r in sel)} of "
                   f"{sum(r['published'] for r in sel)} wrong, "
-                  f"{100 * _pooled(sel, 'within_2sigma', 'published'):.1f}% within their 2-sigma bound")
+                  f"{100 * _pooled(sel, 'within_2sigma', 'published'):.1f}% within their 2-sigma bound; "
+                  f"{100 * sum(r['relatable'] for r in sel) / max(sum(r['frames'] for r in sel), 1):.1f}% of the "
+                  'frames share three detections with another frame (the most a three-object edge can place)')
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1, default=float))
     return 0

@@ -9,7 +9,8 @@ their code.
 
 - :func:`replay_mapping`: a scene of ``rfm eval --work WORK``, or the mapping walk of a room
   of ``rfm eval-reloc --work WORK`` (its bag's ground truth scores the frames localized, as
-  ``rfm eval`` does, with the share off by > 5 deg or > 25 cm).
+  ``rfm eval`` does, with the share off by > 5 deg or > 25 cm), and how many of its frames
+  any back end could relate by three objects (:func:`shared_detections`).
 - :func:`replay_localization`: a room of ``rfm eval-reloc --work WORK``: its saved map
   loaded in localization mode, the query walk's recorded detections localized as a stream
   and scored as ``rfm eval-reloc`` scores the graph. Localization against a frozen map is
@@ -22,7 +23,12 @@ from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ['recorded_detections', 'replay_mapping', 'replay_localization', 'replay_session']
+import numpy as np
+
+__all__ = ['recorded_detections', 'shared_detections', 'replay_mapping', 'replay_localization', 'replay_session']
+
+#: two detections of one object from two frames: full-box centres this close in the world (m)
+SAME_OBJECT_M = 0.3
 
 
 def recorded_detections(run: Path) -> list:
@@ -32,6 +38,34 @@ def recorded_detections(run: Path) -> list:
 
     out = [frame_detections_from_msg(msg) for msg in topic_messages(Path(run) / 'outputs.mcap', '/rfm/detections')]
     return sorted(out, key=lambda o: o.stamp_ns)
+
+
+def shared_detections(observations: list, truth: dict, radius_m: float = SAME_OBJECT_M) -> dict:
+    """{stamp_ns: how many of a frame's detections some other frame also detected} (full-box
+    centres within ``radius_m`` in the world, placed by the true camera poses ``truth``
+    {stamp_ns: 4x4 camera-to-world}; frames without a true pose are left out). Clutter the
+    ground truth does not list counts: a detector's box on it is a landmark too. A frame
+    whose count is under ``keyframes.min_retrieved_inliers`` (3) cannot be related to any
+    other by that many objects, whatever the matching and the back end: what the detector
+    leaves a photo collection."""
+    centres = {}
+    for obs in observations:
+        pose = truth.get(obs.stamp_ns)
+        if pose is None:
+            continue
+        pose = np.asarray(pose, float)
+        c = np.asarray(obs.map_boxes, float).reshape(-1, 7)[:, :3] @ obs.rotation_aligned_from_camera  # R^T c
+        centres[obs.stamp_ns] = c @ pose[:3, :3].T + pose[:3, 3]
+    out = {}
+    for stamp, own in centres.items():
+        others = [c for s, c in centres.items() if s != stamp and len(c)]
+        if not len(own) or not others:
+            out[stamp] = 0
+            continue
+        others = np.concatenate(others)
+        near = np.linalg.norm(own[:, None] - others[None], axis=-1).min(axis=1) < radius_m
+        out[stamp] = int(near.sum())
+    return out
 
 
 def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = 'bag',
@@ -57,13 +91,15 @@ def replay_mapping(scene: Path, run: str = 'rgb_d__depth_clusters', bag: str = '
     errors = trajectory_errors(session.mapper.frame_poses(), truth)
     published = trajectory_errors(live, truth)
     coverage = covariance_coverage(live, covariances, truth)
+    shared = shared_detections(observations, truth)
     return {'scene': scene.name, 'frames': len(truth), 'detections': len(observations),
             'registered': errors['registered'], 'ARE_median': errors['ARE_median'],
             'ATE_median': errors['ATE_median'], 'wrong': errors['wrong'], 'gross': errors['gross'],
             'published': len(live), 'published_gross': published['gross'],
             'within_2sigma': coverage['within_2sigma'], 'sigma_m': coverage['sigma_m'],
             'sigma_deg': coverage['sigma_deg'],
-            'point_tracked': session.graph.stats.point_tracked, 'keyframes': len(session.mapper.keyframes)}
+            'point_tracked': session.graph.stats.point_tracked, 'keyframes': len(session.mapper.keyframes),
+            'relatable': sum(n >= session.graph.config.keyframes.min_retrieved_inliers for n in shared.values())}
 
 
 def replay_localization(room: Path, kind: str = 'handheld', verbose: bool = False) -> dict:
