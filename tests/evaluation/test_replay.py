@@ -21,10 +21,10 @@ def _camera(yaw_deg: float, pitch_deg: float, centre) -> np.ndarray:
     return pose
 
 
-def _frame(stamp_ns: int, pose: np.ndarray, seen: list, offset=(0.0, 0.0, 0.0)) -> FrameObservations:
-    """The detections of ``OBJECTS[seen]`` (moved by ``offset`` in the world) from camera ``pose``."""
+def _frame(stamp_ns: int, pose: np.ndarray, seen: list) -> FrameObservations:
+    """The detections of ``OBJECTS[seen]`` from camera ``pose``."""
     gravity = pose[:3, :3].T @ np.array([0.0, 0.0, -1.0])                      # down, in the camera frame
-    centres = (OBJECTS[seen] + offset - pose[:3, 3]) @ pose[:3, :3]             # R^T (p - t), as rows
+    centres = (OBJECTS[seen] - pose[:3, 3]) @ pose[:3, :3]             # R^T (p - t), as rows
     boxes = np.zeros((len(seen), 7))
     boxes[:, :3] = centres @ gravity_aligned_rotation(gravity).T
     boxes[:, 3:6] = 0.4
@@ -35,9 +35,9 @@ def test_a_frame_counts_the_detections_another_frame_also_detected():
     truth = {1: _camera(80, 20, (1.5, 0.0, 1.5)), 2: _camera(40, 35, (0.5, 0.5, 1.4)),
              3: _camera(170, 10, (6.0, 2.0, 1.6)), 4: _camera(100, 25, (1.0, 1.0, 1.5))}
     frames = [_frame(1, truth[1], [0, 1, 2]), _frame(2, truth[2], [0, 1, 2, 3]), _frame(3, truth[3], [3, 4]),
-              _frame(4, truth[4], [5], offset=(0.2, 0.0, 0.0)), _frame(5, truth[1], [0, 1])]
+              _frame(4, truth[4], [5]), _frame(5, truth[1], [0, 1])]
     shared = shared_detections(frames, truth)
-    # frame 5 has no true pose; frame 4's one object another frame saw nowhere near
+    # frame 5 has no true pose; no other frame saw frame 4's one object
     assert shared == {1: 3, 2: 4, 3: 1, 4: 0}
     # an object placed 0.5 m off by a wrong true pose is no longer the one the others saw
     off = np.eye(4)
