@@ -463,3 +463,35 @@ def test_a_keyframe_placed_by_its_first_edge_is_placed_again_when_the_rest_arriv
     assert err['ATE_median'] < 0.02 and err['ARE_median'] < 0.5, err
     kept = {(s, t) for s, t in inc.active_edges()}
     assert not any((s, t) in kept for (s, t, _, _), bad in zip(edges, outlier) if bad)
+
+
+def test_a_lone_weak_edge_joins_no_two_parts_and_two_that_agree_do():
+    """Photos: one edge of three objects is often wrong, and where it is the only link between
+    two parts of the graph nothing can contradict it. Marked lone (``lone_edges``), such an
+    edge alone does not join two parts of two keyframes or more; a second one between them
+    does, and a keyframe hanging on one still joins."""
+    truth, edges, _ = synthetic_view_graph(14, seed=3, neighbours=2, loops=0.0)
+    part_a, part_b = set(range(8)), set(range(8, 14))
+    inside = [e for e in edges if {e[0], e[1]} <= part_a or {e[0], e[1]} <= part_b]
+
+    def edge(s, t, wrong=False):
+        rel = truth[s] @ truth[t].inverse()                                  # T_s_t
+        return (s, t, Pose4(rel.yaw + 2.5, rel.t + np.array([3.0, -2.0, 0.0])) if wrong else rel, 3.0)
+
+    def solved(joins, lone=True):
+        inc = IncrementalAverager()
+        for s, t, pose, w in inside + list(joins):
+            inc.add_edge(s, t, pose, w)
+        lone_mask = np.zeros(len(inc.edges), bool)
+        lone_mask[len(inside):len(inside) + len(joins)] = lone
+        inc.lone_edges = lambda: lone_mask[:len(inc.edges)]
+        inc.update(force_full=True)
+        return inc.poses
+
+    wrong_join = [edge(7, 8, wrong=True)]
+    assert set(solved(wrong_join)) == part_a                        # a wrong lone join is not taken
+    joined = solved(wrong_join, lone=False)                         # (before: it was, and part B went with it)
+    assert set(joined) == part_a | part_b and _errors(joined, truth)['gross'] > 0
+    two = solved([edge(7, 8), edge(6, 9)])                          # two that agree join the parts, right
+    assert set(two) == part_a | part_b and _errors(two, truth)['gross'] == 0
+    assert 20 in solved([(7, 20, Pose4(0.3, (1.0, 0.0, 0.0)), 3.0)])    # a keyframe hanging on one edge joins

@@ -381,7 +381,7 @@ def test_consecutive_keyframes_of_one_gyroscope_epoch_get_its_yaw():
 
 def test_an_edge_the_depth_points_measured_outweighs_a_wrong_one_from_objects():
     """A ring of 16 keyframes closed by a loop edge (two objects). One pair has an edge no
-    object verified (the keyframe was placed on its depth points: right) and one from three
+    object verified (the keyframe was placed on its depth points: right) and one from four
     objects 0.4 m off. Weighed as two objects (``averaging.points_edge_weight``), the depth
     points' edge and the loop closure outweigh the wrong edge, which alone is dropped;
     weighed as nothing, the wrong edge holds and the ring is broken elsewhere."""
@@ -402,9 +402,9 @@ def test_an_edge_the_depth_points_measured_outweighs_a_wrong_one_from_objects():
     def solve(points_weight):
         m = Mapper(MapperConfig(averaging=AveragingConfig(points_edge_weight=points_weight)))
         for k in range(n):
-            m.add_keyframe(k, _obs([[2, 0, 0, 0.5, 0.5, 0.5, 0]] * 3, [[1.0, 0.0]] * 3))
+            m.add_keyframe(k, _obs([[2, 0, 0, 0.5, 0.5, 0.5, 0]] * 4, [[1.0, 0.0]] * 4))
         edges = [edge(k, k + 1, 2) for k in range(n - 1) if k != at]
-        edges += [edge(at, at + 1, 0), edge(at, at + 1, 3, off=0.4), edge(n - 1, 0, 2)]
+        edges += [edge(at, at + 1, 0), edge(at, at + 1, 4, off=0.4), edge(n - 1, 0, 2)]
         for e in edges:
             assert m.add_edge(e)
         m.update(force_full=True)
@@ -415,6 +415,6 @@ def test_an_edge_the_depth_points_measured_outweighs_a_wrong_one_from_objects():
         return dropped, worst
 
     dropped, worst = solve(AveragingConfig().points_edge_weight)
-    assert dropped == [(at, at + 1, 3)] and worst < 1e-6
+    assert dropped == [(at, at + 1, 4)] and worst < 1e-6
     dropped, worst = solve(0.0)
-    assert (at, at + 1, 3) not in dropped and worst > 0.1
+    assert (at, at + 1, 4) not in dropped and worst > 0.1

@@ -294,3 +294,41 @@ def test_walls_correct_the_horizontal_translation_along_their_normals():
             FrameObservations(1, 'c', intr, [0, 0, -1], walls=bad)
 
 
+
+
+def _separate_views(world_boxes: np.ndarray, t_a_world: Pose4, t_b_world: Pose4):
+    """Two views' FrameObservations of ``world_boxes`` (gravity-aligned frames), full and fitted
+    boxes alike, no embeddings."""
+    from rfm_core.observations import CameraIntrinsics, FrameObservations  # noqa: PLC0415
+
+    intr = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+
+    def view(pose, stamp):
+        boxes = pose.transform_boxes(world_boxes)
+        return FrameObservations(stamp, 'camera', intr, np.array([0.0, 1.0, 0.0]), boxes, np.ones(len(boxes)),
+                                 full_boxes=boxes.copy())
+    return view(t_a_world, 1), view(t_b_world, 2)
+
+
+def test_separate_views_are_related_by_the_layout_of_their_boxes_and_an_ambiguous_one_is_not():
+    """A matcher that matches nothing (photos far apart): the full boxes' layout alone gives the
+    relative pose; a layout that looks the same from two poses (a square of like boxes) gives
+    none, and neither do two views of different rooms."""
+    from rfm_core.matching.relative_pose import estimate_by_consensus  # noqa: PLC0415
+
+    world = np.array([[1.0, 2.0, 0.40, 0.8, 0.5, 0.8, 0.1], [2.6, 2.3, 0.45, 1.6, 0.9, 0.9, 0.3],
+                      [1.8, 3.9, 0.90, 0.4, 0.4, 1.8, 0.0], [3.9, 1.1, 0.25, 0.6, 0.6, 0.5, 1.2],
+                      [0.2, 0.8, 0.35, 1.2, 0.4, 0.7, -0.4]])
+    t_a, t_b = Pose4(0.4, (-1.0, -0.5, -1.4)), Pose4(2.3, (1.5, -3.0, -1.4))
+    a, b = _separate_views(world, t_a, t_b)
+    rel = estimate_by_consensus(a, b)                                    # T_b_a
+    truth = t_b @ t_a.inverse()
+    assert rel is not None and len(rel.inliers) == 5
+    assert (truth.inverse() @ rel.pose).within(0.02, 0.5)
+    square = np.array([[x, y, 0.4, 0.5, 0.5, 0.8, 0.0] for x, y in ((0, 0), (2, 0), (2, 2), (0, 2))])
+    assert estimate_by_consensus(*_separate_views(square, t_a, t_b)) is None
+    other = world.copy()
+    other[:, :2] = np.random.default_rng(0).uniform(0, 5, (5, 2))          # the same furniture, elsewhere
+    a2, _ = _separate_views(other, t_a, t_b)
+    found = estimate_by_consensus(a2, b)
+    assert found is None or len(found.inliers) < 3

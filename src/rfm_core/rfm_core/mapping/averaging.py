@@ -17,7 +17,9 @@ least-squares problem per axis with Cauchy IRLS weights (metric scale: boxes are
 Each is run for ``rounds`` rounds, dropping edges that disagree by more than
 ``max_yaw_residual_deg`` / ``max_translation_residual_m`` (never an edge no loop checks: only
 the gyroscope's yaw can disagree with it, :func:`_bridges`); only the largest connected
-component of the surviving edges is registered. The gauge is the component's first
+component of the surviving edges is registered; an edge of few objects between views no
+stream links (photos) does not alone join two parts of two keyframes or more
+(:func:`_lone_joins`). The gauge is the component's first
 keyframe (identity pose). A wrong edge the growth meets early can make the right ones look
 wrong (a loop closure dropped for it), so where no loaded map is held the solve is grown
 again from each of the heaviest edges it dropped, placed first; of the solutions that
@@ -92,6 +94,11 @@ class AveragingConfig:
     cycle_tolerance: float = constant(2.0, '... a triangle agrees within this multiple of the outlier thresholds',
                                       lo=0.5, hi=20.0)
     cycle_max_loops: int = constant(12, '... triangles tried per pair of keyframes', lo=1, hi=1000)
+    lone_join_min_inliers: int = constant(4, 'Two parts of the view graph of two keyframes or more each that a '
+                                          'single edge between views no stream links (photos) would join are '
+                                          'joined by it only where it rests on this many objects; else they need '
+                                          'a second edge, which the residual checks hold against the first',
+                                          lo=1, hi=100)
 
 
 @dataclass
@@ -488,8 +495,25 @@ def _bridges(candidates, edges, src, dst, n) -> np.ndarray:
     return out
 
 
+def _lone_joins(links, lone, src, dst, n) -> np.ndarray:
+    """Mask over the edges: those of ``lone`` among ``links`` (masks) that alone join two parts
+    of two keyframes or more each (removing one leaves its keyframes apart, both in such a part).
+    A keyframe hanging on one edge is not such a part: a wrong edge misplaces it alone."""
+    out = np.zeros(len(src), bool)
+    for i in np.flatnonzero(links & lone):
+        keep = links.copy()
+        keep[i] = False
+        graph = sp.coo_matrix((np.ones(int(keep.sum())), (src[keep], dst[keep])), shape=(n, n))
+        labels = connected_components(graph, directed=False)[1]
+        a, b = labels[src[i]], labels[dst[i]]
+        if a != b:
+            counts = np.bincount(labels)
+            out[i] = counts[a] >= 2 and counts[b] >= 2
+    return out
+
+
 def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only=None, reference=None,
-               fixed=None, sizes=None):
+               fixed=None, sizes=None, lone=None):
     """Full robust solve. Returns theta, centres (NaN outside the component), active edge
     mask, component mask, and the mask of the edges the cycle check dropped. ``yaw_only``
     edges (the gyroscope's) count in the yaw stage only: they neither place nor connect
@@ -513,7 +537,10 @@ def _solve_all(n, src, dst, yaw, trans, weight, cfg, anchor_order=None, yaw_only
     def component(active, seed=None):
         """The component to register, and the keyframe it is grown from: the first in
         ``order`` (the anchor), or the source of the ``seed`` edge where it is in it."""
-        c = largest_component(np.arange(n), src[active & full], dst[active & full], reference, sizes)
+        links = active & full
+        if lone is not None and np.any(links & lone):
+            links = links & ~_lone_joins(links, lone, src, dst, n)
+        c = largest_component(np.arange(n), src[links], dst[links], reference, sizes)
         if seed is not None and c[src[seed]] and c[dst[seed]]:
             return c, int(src[seed])
         return c, int(next(k for k in order if c[k]))
@@ -666,6 +693,7 @@ class IncrementalAverager:
         self.reference: set = set()          # a loaded map's keyframes: their component stays the map
         self.sizes: dict = {}                # keyframe id -> keyframes it stands for (culled ones merged into it; 1 if absent)
         self.last_seen = None                # the newest frame placed in the registered part (a FrameTrack: keyframe_id, pose)
+        self.lone_edges = None               # () -> (E,) bool: edges too weak to join two parts alone (_lone_joins)
 
     # ------------------------------------------------------------------ input
 
@@ -833,7 +861,8 @@ class IncrementalAverager:
             fixed = (np.where(hold, self._theta[node], np.nan), np.where(hold[:, None], self._centres[node], np.nan))
         theta, centres, active, comp, cycle = _solve_all(
             len(self.ids), rank[src][edge], rank[dst][edge], yaw[edge], trans[edge], weight[edge], self.config,
-            order, self.edges.yaw_only[edge], reference, fixed, self._sizes()[node])
+            order, self.edges.yaw_only[edge], reference, fixed, self._sizes()[node],
+            None if self.lone_edges is None else np.asarray(self.lone_edges(), bool)[edge])
         anchor = next((node[k] for k in order if comp[k]), None)
         held = bool(np.any(hold & comp))    # (canonical order, as comp is here)
         back = np.empty_like(edge)

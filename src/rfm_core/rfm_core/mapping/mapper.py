@@ -48,6 +48,9 @@ MODES = ('mapping', 'localization')
 #: measurements of one keyframe pair kept at most (the first and its repeats, from frames that
 #: revisit the pair): the map's edges grow with its keyframes, not with time
 MAX_PAIR_MEASUREMENTS = 16
+#: edges of fewer objects come only from a stream, its motion prior checking them (the matcher's
+#: ``keyframes.min_retrieved_inliers`` elsewhere): never lone (:meth:`Mapper._lone_edges`)
+LONE_EDGE_MIN_OBJECTS = 3
 
 
 @dataclass(frozen=True)
@@ -94,6 +97,7 @@ class Mapper:
         self._averaged: dict = {}            # averager edge index -> EdgeRecord
         self._edges_to: dict = {}            # target -> [(source, target), ...]
         self.averager = IncrementalAverager(self.config.averaging)
+        self.averager.lone_edges = self._lone_edges
         self.external_poses: dict = {}       # posed mode: id -> Pose4 T_k_map
         self.mode = 'mapping'
         self.revision = 0
@@ -219,6 +223,22 @@ class Mapper:
         """An edge's weight in pose averaging: its objects' (:attr:`EdgeRecord.weight`), or
         ``averaging.points_edge_weight`` where no object verified it (the depth points did)."""
         return edge.weight if len(edge.inliers) else self.config.averaging.points_edge_weight
+
+    def _lone_edges(self) -> np.ndarray:
+        """Over the averaging's edges (by the order added): those too weak to join two parts of
+        the graph alone (:func:`~rfm_core.mapping.averaging._lone_joins`). An edge between
+        keyframes that no stream links (a photo, or the first frame of a segment no frame was
+        tracked against) resting on :data:`LONE_EDGE_MIN_OBJECTS` objects or more but fewer
+        than ``averaging.lone_join_min_inliers``: nothing checked it, and on photos three
+        full boxes give a wrong pose often enough that one such edge turned a whole part of a
+        tuning room by 151 deg (docs/design-notes.md). Edges of fewer objects come only from a
+        stream, checked by its motion prior."""
+        out = np.zeros(len(self.averager.edges), bool)
+        least = self.config.averaging.lone_join_min_inliers
+        for i, edge in self._averaged.items():
+            out[i] = (LONE_EDGE_MIN_OBJECTS <= len(edge.inliers) < least
+                      and not (edge.source in self.streamed and edge.target in self.streamed))
+        return out
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
@@ -524,6 +544,7 @@ class Mapper:
         reference = self.averager.reference    # a loaded map's keyframes, and those they were culled into
         changes, seen = self.averager.frame_changes, self.averager.last_seen
         self.averager, self._gyro = IncrementalAverager(self.config.averaging), {}
+        self.averager.lone_edges = self._lone_edges
         self.averager.frame_changes = changes
         self.averager.last_seen = None if seen is None else self._resolved_track(seen)
         self.averager.reference = {k for k in reference if k in self.keyframes} | {

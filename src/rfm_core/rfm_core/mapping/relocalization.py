@@ -34,8 +34,8 @@ from rfm_core.mapping.frame_log import camera_to_map
 from rfm_core.mapping.map_index import MapIndex, track_boxes
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
-from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_relative_pose, track_on_points,
-                                             with_surfaces)
+from rfm_core.matching.relative_pose import (RelativePose, YawPrior, box_hits, estimate_relative_pose,
+                                             track_on_points, with_surfaces)
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import constant, setting
 
@@ -342,20 +342,6 @@ class MapMatch:
                 and self.explained > self.runner_up)
 
 
-def _hits(query_boxes: np.ndarray, track_boxes_: np.ndarray, compatible: np.ndarray, yaws: np.ndarray,
-          trans: np.ndarray) -> np.ndarray:
-    """(H, N, M) whether view box n lands on track m under pose hypothesis h (T_map_view: yaw,
-    translation): horizontal centres within a quarter of the two footprints' diagonals, heights
-    within a quarter of the two heights, and sizes compatible."""
-    moved = np.einsum('hab,nb->hna', yaw_matrix(yaws), query_boxes[:, :3]) + trans[:, None]
-    reach = 0.25 * (np.linalg.norm(query_boxes[:, None, 3:5], axis=-1)
-                    + np.linalg.norm(track_boxes_[None, :, 3:5], axis=-1))
-    up = 0.25 * (query_boxes[:, None, 5] + track_boxes_[None, :, 5])
-    d = np.linalg.norm(moved[:, :, None, :2] - track_boxes_[None, None, :, :2], axis=-1)
-    dz = np.abs(moved[:, :, None, 2] - track_boxes_[None, None, :, 2])
-    return (d < reach[None]) & (dz < up[None]) & compatible[None]
-
-
 def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingConfig, config: RelocalizationConfig,
                  prior: MotionPrior | None = None, why: list | None = None) -> MapMatch | None:
     """Match a view against the map's object tracks rather than one keyframe (its objects may
@@ -421,7 +407,7 @@ def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: Matchin
     # a hypothesis' support: view boxes landing on the tracks some detection proposed
     play = np.unique(jj)
     compatible = size_similarity(qb, tb) >= matching.size_ratio_gate
-    count = np.concatenate([_hits(qb, tb[play], compatible[:, play], hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
+    count = np.concatenate([box_hits(qb, tb[play], compatible[:, play], hy[c:c + 256], trans[c:c + 256]).any(2).sum(1)
                             for c in range(0, len(hy), 256)])
     tried = []
     for h in np.argsort(-count, kind='stable'):
@@ -483,7 +469,7 @@ def _verify(query, t_map_view: Pose4, qb, compatible, index: MapIndex, matching,
     the hypothesis matches (of the three that saw most, the one verified with most inliers):
     (RelativePose T_keyframe_view with (keyframe, view) inliers, keyframe id), or None."""
     tb, keyframes, poses = index.boxes, index.keyframes, index.poses
-    hit = _hits(qb, tb, compatible, np.array([t_map_view.yaw]), t_map_view.t[None])[0]      # (N, M)
+    hit = box_hits(qb, tb, compatible, np.array([t_map_view.yaw]), t_map_view.t[None])[0]      # (N, M)
     moved = t_map_view.transform_points(qb[:, :3])
     votes = {}
     for n in np.flatnonzero(hit.any(1)):

@@ -33,13 +33,19 @@ from rfm_core.geometry import (
     Pose4, align_4dof_anisotropic, box_corners, iou_3d_paired, kabsch_4dof, kabsch_4dof_batch, ray_covariances,
     wrap_angle, yaw_matrix,
 )
-from rfm_core.matching.classical import ObjectMatches
+from rfm_core.matching.classical import ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_turn_table
 from rfm_core.matching.points import align_points
 
-__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'estimate_on_full_boxes', 'with_points',
+__all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'estimate_on_full_boxes', 'estimate_by_consensus',
+           'box_hits', 'with_points',
            'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
+
+#: two poses of :func:`estimate_by_consensus` are distinct when their translations differ by more (m) ...
+CONSENSUS_DISTINCT_M = 0.25
+#: ... or their yaws (deg)
+CONSENSUS_DISTINCT_DEG = 5.0
 
 
 @dataclass
@@ -176,6 +182,66 @@ def estimate_on_full_boxes(obs_a, obs_b, matcher, config: MatchingConfig | None 
         return None
     rel.corner_inliers = []                                  # (corners of the full boxes, not of ``boxes``)
     return _turned_to_surfaces(rel, obs_a, obs_b, cfg)
+
+
+def estimate_by_consensus(obs_a, obs_b, config: MatchingConfig | None = None) -> RelativePose | None:
+    """T_b_a of two separate views matched on the geometry of their full boxes alone: each
+    pair of boxes of compatible size proposes a pose (T_b_a's yaw from the two boxes' yaws up
+    to quarter turns, the translation from their centres); the pose that lands the most of
+    a's boxes on b's (:func:`box_hits`), three at least and more than any distinct pose, gives
+    the matches, verified as :func:`estimate_relative_pose` verifies them and then checked and
+    turned by the fitted boxes as :func:`estimate_on_full_boxes` is. None where either frame
+    has no full boxes or fewer than three. Where a learned matcher, trained on pairs of one
+    walk, matches too few objects of two views far apart, the boxes' layout still does: on
+    tuning photo pairs (docs/design-notes.md)."""
+    cfg = config or MatchingConfig()
+    if not (has_full_boxes(obs_a) and has_full_boxes(obs_b)) or min(len(obs_a), len(obs_b)) < 3:
+        return None
+    a, b = np.asarray(obs_a.full_boxes, np.float64), np.asarray(obs_b.full_boxes, np.float64)
+    compatible = size_similarity(a, b) >= cfg.size_ratio_gate
+    ii, jj = np.nonzero(compatible)
+    if not len(ii):
+        return None
+    yaws = ((b[jj, 6] - a[ii, 6])[:, None] + 0.5 * np.pi * np.arange(4)[None]).reshape(-1)
+    hi, hj = np.repeat(ii, 4), np.repeat(jj, 4)
+    trans = b[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(yaws), a[hi, :3])
+    hits = box_hits(a, b, compatible, yaws, trans)                                 # (H, N, M)
+    count = hits.any(2).sum(1)
+    order = np.argsort(-count, kind='stable')
+    best = int(order[0])
+    pose = Pose4(float(yaws[best]), trans[best])
+    distinct = [count[h] for h in order[1:] if count[h] >= 3
+                and not (Pose4(float(yaws[h]), trans[h]).inverse() @ pose).within(CONSENSUS_DISTINCT_M,
+                                                                                  CONSENSUS_DISTINCT_DEG)]
+    if count[best] < 3 or (distinct and max(distinct) >= count[best]):
+        return None
+    moved = pose.transform_points(a[:, :3])
+    pairs = {}
+    for n in np.flatnonzero(hits[best].any(1)):
+        cols = np.flatnonzero(hits[best, n])
+        m = int(cols[np.argmin(np.linalg.norm(moved[n, :2] - b[cols, :2], axis=1))])
+        pairs.setdefault(m, int(n))                           # one to one
+    matches = ObjectMatches(np.array(list(pairs.values()), int), np.array(list(pairs), int), np.ones(len(pairs)))
+    rel = estimate_relative_pose(a, b, matches, cfg)
+    if rel is None:
+        return None
+    rel.corner_inliers = []                                  # (corners of the full boxes, not of ``boxes``)
+    return _turned_to_surfaces(rel, obs_a, obs_b, cfg)
+
+
+def box_hits(query_boxes: np.ndarray, track_boxes_: np.ndarray, compatible: np.ndarray, yaws: np.ndarray,
+             trans: np.ndarray) -> np.ndarray:
+    """(H, N, M) whether box n lands on box m of the other frame (a map's track) under pose
+    hypothesis h (T_other_this: yaw, translation): horizontal centres within a quarter of the
+    two footprints' diagonals, heights within a quarter of the two heights, and sizes
+    ``compatible`` (N, M)."""
+    moved = np.einsum('hab,nb->hna', yaw_matrix(yaws), query_boxes[:, :3]) + trans[:, None]
+    reach = 0.25 * (np.linalg.norm(query_boxes[:, None, 3:5], axis=-1)
+                    + np.linalg.norm(track_boxes_[None, :, 3:5], axis=-1))
+    up = 0.25 * (query_boxes[:, None, 5] + track_boxes_[None, :, 5])
+    d = np.linalg.norm(moved[:, :, None, :2] - track_boxes_[None, None, :, :2], axis=-1)
+    dz = np.abs(moved[:, :, None, 2] - track_boxes_[None, None, :, 2])
+    return (d < reach[None]) & (dz < up[None]) & compatible[None]
 
 
 def has_full_boxes(obs) -> bool:

@@ -32,8 +32,8 @@ from rfm_core.matching.graph import (Edge, Frame, GraphStats, GraphStep, Keyfram
                                      without_objects)
 from rfm_core.matching.keyframes import Bridge, KeyframeConfig, NewKeyframe, weak
 from rfm_core.matching.motion import MotionConfig, StreamMotion
-from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_on_full_boxes, estimate_relative_pose,
-                                            with_surfaces)
+from rfm_core.matching.relative_pose import (RelativePose, YawPrior, estimate_by_consensus, estimate_on_full_boxes,
+                                             estimate_relative_pose, with_surfaces)
 from rfm_core.matching.revisits import Revisit, RevisitConfig, RevisitOnPoints
 from rfm_core.matching.tracking import PointTracking, Tracking, TrackingConfig
 from rfm_core.observations import FrameObservations
@@ -146,7 +146,8 @@ class ViewGraphBuilder:
         ``predicted``: the motion's prediction of it (the depth points are aligned from it too).
         A separate view (:attr:`separate`) that the fitted boxes do not relate to a keyframe of
         another segment by ``min_retrieved_inliers`` objects is related by the full boxes where
-        its visible surfaces agree (:func:`estimate_on_full_boxes`)."""
+        its visible surfaces agree (:func:`estimate_on_full_boxes`), matched by the matcher, else
+        by the layout of the boxes alone (:func:`estimate_by_consensus`)."""
         if matches is None:
             matches = self.matcher.match(target, source)
         prior = None
@@ -159,6 +160,8 @@ class ViewGraphBuilder:
         few = rel is None or len(rel.inliers) < self.config.keyframes.min_retrieved_inliers
         if self.separate and not stream and few:
             full = estimate_on_full_boxes(target, source, self.matcher, self.matching)
+            if full is None or len(full.inliers) < self.config.keyframes.min_retrieved_inliers:
+                full = estimate_by_consensus(target, source, self.matching) or full
             rel = rel if full is None else full.swap_index_order()
         if rel is None:
             return None
