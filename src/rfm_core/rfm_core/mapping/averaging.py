@@ -487,12 +487,17 @@ def _bridges(candidates, edges, src, dst, n) -> np.ndarray:
     for j, i in enumerate(candidates):
         if not edges[i]:
             continue
-        keep = edges.copy()
-        keep[i] = False
-        graph = sp.coo_matrix((np.ones(int(keep.sum())), (src[keep], dst[keep])), shape=(n, n))
-        labels = connected_components(graph, directed=False)[1]
+        labels = _components_without(i, edges, src, dst, n)
         out[j] = labels[src[i]] != labels[dst[i]]
     return out
+
+
+def _components_without(i, edges, src, dst, n) -> np.ndarray:
+    """(n,) component labels of the keyframes joined by ``edges`` (a mask) less edge ``i``."""
+    keep = edges.copy()
+    keep[i] = False
+    graph = sp.coo_matrix((np.ones(int(keep.sum())), (src[keep], dst[keep])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
 
 
 def _lone_joins(links, lone, src, dst, n) -> np.ndarray:
@@ -501,10 +506,7 @@ def _lone_joins(links, lone, src, dst, n) -> np.ndarray:
     A keyframe hanging on one edge is not such a part: a wrong edge misplaces it alone."""
     out = np.zeros(len(src), bool)
     for i in np.flatnonzero(links & lone):
-        keep = links.copy()
-        keep[i] = False
-        graph = sp.coo_matrix((np.ones(int(keep.sum())), (src[keep], dst[keep])), shape=(n, n))
-        labels = connected_components(graph, directed=False)[1]
+        labels = _components_without(i, links, src, dst, n)
         a, b = labels[src[i]], labels[dst[i]]
         if a != b:
             counts = np.bincount(labels)

@@ -28,14 +28,14 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from rfm_core.geometry import Pose4, circular_mean, iou_3d_paired, kabsch_4dof, wrap_angle, yaw_matrix
+from rfm_core.geometry import Pose4, circular_mean, iou_3d_paired, kabsch_4dof, wrap_angle
 from rfm_core.mapping.averaging import AveragingConfig, agreement
 from rfm_core.mapping.frame_log import camera_to_map
 from rfm_core.mapping.map_index import MapIndex, track_boxes
 from rfm_core.matching.classical import ClassicalMatcher, ObjectMatches, size_similarity
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.matching.relative_pose import (RelativePose, YawPrior, box_hits, estimate_relative_pose,
-                                             track_on_points, with_surfaces)
+                                             pair_hypotheses, track_on_points, with_surfaces)
 from rfm_core.observations import FrameObservations
 from rfm_core.settings import constant, setting
 
@@ -393,12 +393,8 @@ def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: Matchin
     ii, jj = index.similar(qb, query.embeddings, matching.size_ratio_gate, config.map_correspondences)
     if not len(ii):
         return None, None
-    if prior is not None:
-        yaws = np.full((len(ii), 1), float(prior.yaw))                # the gyroscope's
-    else:                                       # box yaws are known up to quarter turns
-        yaws = (tb[jj, 6] - qb[ii, 6])[:, None] + 0.5 * np.pi * np.arange(4)[None]
-    hi, hj, hy = np.repeat(ii, yaws.shape[1]), np.repeat(jj, yaws.shape[1]), yaws.reshape(-1)
-    trans = tb[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(hy), qb[hi, :3])      # the camera centres
+    # the gyroscope's yaw, else the boxes' up to quarter turns; the translations: the camera centres
+    hy, trans = pair_hypotheses(qb, tb, ii, jj, None if prior is None else np.full((len(ii), 1), float(prior.yaw)))
     if prior is not None:
         near = np.linalg.norm(trans - prior.centre, axis=1) <= prior.reach_m
         hy, trans = hy[near], trans[near]

@@ -39,7 +39,7 @@ from rfm_core.matching.corners import closest_turn, corner_permutation, quarter_
 from rfm_core.matching.points import align_points
 
 __all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'estimate_on_full_boxes', 'estimate_by_consensus',
-           'box_hits', 'with_points',
+           'pair_hypotheses', 'box_hits', 'with_points',
            'with_camera_heights', 'with_walls', 'with_surfaces', 'track_on_points']
 
 #: two poses of :func:`estimate_by_consensus` are distinct when their translations differ by more (m) ...
@@ -202,9 +202,7 @@ def estimate_by_consensus(obs_a, obs_b, config: MatchingConfig | None = None) ->
     ii, jj = np.nonzero(compatible)
     if not len(ii):
         return None
-    yaws = ((b[jj, 6] - a[ii, 6])[:, None] + 0.5 * np.pi * np.arange(4)[None]).reshape(-1)
-    hi, hj = np.repeat(ii, 4), np.repeat(jj, 4)
-    trans = b[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(yaws), a[hi, :3])
+    yaws, trans = pair_hypotheses(a, b, ii, jj)
     hits = box_hits(a, b, compatible, yaws, trans)                                 # (H, N, M)
     count = hits.any(2).sum(1)
     order = np.argsort(-count, kind='stable')
@@ -227,6 +225,16 @@ def estimate_by_consensus(obs_a, obs_b, config: MatchingConfig | None = None) ->
         return None
     rel.corner_inliers = []                                  # (corners of the full boxes, not of ``boxes``)
     return _turned_to_surfaces(rel, obs_a, obs_b, cfg)
+
+
+def pair_hypotheses(a: np.ndarray, b: np.ndarray, ii: np.ndarray, jj: np.ndarray, yaws=None) -> tuple:
+    """Poses T_b_a (yaws (H,), translations (H, 3)) that put box ``a[ii[k]]`` on box ``b[jj[k]]``:
+    each pair's yaw from the two boxes' yaws up to quarter turns (4 per pair), or ``yaws`` (K, Y)
+    given per pair (a gyroscope's), and the translation from their centres."""
+    if yaws is None:                              # box yaws are known up to quarter turns
+        yaws = (b[jj, 6] - a[ii, 6])[:, None] + 0.5 * np.pi * np.arange(4)[None]
+    hi, hj, hy = np.repeat(ii, yaws.shape[1]), np.repeat(jj, yaws.shape[1]), yaws.reshape(-1)
+    return hy, b[hj, :3] - np.einsum('hab,hb->ha', yaw_matrix(hy), a[hi, :3])
 
 
 def box_hits(query_boxes: np.ndarray, track_boxes_: np.ndarray, compatible: np.ndarray, yaws: np.ndarray,
