@@ -281,3 +281,47 @@ def test_photos_left_out_join_the_map_when_all_poses_are_solved_at_once():
         placed[global_pass] = trajectory_errors(session.mapper.frame_poses(), truth)
     assert placed[False]['registered'] < 0.5, placed
     assert placed[True]['registered'] >= 0.75 and placed[True]['gross'] == 0, placed
+
+
+def test_views_of_a_part_left_out_join_when_its_own_edges_confirm_their_placements():
+    """The global pass (a photo collection's views left out): a placement too weak to join a
+    view alone (one keyframe's two objects, and a distinct pose explains as many) joins it
+    when another view of its part was placed where the part's own edges put it, as a second
+    session joins a map; a placement the part's edges contradict joins nothing, and neither
+    does one made before the map changed its frame."""
+    from rfm_core.geometry import Pose4
+    from rfm_core.mapping.recovery import TrackingRecovery
+    from rfm_core.mapping.relocalization import Relocalization, RelocalizationConfig
+    from rfm_core.observations import CameraIntrinsics, EdgeRecord, FrameObservations
+
+    config = RelocalizationConfig()
+    boxes = np.array([[x, 0.0, 3.0, 0.5, 0.5, 0.5, 0.0] for x in (-1.0, 0.0, 1.0, 2.0)])
+    keyframes = {k: FrameObservations(k, 'cam', CameraIntrinsics(300.0, 300.0, 160.0, 120.0, 320, 240),
+                                      np.array([0.0, 1.0, 0.0]), boxes=boxes, scores=np.ones(4, np.float32))
+                 for k in (0, 1, 10, 11)}
+    poses = {0: Pose4(0.0, (0.0, 0.0, 0.0)), 1: Pose4(0.3, (1.0, 0.0, 0.0))}     # the registered map: T_k_map
+    t_10_11 = Pose4(0.5, (0.4, -0.2, 1.0))                                        # the part's own edge
+    edges = {(10, 11): EdgeRecord(10, 11, t_10_11, np.array([[0, 0], [1, 1], [2, 2]]), np.ones(3), np.zeros((0, 5)))}
+    true_10 = Pose4(1.2, (2.0, 0.5, -1.0))                                        # T_10_map
+    true_11 = t_10_11.inverse() @ true_10                                         # T_11_map = T_11_10 T_10_map
+
+    def weak(pose, keyframe):                  # one keyframe, two objects, an alternative as good
+        return Relocalization(pose, keyframe, 2, np.array([[0, 0], [1, 1]]), 10, 2, 1, 3, 3)
+
+    def run(place_11, epochs=(0, 0)):
+        recovery = TrackingRecovery()
+        found = []
+        for k, epoch in zip((10, 11), epochs):      # each view placed in its own pass (the map grew between)
+            only = {j: keyframes[j] for j in (0, 1, k)}
+            found += recovery.left_out_edges(
+                only if k == 10 else keyframes, poses, edges,
+                lambda obs: weak(true_10, 0) if obs.stamp_ns == 10 else weak(place_11, 1), config, epoch)
+        return found
+
+    joined = run(true_11)
+    assert sorted(e.target for e in joined) == [10, 11]
+    for e in joined:                            # each edge is T_m_k from the map keyframe that placed it
+        truth = true_10 if e.target == 10 else true_11
+        assert ((poses[e.source] @ truth.inverse()).inverse() @ e.pose).within(1e-6, 1e-6)
+    assert run(Pose4(true_11.yaw + 0.5, true_11.t)) == []                         # the part's edge disagrees
+    assert run(true_11, epochs=(0, 1)) == []                                      # placed in another frame

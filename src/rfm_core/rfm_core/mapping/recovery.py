@@ -46,7 +46,11 @@ or one verified ``recovery_min_inliers`` objects: one keyframe's two objects are
 look-alike, and the map's depth points alone joined a part 5 m off on a tuning walk) and it
 is unambiguous: no distinct pose explains as many of its detections
 (:attr:`~rfm_core.mapping.relocalization.Relocalization.runner_up`), as a map match is
-accepted. Each keyframe is tried again whenever the registered map has doubled since
+accepted. A placement too weak for that joins too where another keyframe of its part (the
+keyframes outside the map that edges link) was placed where the part's own edges put it,
+as another session joins a loaded map: two look-alike placements that agree with the
+part's edges are rare. Placements made before the map changed its frame confirm nothing.
+Each keyframe is tried again whenever the registered map has doubled since
 (docs/design-notes.md).
 """
 from __future__ import annotations
@@ -74,6 +78,8 @@ class TrackingRecovery:
         self.placed: dict = {}               # another session's keyframe id -> its Relocalization (None: none)
         self.joined: set = set()             # ... those whose placement became an edge
         self.left_out: dict = {}             # keyframe id -> registered keyframes when the global pass tried it
+        self.left_out_placed: dict = {}      # ... -> (the map's frame epoch then, its Relocalization or None)
+        self.confirmed: set = set()          # ... those whose placement became an edge
         self.on_map: set = set()             # a joined session's keyframes tried on the loaded map
 
     @staticmethod
@@ -131,21 +137,11 @@ class TrackingRecovery:
                     and obs.stamp_ns < newest_stamp_ns):
                 found = relocalize(obs)
                 self.placed[k] = found
-        placed = [k for k, found in self.placed.items() if found is not None and k in keyframes]
-        out, links = [], None
-        for a in placed:
-            if a in self.joined:
-                continue
-            links = links if links is not None else _session_links(edges, reference)
-            chain = _session_frame(a, links)                        # T_k_a of a's session
-            for b in placed:
-                if b == a or b not in chain:
-                    continue
-                predicted = chain[b] @ self.placed[a].pose         # T_b_map = T_b_a T_a_map
-                if (predicted @ self.placed[b].pose.inverse()).within(config.distinct_m, config.distinct_deg):
-                    self.joined.add(a)
-                    out.append(_edge_from(self.placed[a], a, poses))
-                    break
+        placed = {k: found for k, found in self.placed.items() if found is not None and k in keyframes}
+        out = []
+        for a in _confirmed(placed, _session_links(edges, reference) if placed else {}, config, self.joined):
+            self.joined.add(a)
+            out.append(_edge_from(placed[a], a, poses))
         return out
 
     def on_map_edges(self, keyframes: dict, poses: dict, reference: set,
@@ -169,12 +165,15 @@ class TrackingRecovery:
                 found.append(_edge_from(placed, k, poses))
         return found
 
-    def left_out_edges(self, keyframes: dict, poses: dict,
+    def left_out_edges(self, keyframes: dict, poses: dict, edges: dict,
                        relocalize: Callable[[FrameObservations], Relocalization | None],
-                       config: RelocalizationConfig) -> list:
+                       config: RelocalizationConfig, epoch: int = 0) -> list:
         """The global pass's edges (see the module): each keyframe of ``keyframes`` outside
         ``poses`` (the registered ones' {id: Pose4}) with enough detections, not tried since
-        the map last doubled, placed by ``relocalize``; the unambiguous placements' edges."""
+        the map last doubled, placed by ``relocalize``; the unambiguous placements' edges, and
+        those of placements another keyframe of their part confirms (``edges``: the map's
+        {(source, target): EdgeRecord}). ``epoch`` counts the map's changes of frame: a
+        placement made in another frame confirms nothing."""
         found = []
         for k, obs in keyframes.items():
             if (k in poses or not self.recoverable(obs, config)
@@ -182,9 +181,17 @@ class TrackingRecovery:
                 continue
             self.left_out[k] = len(poses)
             placed = relocalize(obs)
+            self.left_out_placed[k] = (epoch, placed)
             if (placed is not None and placed.explained > placed.runner_up
                     and (placed.agreeing >= 2 or placed.num_inliers >= config.recovery_min_inliers)):
                 found.append(_edge_from(placed, k, poses))
+                self.confirmed.add(k)
+        placed = {k: found for k, (e, found) in self.left_out_placed.items()
+                  if e == epoch and found is not None and k in keyframes and k not in poses
+                  and found.keyframe_id in poses}
+        for a in _confirmed(placed, _session_links(edges, set(poses)) if placed else {}, config, self.confirmed):
+            self.confirmed.add(a)
+            found.append(_edge_from(placed[a], a, poses))
         return found
 
 
@@ -197,6 +204,25 @@ def _session_links(edges: dict, reference: set) -> dict:
             links.setdefault(s, []).append((t, edge.pose.inverse()))            # T_t_s
             links.setdefault(t, []).append((s, edge.pose))                      # T_s_t
     return links
+
+
+def _confirmed(placed: dict, links: dict, config: RelocalizationConfig, skip=frozenset()) -> list:
+    """The keyframes of ``placed`` ({k: Relocalization}) outside ``skip`` whose placement
+    another of their part confirms: the part's own edges (``links``, :func:`_session_links`)
+    carry it to that keyframe's within ``distinct_m`` / ``distinct_deg``."""
+    out = []
+    for a in placed:
+        if a in skip:
+            continue
+        chain = _session_frame(a, links)                            # T_k_a of a's part
+        for b in placed:
+            if b == a or b not in chain:
+                continue
+            predicted = chain[b] @ placed[a].pose                  # T_b_map = T_b_a T_a_map
+            if (predicted @ placed[b].pose.inverse()).within(config.distinct_m, config.distinct_deg):
+                out.append(a)
+                break
+    return out
 
 
 def _session_frame(a: int, links: dict) -> dict:
