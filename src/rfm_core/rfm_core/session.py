@@ -316,7 +316,7 @@ class MapSession:
     def _latest_camera(self) -> CameraPose | None:
         """The newest localized frame's pose if newer than the last handed out (the camera
         pose stream never goes back in time); without tracked frames, the newest keyframe's.
-        Not a keyframe alone (:meth:`Mapper.alone`): nothing measured puts the map's frame there."""
+        Not a pose :meth:`Mapper.withheld` holds back: nothing measured enough holds its keyframe."""
         track = self._latest_track
         if track is not None:
             cam = self.mapper.frame_pose(track)
@@ -328,7 +328,7 @@ class MapSession:
             pose = (CameraPose(self.mapper.keyframes[last].stamp_ns, self.mapper.keyframes[last].frame_id,
                                poses[last]) if last is not None else None)
         if (pose is None or (self._last_camera is not None and pose.stamp_ns <= self._last_camera.stamp_ns)
-                or self.mapper.alone(track)):
+                or self.mapper.withheld(track)):
             return None
         pose = pose._replace(covariance=self.mapper.frame_covariance(track))
         self._last_camera = pose
@@ -345,7 +345,7 @@ class MapSession:
             if not after_ns < track.stamp_ns < until:
                 continue
             cam = self.mapper.frame_pose(track)
-            if cam is not None and not self.mapper.alone(track):
+            if cam is not None and not self.mapper.withheld(track):
                 out.append(CameraPose(track.stamp_ns, track.frame_id, cam, self.mapper.frame_covariance(track)))
         if out and newest is None:
             self._last_camera = out[-1]

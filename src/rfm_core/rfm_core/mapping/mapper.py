@@ -234,11 +234,14 @@ class Mapper:
         tuning room by 151 deg (docs/design-notes.md). Edges of fewer objects come only from a
         stream, checked by its motion prior."""
         out = np.zeros(len(self.averager.edges), bool)
-        least = self.config.averaging.lone_join_min_inliers
         for i, edge in self._averaged.items():
-            out[i] = (LONE_EDGE_MIN_OBJECTS <= len(edge.inliers) < least
-                      and not (edge.source in self.streamed and edge.target in self.streamed))
+            out[i] = self._lone(edge)
         return out
+
+    def _lone(self, edge: EdgeRecord) -> bool:
+        """Whether one edge is too weak to join two parts alone (:meth:`_lone_edges`)."""
+        return (LONE_EDGE_MIN_OBJECTS <= len(edge.inliers) < self.config.averaging.lone_join_min_inliers
+                and not (edge.source in self.streamed and edge.target in self.streamed))
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
@@ -374,16 +377,39 @@ class Mapper:
         return FrameTrack(obs.stamp_ns, obs.frame_id, obs.gravity_cam, keyframe_id, obs.stamp_ns,
                           Pose4(0.0, (0.0, 0.0, 0.0)), is_keyframe=True)
 
-    def alone(self, track: FrameTrack | None) -> bool:
-        """Whether ``track`` is a keyframe that is the whole registered map with no edge to any
-        other keyframe: its pose is the map's frame by definition, not by a measurement, and a
-        part of the view graph that grows without it takes the map frame over (a photo
-        collection's first view, often). Its pose is not given out."""
-        if track is None or not track.is_keyframe or self.config.posed:
+    def withheld(self, track: FrameTrack | None) -> bool:
+        """Whether ``track``'s pose is not given out: nothing measured enough holds its keyframe.
+        A keyframe that is the whole registered map with no edge to any other keyframe: its pose
+        is the map's frame by definition, and a part of the view graph that grows without it
+        takes the map frame over (a photo collection's first view, often). And a keyframe no
+        stream links (a photo) that is not yet averaged, or that the solution holds by one lone
+        edge only (:meth:`_lone_edges`; two that agree, or one stronger, hold it): three full
+        boxes of two photos give a wrong pose often enough that half the wrong poses published
+        on tuning photo collections rested on one such edge (docs/design-notes.md). Its pose
+        goes out once a second edge agrees; the saved trajectory has it either way."""
+        if track is None or self.config.posed:
             return False
         k = self._resolved_track(track).keyframe_id
-        return (len(self.averager.poses) == 1 and self.averager.pose(k) is not None
-                and not any(k in key for key in self.edges))
+        if self.averager.pose(k) is None:
+            return k not in self.streamed
+        if len(self.averager.poses) == 1:
+            return track.is_keyframe and not any(k in key for key in self.edges)
+        return k not in self.streamed and not self._held_by_evidence(k)
+
+    def _held_by_evidence(self, keyframe_id: int) -> bool:
+        """Whether the solution keeps an edge of a registered keyframe that is not lone, or
+        lone edges to two other registered keyframes (:meth:`withheld`)."""
+        e, i = self.averager.edges, self.averager._index[keyframe_id]
+        ends = set()
+        for j in np.flatnonzero(((e.src == i) | (e.dst == i)) & e.active & ~e.yaw_only):
+            edge = self._averaged.get(int(j))
+            other = None if edge is None else edge.target if edge.source == keyframe_id else edge.source
+            if other is None or self.averager.pose(other) is None:
+                continue
+            if not self._lone(edge):
+                return True
+            ends.add(other)
+        return len(ends) >= 2
 
     def frame_covariance(self, track: FrameTrack | None) -> np.ndarray | None:
         """(6, 6) covariance of a tracked frame's camera pose (:meth:`frame_pose`) in the map, in
