@@ -760,6 +760,14 @@ class IncrementalAverager:
                                    residual_yaw, residual_t, anchor, np.radians(cfg.pose_sigma_deg),
                                    cfg.pose_sigma_m, cfg.pose_sigma_prior_dof, dict(self._index))
 
+    def kept_edges_of(self, keyframe_id: int) -> np.ndarray:
+        """Indices (in the order added) of the edges the current solution keeps that touch
+        one keyframe (yaw-only edges aside)."""
+        i, e = self._index.get(keyframe_id), self.edges
+        if i is None:
+            return np.zeros(0, np.int64)
+        return np.flatnonzero(((e.src == i) | (e.dst == i)) & e.active & ~e.yaw_only)
+
     def active_edges(self) -> list:
         """[(source id, target id)] of the edges the current solution keeps (yaw-only
         edges aside)."""

@@ -399,9 +399,8 @@ class Mapper:
     def _held_by_evidence(self, keyframe_id: int) -> bool:
         """Whether the solution keeps an edge of a registered keyframe that is not lone, or
         lone edges to two other registered keyframes (:meth:`withheld`)."""
-        e, i = self.averager.edges, self.averager._index[keyframe_id]
         ends = set()
-        for j in np.flatnonzero(((e.src == i) | (e.dst == i)) & e.active & ~e.yaw_only):
+        for j in self.averager.kept_edges_of(keyframe_id):
             edge = self._averaged.get(int(j))
             other = None if edge is None else edge.target if edge.source == keyframe_id else edge.source
             if other is None or self.averager.pose(other) is None:
