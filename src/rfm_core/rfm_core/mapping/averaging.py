@@ -740,6 +740,11 @@ class IncrementalAverager:
             out[self.ids[k]] = Pose4.from_centre(float(th), c)
         return out
 
+    @property
+    def num_registered(self) -> int:
+        """How many keyframes are registered (:attr:`poses` without building it)."""
+        return int(self._registered.sum())
+
     def pose(self, keyframe_id: int) -> Pose4 | None:
         k = self._index.get(keyframe_id)
         if k is None or not self._registered[k]:

@@ -392,7 +392,7 @@ class Mapper:
         k = self._resolved_track(track).keyframe_id
         if self.averager.pose(k) is None:
             return k not in self.streamed
-        if len(self.averager.poses) == 1:
+        if self.averager.num_registered == 1:
             return track.is_keyframe and not any(k in key for key in self.edges)
         return k not in self.streamed and not self._held_by_evidence(k)
 
