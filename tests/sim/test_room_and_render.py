@@ -77,6 +77,33 @@ def test_imu_reads_gravity_along_up_in_the_camera_frame():
     assert abs(np.median(np.linalg.norm(imu.linear_acceleration, axis=1)) - GRAVITY) < 0.2
 
 
+def test_the_imu_of_a_photo_collection_sees_the_turns_between_the_photos():
+    """The photographer carries the camera from one viewpoint to the next: the gyroscope,
+    integrated (by the gravity filter), turns by what the photos turned, and the camera is
+    still at each photo (the accelerometer reads gravity alone)."""
+    from scipy.spatial.transform import Rotation
+
+    from rfm_core.detection.gravity import GravityFilter
+    traj = make_trajectory(generate_room(3, 'plain'), 'sparse', 12, seed=2, sparse_gap_s=(1.5, 5.0))
+    imu = imu_samples(traj, 200.0, seed=0)
+    gravity, orientations = GravityFilter(), []
+    for t, force, omega in zip(imu.times, imu.linear_acceleration, imu.angular_velocity):
+        gravity.add(int(round(t * 1e9)), force, omega)
+        if len(orientations) < len(traj) and t > traj.times[len(orientations)] - 0.005:     # the photo's sample
+            orientations.append(gravity.orientation_at(int(round(t * 1e9))))
+    turns, errors = [], []
+    for k in range(len(traj) - 1):
+        (a, epoch_a), (b, epoch_b) = orientations[k], orientations[k + 1]
+        truth = traj.rotations[k].T @ traj.rotations[k + 1]
+        turns.append(np.degrees(Rotation.from_matrix(truth).magnitude()))
+        if epoch_a == epoch_b:
+            errors.append(np.degrees(Rotation.from_matrix((a.T @ b).T @ truth).magnitude()))
+    assert np.median(turns) > 20.0                          # the photos face all ways
+    assert len(errors) >= len(turns) - 3 and max(errors) < 0.5
+    at_photos = np.searchsorted(imu.times, traj.times - 0.005)
+    up = np.einsum('nji,j->ni', traj.rotations, [0.0, 0.0, GRAVITY])
+    np.testing.assert_allclose(imu.linear_acceleration[at_photos], up, atol=0.1)
+
 def ray_box_depth(rotation, position, intrinsics, u, v, box):
     """z-depth where the pixel's ray enters ``box``, by an independent slab test."""
     d_cam = np.array([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, 1.0])

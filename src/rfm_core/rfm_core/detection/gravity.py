@@ -20,11 +20,14 @@ integration epoch, which the matcher uses to check relative poses. A gap in the 
 
 At rest (for ``rest_window_s`` the accelerometer reads 1 g within ``rest_tolerance`` and
 the gyroscope less than ``rest_gyro_rad_s``) the accelerometer is gravity itself. If its
-mean differs from what the gyroscope carried by more than ``rest_reset_deg``, the camera
-was turned without the gyroscope seeing it (a stretch of samples lost, a camera put down
-elsewhere): the estimate takes the accelerometer's mean at once, and the orientation
-starts a new epoch. (Taking it whenever the camera seems at rest was measured worse on
-handheld walks: slow motion passes for rest, and its acceleration tilts the estimate.)
+mean differs from the estimate by more than ``rest_reset_deg`` (a walk between two photos
+leans the estimate with its accelerations), the estimate takes the accelerometer's mean at
+once. If it also differs that much from the direction the gyroscope alone carried since the
+estimate last started or took the accelerometer's mean, the camera was turned without the gyroscope seeing it (a stretch of samples lost,
+a camera put down elsewhere): the orientation starts a new epoch. (Taking the mean whenever
+the camera seems at rest was measured worse on handheld walks: slow motion passes for rest,
+and its acceleration tilts the estimate.) A sample whose accelerometer is out of range (a
+knock, a fast swing) still turns the estimate and the orientation by its gyroscope reading.
 
 A robot's wheel odometry measures the acceleration a drive's start and stop add (1-2 m/s^2
 on a short drive: 6-12 deg of tilt, and a straight drive turns no gyroscope, so it passes for
@@ -46,6 +49,11 @@ def _orthonormal(m: np.ndarray) -> np.ndarray:
     """The rotation nearest ``m`` (a long product of rotations drifts off orthonormality)."""
     u, _, vt = np.linalg.svd(m)
     return u @ vt
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = a @ b / max(np.linalg.norm(a) * np.linalg.norm(b), 1e-12)
+    return math.degrees(math.acos(min(max(cos, -1.0), 1.0)))
 
 
 def _rotation(rotvec: np.ndarray) -> np.ndarray:
@@ -82,6 +90,7 @@ class GravityFilter:
         self.rest_reset_deg = float(rest_reset_deg)
         self._rest = deque()               # recent samples that look like rest: (stamp_ns, force)
         self._force = None
+        self._carried = None               # gravity as the gyroscope alone carried it since the estimate last (re)started
         self._since_start = 0              # samples since the estimate (re)started
         self._stamp_ns = None
         self._orientation = None          # IMU frame -> integration frame, None without gyroscope
@@ -96,8 +105,9 @@ class GravityFilter:
         (rad/s) and the IMU's own acceleration (m/s^2, in its frame) where something else
         measures it (a robot's wheel odometry): it is taken out of the specific force, which
         leaves gravity (unless that leaves a force far from 1 g: a jump of the odometry).
-        Returns False (and ignores it) when invalid: non-finite, far from 1 g in magnitude,
-        or older than the last accepted sample."""
+        Returns False when its force is no reading of gravity (non-finite or far from 1 g in
+        magnitude: only its angular velocity is used) or it is older than the last accepted
+        sample (ignored)."""
         f = np.asarray(specific_force, dtype=np.float64).reshape(-1)
         norm = math.sqrt(f[0] * f[0] + f[1] * f[1] + f[2] * f[2]) if f.size == 3 else np.nan
         if acceleration is not None and np.isfinite(norm):
@@ -105,9 +115,6 @@ class GravityFilter:
             g_norm = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
             if self.FORCE_RANGE[0] < g_norm < self.FORCE_RANGE[1]:
                 f, norm = g, g_norm
-        if not np.isfinite(norm) or not self.FORCE_RANGE[0] < norm < self.FORCE_RANGE[1]:
-            self.rejected += 1
-            return False
         if self._stamp_ns is not None and stamp_ns < self._stamp_ns:
             self.rejected += 1
             return False
@@ -115,17 +122,23 @@ class GravityFilter:
         if angular_velocity is not None:
             w = np.asarray(angular_velocity, dtype=np.float64).reshape(3)
             w = w if np.all(np.isfinite(w)) else None
-        if self._force is None or (stamp_ns - self._stamp_ns) * 1e-9 > self.max_gap_s:
+        dt = None if self._stamp_ns is None else (stamp_ns - self._stamp_ns) * 1e-9
+        if not np.isfinite(norm) or not self.FORCE_RANGE[0] < norm < self.FORCE_RANGE[1]:
+            self.rejected += 1                        # no reading of gravity: a knock, a swing
+            if w is None or self._force is None or dt > self.max_gap_s:
+                return False
+            self._turn(w, dt)                         # but the gyroscope still saw the camera turn
+            self._rest.clear()
+            self._record(stamp_ns)
+            return False
+        if self._force is None or dt > self.max_gap_s:
             self._force = f.copy()
+            self._carried = f.copy()
             self._orientation = None
             self._since_start = 1
         else:
-            dt = (stamp_ns - self._stamp_ns) * 1e-9
             if w is not None:
-                step = _rotation(w * dt)              # the body's rotation over dt
-                self._force = step.T @ self._force    # a fixed direction, seen from the body
-                if self._orientation is not None:     # R <- R exp([w dt]x): body rates
-                    self._orientation = self._orientation @ step
+                self._turn(w, dt)
             # until tau_s of samples have come, their mean (turned by the gyroscope): the
             # first sample alone carries the camera's acceleration at that moment
             self._since_start += 1
@@ -137,12 +150,23 @@ class GravityFilter:
         elif self._orientation is None:               # a new integration epoch
             self._orientation = np.eye(3)
             self.epoch += 1
+        self._record(stamp_ns)
+        self.samples += 1
+        return True
+
+    def _turn(self, w: np.ndarray, dt: float) -> None:
+        """Carry the estimate and the orientation through the body's rotation ``w`` over ``dt``."""
+        step = _rotation(w * dt)
+        self._force = step.T @ self._force            # a fixed direction, seen from the body
+        self._carried = step.T @ self._carried
+        if self._orientation is not None:             # R <- R exp([w dt]x): body rates
+            self._orientation = self._orientation @ step
+
+    def _record(self, stamp_ns: int) -> None:
         self._history.append((int(stamp_ns), self.epoch, self._orientation, self._force.copy()))
         while stamp_ns - self._history[0][0] > self.HISTORY_S * 1e9:
             self._history.popleft()
         self._stamp_ns = int(stamp_ns)
-        self.samples += 1
-        return True
 
     def _at_rest(self, stamp_ns: int, f: np.ndarray, norm: float, w) -> None:
         """Take gravity from the accelerometer once the camera has rested ``rest_window_s``."""
@@ -157,11 +181,12 @@ class GravityFilter:
         if len(self._rest) < 3 or stamp_ns - self._rest[0][0] < 0.8 * self.rest_window_s * 1e9:
             return
         mean = np.mean([g for _, g in self._rest], axis=0)
-        cos = mean @ self._force / max(np.linalg.norm(mean) * np.linalg.norm(self._force), 1e-12)
-        if np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))) > self.rest_reset_deg:
-            self._force = mean                # turned unseen: gravity from the resting accelerometer,
-            self._orientation = None          # and the orientation starts a new epoch (below)
-            self.rest_resets += 1
+        if _angle_deg(mean, self._force) > self.rest_reset_deg:
+            self._force = mean                # gravity from the resting accelerometer
+            if _angle_deg(mean, self._carried) > self.rest_reset_deg:
+                self._orientation = None      # turned unseen: the orientation starts a new epoch (below)
+                self.rest_resets += 1
+            self._carried = mean
 
     def orientation(self) -> np.ndarray | None:
         """(3, 3) IMU frame -> integration frame at the last sample, or None (no gyroscope);

@@ -5,7 +5,8 @@ Styles (paper: CA-1M is handheld video, ScanNet++ DSLR captures are scattered):
 - ``handheld``: a smooth walk around the room (about 0.35 m/s) at eye height, looking
   towards a slowly wandering point in the room, with pitch/roll jitter of a hand;
 - ``sparse``: scattered viewpoints (DSLR-like), random positions and viewing directions,
-  in random order: not a smooth path;
+  in random order; the photographer holds the camera still for a moment at each and carries
+  it between them (its IMU sees the walk and the turns between photos);
 - ``orbit``: a circle around the room's center, looking at the center;
 - ``robot``: a level camera on a wheeled base (0.3-0.9 m up) that turns in place
   (25-45 deg/s, now and then a full spin) and drives straight (0.2-0.5 m/s) between free
@@ -40,8 +41,9 @@ class Trajectory:
     times: np.ndarray        #: (F,) seconds from the start
     rotations: np.ndarray    #: (F, 3, 3) camera-to-map
     positions: np.ndarray    #: (F, 3) camera centers in the map frame (m)
-    smooth: bool             #: whether the camera moves continuously between frames
-    #: t (s, array) -> (rotations, positions) of the continuous path, for smooth styles
+    smooth: bool             #: whether the frames sample a continuous path (a video, not photos)
+    #: t (s, array) -> (rotations, positions) of the continuous path (for sparse views, the walk
+    #: from one to the next)
     pose_fn: Callable | None = field(default=None, repr=False, compare=False)
     path: 'RobotPath | None' = field(default=None, repr=False, compare=False)    #: a robot's moves
 
@@ -239,6 +241,27 @@ def _orbit(room: Room, rng):
     return pose
 
 
+def _photo_walk(times, rotations, positions, hold_s: float = 0.5):
+    """The camera's path through sparse viewpoints: still for ``hold_s`` before and after each
+    photo (a quarter of a shorter gap), carried to the next in between with a minimum-jerk
+    profile (zero speed and acceleration at both ends), turned along the shortest rotation."""
+    from scipy.spatial.transform import Rotation  # noqa: PLC0415
+
+    def pose(t):
+        t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+        if len(times) < 2:
+            return np.repeat(rotations[:1], len(t), 0), np.repeat(positions[:1], len(t), 0)
+        i = np.clip(np.searchsorted(times, t, side='right') - 1, 0, len(times) - 2)
+        gap = times[i + 1] - times[i]
+        hold = np.minimum(hold_s, gap / 4)
+        u = np.clip((t - times[i] - hold) / (gap - 2 * hold), 0.0, 1.0)
+        s = u ** 3 * (10.0 - 15.0 * u + 6.0 * u * u)
+        turn = Rotation.from_matrix(np.einsum('nji,njk->nik', rotations[i], rotations[i + 1])).as_rotvec()
+        return (rotations[i] @ Rotation.from_rotvec(s[:, None] * turn).as_matrix(),
+                positions[i] + s[:, None] * (positions[i + 1] - positions[i]))
+    return pose
+
+
 def _free_position(room: Room, rng, margin=0.8):
     for _ in range(200):
         p = np.array([rng.uniform(margin, room.size[0] - margin),
@@ -275,7 +298,9 @@ def make_trajectory(room: Room, style: str, num_frames: int, fps: float = 30.0,
                 target[:2] = room.size[:2] - p[:2]        # look across the room
             positions.append(p)
             rotations.append(look_rotation(target - p, rng.normal(0, np.radians(2))))
-        return Trajectory(style, times, np.array(rotations), np.array(positions), smooth=False)
+        rotations, positions = np.array(rotations), np.array(positions)
+        return Trajectory(style, times, rotations, positions, smooth=False,
+                          pose_fn=_photo_walk(times, rotations, positions))
 
     times = np.arange(num_frames) / float(fps)
     if style == 'orbit':
@@ -310,29 +335,24 @@ def imu_samples(traj: Trajectory, rate_hz: float, seed: int = 0,
     """IMU readings in the camera optical frame at ``rate_hz`` over the trajectory.
 
     Specific force f = R^T (a - g) with g = (0, 0, -9.80665): at rest it reads +9.81 along
-    "up". For smooth trajectories acceleration and angular rate come from central
-    differences of the continuous path; for sparse captures the camera is held still at
-    each viewpoint (the reading in between follows the nearest viewpoint). ``gyro_bias``
-    (rad/s) and ``accel_bias`` (m/s^2): constant biases in random directions.
+    "up". Acceleration and angular rate come from central differences of the continuous path
+    (for sparse views, the walk between them). ``gyro_bias`` (rad/s) and ``accel_bias``
+    (m/s^2): constant biases in random directions.
     """
     rng = np.random.default_rng(seed)
     end = traj.times[-1] if len(traj) > 1 else 0.0
     times = np.arange(0.0, end + 1e-9, 1.0 / rate_hz)
     g = np.array([0.0, 0.0, -GRAVITY])
-    if traj.smooth and traj.pose_fn is not None:
-        dt = 1e-3
-        r0, p0 = traj.pose_fn(times)
-        r_prev, p_prev = traj.pose_fn(times - dt)
-        r_next, p_next = traj.pose_fn(times + dt)
-        accel_world = (p_next - 2 * p0 + p_prev) / dt ** 2
-        dr = np.einsum('nji,njk->nik', r0, (r_next - r_prev) / (2 * dt))   # R^T dR/dt
-        omega = np.stack([dr[:, 2, 1] - dr[:, 1, 2], dr[:, 0, 2] - dr[:, 2, 0],
-                          dr[:, 1, 0] - dr[:, 0, 1]], -1) / 2
-    else:
-        nearest = np.clip(np.searchsorted(traj.times, times + 0.5) - 1, 0, len(traj) - 1)
-        r0 = traj.rotations[nearest]
-        accel_world = np.zeros((len(times), 3))
-        omega = np.zeros((len(times), 3))
+    if traj.pose_fn is None:
+        raise ValueError('IMU readings need the continuous path (Trajectory.pose_fn)')
+    dt = 1e-3
+    r0, p0 = traj.pose_fn(times)
+    r_prev, p_prev = traj.pose_fn(times - dt)
+    r_next, p_next = traj.pose_fn(times + dt)
+    accel_world = (p_next - 2 * p0 + p_prev) / dt ** 2
+    dr = np.einsum('nji,njk->nik', r0, (r_next - r_prev) / (2 * dt))   # R^T dR/dt
+    omega = np.stack([dr[:, 2, 1] - dr[:, 1, 2], dr[:, 0, 2] - dr[:, 2, 0],
+                      dr[:, 1, 0] - dr[:, 0, 1]], -1) / 2
     force = np.einsum('nji,nj->ni', r0, accel_world - g)
     force += rng.normal(0, accel_sigma, force.shape)
     omega = omega + rng.normal(0, gyro_sigma, omega.shape)
