@@ -37,8 +37,10 @@ def gap_capture():
 
 def _run(observations, recovery: bool) -> Session:
     session = Session(MapperConfig())
-    if not recovery:                                       # an ablation: the stage taken out
-        session.mapper._recover = lambda: False
+    if not recovery:                                       # an ablation: the stage taken out, live and in
+        session.mapper._recover = lambda: False            # the global pass (matching under the gyroscope)
+        left_out = session.mapper.recovery.left_out_edges
+        session.mapper.recovery.left_out_edges = lambda *args, **kwargs: left_out(*args[:6])
     for obs in observations:
         session.step(obs)
     session.finish()
@@ -281,6 +283,36 @@ def test_photos_left_out_join_the_map_when_all_poses_are_solved_at_once():
         placed[global_pass] = trajectory_errors(session.mapper.frame_poses(), truth)
     assert placed[False]['registered'] < 0.5, placed
     assert placed[True]['registered'] >= 0.75 and placed[True]['gross'] == 0, placed
+
+
+def test_the_global_pass_places_photos_the_gyroscope_links_by_two_objects_under_its_yaw():
+    """A photo collection taken with a gyroscope (one integration epoch: here the true
+    rotation): the global pass matches each view left out to the map's objects under the
+    gyroscope's yaw, and two objects verified place it once the whole map is solved. Tuning
+    seed 29: without that 38 of 40 views are placed, with it all 40, none wrong."""
+    from rfm_core.matching.factory import make_matcher
+
+    capture = Capture(CaptureConfig(seed=29, capture='sparse', frames=40, furniture='parts', room_style='textured',
+                                    sparse_gap_s=(1.5, 5.0)))
+    detect = detections_for('depth_clusters', noise_seed=2)
+    observations, truth = [], {}
+    for frame in capture.frames():
+        obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
+        observations.append(obs)
+        truth[obs.stamp_ns] = frame.pose_matrix
+    placed = {}
+    for guided in (False, True):
+        session = Session(MapperConfig(), matcher=make_matcher('learned'))
+        if not guided:                                     # an ablation: the global pass without the gyroscope
+            left_out = session.mapper.recovery.left_out_edges
+            session.mapper.recovery.left_out_edges = lambda *args, **kwargs: left_out(*args[:6])
+        for obs in observations:
+            session.step(obs)
+        session.finish()
+        placed[guided] = trajectory_errors(session.mapper.frame_poses(), truth)
+    assert placed[True]['registered'] > placed[False]['registered'], placed
+    assert placed[True]['registered'] == 1.0 and placed[True]['gross'] == 0, placed
 
 
 def test_views_of_a_part_left_out_join_when_its_own_edges_confirm_their_placements():

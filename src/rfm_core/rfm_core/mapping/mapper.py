@@ -516,8 +516,9 @@ class Mapper:
         poses = self.averager.poses
         if self.mode != 'mapping' or not poses or self.averager.reference:
             return False
-        return self._join(self.recovery.left_out_edges(self.keyframes, poses, self.edges, self.relocalize,
-                                                       self.config.relocalization, self.averager.frame_changes))
+        return self._join(self.recovery.left_out_edges(
+            self.keyframes, poses, self.edges, self.relocalize, self.config.relocalization, self.averager.frame_changes,
+            (self.map_index, self._gyro_prior, self.config.matching)))
 
     def _cull(self) -> bool:
         """Keyframe culling (:mod:`rfm_core.mapping.culling`): each redundant keyframe of a

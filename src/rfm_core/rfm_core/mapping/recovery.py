@@ -49,7 +49,11 @@ is unambiguous: no distinct pose explains as many of its detections
 accepted. A placement too weak for that joins too where another keyframe of its part (the
 keyframes outside the map that edges link) was placed where the part's own edges put it,
 as another session joins a loaded map: two look-alike placements that agree with the
-part's edges are rare. Placements made before the map changed its frame confirm nothing.
+part's edges are rare. Placements made before the map changed its frame confirm nothing. A
+keyframe no placement joins that the gyroscope links to the map (one integration epoch) is
+matched again under the gyroscope's yaw, as tracking recovery matches it, where two objects
+verified suffice: the map has grown since recovery tried it, and now holds the place the view
+was taken to compete with a look-alike.
 Each keyframe is tried again whenever the registered map has doubled since
 (docs/design-notes.md).
 """
@@ -84,8 +88,9 @@ class TrackingRecovery:
 
     @staticmethod
     def recoverable(obs: FrameObservations, config: RelocalizationConfig) -> bool:
-        """Whether a keyframe has enough detections to be matched to the map."""
-        return len(obs) >= max(config.min_explained, 2)
+        """Whether a keyframe has enough detections to be matched to the map under the
+        gyroscope's yaw (:meth:`~rfm_core.mapping.relocalization.MapMatch.accepted`)."""
+        return len(obs) >= max(config.min_keyframe_inliers, 2)
 
     @staticmethod
     def placeable(obs: FrameObservations, config: RelocalizationConfig) -> bool:
@@ -115,13 +120,9 @@ class TrackingRecovery:
             prior = gyro_prior(k, poses)
             if prior is not None:
                 due.append((k, prior))
-        found = []
         mapped = index() if due else None
-        for k, prior in due:
-            match = match_to_map(keyframes[k], mapped, matching, config, prior)
-            if match is not None and match.accepted(config):
-                found.append(EdgeRecord.from_edge(Edge(match.keyframe_id, k, match.relative)))
-        return found
+        found = [_guided_edge(keyframes[k], k, mapped, prior, config, matching) for k, prior in due]
+        return [edge for edge in found if edge is not None]
 
     def joining_edges(self, keyframes: dict, poses: dict, edges: dict, newest_stamp_ns: int,
                       relocalize: Callable[[FrameObservations], Relocalization | None],
@@ -167,25 +168,41 @@ class TrackingRecovery:
 
     def left_out_edges(self, keyframes: dict, poses: dict, edges: dict,
                        relocalize: Callable[[FrameObservations], Relocalization | None],
-                       config: RelocalizationConfig, epoch: int = 0) -> list:
+                       config: RelocalizationConfig, epoch: int = 0, guided=None) -> list:
         """The global pass's edges (see the module): each keyframe of ``keyframes`` outside
         ``poses`` (the registered ones' {id: Pose4}) with enough detections, not tried since
         the map last doubled, placed by ``relocalize``; the unambiguous placements' edges, and
         those of placements another keyframe of their part confirms (``edges``: the map's
         {(source, target): EdgeRecord}). ``epoch`` counts the map's changes of frame: a
-        placement made in another frame confirms nothing."""
-        found = []
+        placement made in another frame confirms nothing. ``guided``: (index, gyro_prior,
+        matching), as :meth:`edges` takes them: a keyframe the gyroscope links to the map is
+        also matched under its yaw, as tracking recovery matches it."""
+        found, due = [], []
         for k, obs in keyframes.items():
             if (k in poses or not self.recoverable(obs, config)
                     or len(poses) < 2 * self.left_out.get(k, len(poses) / 2)):
                 continue
             self.left_out[k] = len(poses)
-            placed = relocalize(obs)
-            self.left_out_placed[k] = (epoch, placed)
-            if (placed is not None and placed.explained > placed.runner_up
-                    and (placed.agreeing >= 2 or placed.num_inliers >= config.recovery_min_inliers)):
-                found.append(_edge_from(placed, k, poses))
-                self.confirmed.add(k)
+            if len(obs) >= max(config.min_explained, 2):
+                placed = relocalize(obs)
+                self.left_out_placed[k] = (epoch, placed)
+                if (placed is not None and placed.explained > placed.runner_up
+                        and (placed.agreeing >= 2 or placed.num_inliers >= config.recovery_min_inliers)):
+                    found.append(_edge_from(placed, k, poses))
+                    self.confirmed.add(k)
+                    continue
+            if guided is not None:
+                due.append(k)
+        if due:
+            index, gyro_prior, matching = guided
+            mapped = index()
+            for k in due:
+                prior = gyro_prior(k, poses)
+                edge = (_guided_edge(keyframes[k], k, mapped, prior, config, matching, whole_map=True)
+                        if prior is not None else None)
+                if edge is not None:
+                    found.append(edge)
+                    self.confirmed.add(k)
         placed = {k: found for k, (e, found) in self.left_out_placed.items()
                   if e == epoch and found is not None and k in keyframes and k not in poses
                   and found.keyframe_id in poses}
@@ -193,6 +210,17 @@ class TrackingRecovery:
             self.confirmed.add(a)
             found.append(_edge_from(placed[a], a, poses))
         return found
+
+
+def _guided_edge(obs: FrameObservations, k: int, index: MapIndex, prior: MotionPrior, config: RelocalizationConfig,
+                 matching: MatchingConfig, whole_map: bool = False) -> EdgeRecord | None:
+    """The edge that joins keyframe ``k`` to the map where matching it to the map's objects
+    under ``prior`` (the gyroscope's yaw, the camera's reach) gives a match to trust
+    (:meth:`~rfm_core.mapping.relocalization.MapMatch.accepted`, ``whole_map``: the global pass)."""
+    match = match_to_map(obs, index, matching, config, prior)
+    if match is None or not match.accepted(config, whole_map):
+        return None
+    return EdgeRecord.from_edge(Edge(match.keyframe_id, k, match.relative))
 
 
 def _session_links(edges: dict, reference: set) -> dict:

@@ -333,11 +333,24 @@ class MapMatch:
     pose: Pose4                              #: T_view_map
     explained: int                           #: view detections the pose places on the map's objects
     runner_up: int                           #: the same for the best distinct alternative pose (0: none)
+    detections: int = 0                      #: the view's detections
+    guided: bool = False                     #: made under a motion prior (the gyroscope's yaw, a walk's reach)
 
-    def accepted(self, config: RelocalizationConfig) -> bool:
+    def accepted(self, config: RelocalizationConfig, whole_map: bool = False) -> bool:
         """Whether to trust the match: verified with ``recovery_min_inliers`` objects against
         a keyframe, explaining ``min_explained`` detections in the whole map and more than any
-        alternative pose."""
+        alternative pose. A match the gyroscope's yaw and the camera's reach guided is held as
+        a localization track's frame is: ``stream_min_explained`` detections explained (all of
+        a smaller view), more than any alternative, and verified against a keyframe with
+        ``recovery_min_inliers`` objects (all of a smaller view), or ``min_keyframe_inliers``
+        once the whole map is solved (``whole_map``: the global pass; the yaw given, one
+        object fixes the pose and the other checks it, and the place the view was taken is in
+        the map to compete with a look-alike, which a growing map may not have seen yet)."""
+        if self.guided:
+            inliers = config.min_keyframe_inliers if whole_map else min(config.recovery_min_inliers, self.detections)
+            return (len(self.relative.inliers) >= inliers
+                    and self.explained >= min(config.stream_min_explained, self.detections)
+                    and self.explained > self.runner_up)
         return (len(self.relative.inliers) >= config.recovery_min_inliers and self.explained >= config.min_explained
                 and self.explained > self.runner_up)
 
@@ -379,7 +392,7 @@ def match_to_map(query: FrameObservations, index: MapIndex, matching: MatchingCo
     found.sort(key=lambda f: (-f[0], -f[1]))
     best = found[0]
     runner_up = max((f[0] for f in found[1:] if not same_view(f[2].inverse(), best[2].inverse(), config)), default=0)
-    return MapMatch(best[3], best[4], best[2], best[0], runner_up)
+    return MapMatch(best[3], best[4], best[2], best[0], runner_up, len(query), prior is not None)
 
 
 def _map_hypotheses(query: FrameObservations, index: MapIndex, matching: MatchingConfig,
