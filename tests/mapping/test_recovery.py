@@ -56,6 +56,18 @@ def _in_cameras(t_a_b: np.ndarray, gravity_a, gravity_b) -> np.ndarray:
     return out
 
 
+def _observed(capture: Capture, detect, epoch=lambda i: 1):
+    """A capture's detections, each frame given the true rotation as its gyroscope's
+    orientation in integration epoch ``epoch(i)``, and the true poses by stamp."""
+    observations, truth = [], {}
+    for i, frame in enumerate(capture.frames()):
+        obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, epoch(i)
+        observations.append(obs)
+        truth[obs.stamp_ns] = frame.pose_matrix
+    return observations, truth
+
+
 def test_frames_dropped_for_3_s_and_the_map_stays_one_component(gap_capture):
     observations, truth = gap_capture
     mapper = _run(observations, recovery=True).mapper
@@ -144,13 +156,7 @@ def second_session(tmp_path_factory):
     path = save_map(mapped.mapper, tmp_path_factory.mktemp('session') / 'room.rfm')
     world = map_to_truth(mapped.mapper.frame_poses(), {f.stamp_ns: f.pose_matrix for f in Capture(first).frames()})
     second = Capture(replace(first, capture='outward', frames=24, fps=2, trajectory_seed=1, start_s=3600.0))
-    detect = detections_for('ground_truth:rgbd', noise_seed=4)
-    observations, truth = [], {}
-    for frame in second.frames():
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, 2
-        observations.append(obs)
-        truth[obs.stamp_ns] = frame.pose_matrix
+    observations, truth = _observed(second, detections_for('ground_truth:rgbd', noise_seed=4), lambda i: 2)
     return path, world, observations, truth
 
 
@@ -264,13 +270,8 @@ def test_photos_left_out_join_the_map_when_all_poses_are_solved_at_once():
     from rfm_core.matching.factory import make_matcher
 
     capture = Capture(CaptureConfig(seed=27, capture='sparse', frames=40, furniture='parts', room_style='textured'))
-    detect = detections_for('depth_clusters', noise_seed=2)
-    observations, truth = [], {}
-    for i, frame in enumerate(capture.frames()):
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, i + 1        # each photo its own gyroscope epoch
-        observations.append(obs)
-        truth[obs.stamp_ns] = frame.pose_matrix
+    # each photo its own gyroscope epoch
+    observations, truth = _observed(capture, detections_for('depth_clusters', noise_seed=2), lambda i: i + 1)
     placed = {}
     for global_pass in (False, True):
         config = MapperConfig(matching=MatchingConfig(full_box_yaw_tolerance_deg=0.0))
@@ -294,13 +295,7 @@ def test_the_global_pass_places_photos_the_gyroscope_links_by_two_objects_under_
 
     capture = Capture(CaptureConfig(seed=29, capture='sparse', frames=40, furniture='parts', room_style='textured',
                                     sparse_gap_s=(1.5, 5.0)))
-    detect = detections_for('depth_clusters', noise_seed=2)
-    observations, truth = [], {}
-    for frame in capture.frames():
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
-        observations.append(obs)
-        truth[obs.stamp_ns] = frame.pose_matrix
+    observations, truth = _observed(capture, detections_for('depth_clusters', noise_seed=2))
     placed = {}
     for guided in (False, True):
         session = Session(MapperConfig(), matcher=make_matcher('learned'))

@@ -23,11 +23,12 @@ the gyroscope less than ``rest_gyro_rad_s``) the accelerometer is gravity itself
 mean differs from the estimate by more than ``rest_reset_deg`` (a walk between two photos
 leans the estimate with its accelerations), the estimate takes the accelerometer's mean at
 once. If it also differs that much from the direction the gyroscope alone carried since the
-estimate last started or took the accelerometer's mean, the camera was turned without the gyroscope seeing it (a stretch of samples lost,
-a camera put down elsewhere): the orientation starts a new epoch. (Taking the mean whenever
-the camera seems at rest was measured worse on handheld walks: slow motion passes for rest,
-and its acceleration tilts the estimate.) A sample whose accelerometer is out of range (a
-knock, a fast swing) still turns the estimate and the orientation by its gyroscope reading.
+estimate last started or took the accelerometer's mean, the camera was turned without the
+gyroscope seeing it (a stretch of samples lost, a camera put down elsewhere): the
+orientation starts a new epoch. (Taking the mean whenever the camera seems at rest was
+measured worse on handheld walks: slow motion passes for rest, and its acceleration tilts
+the estimate.) A sample whose accelerometer is out of range (a knock, a fast swing) still
+turns the estimate and the orientation by its gyroscope reading.
 
 A robot's wheel odometry measures the acceleration a drive's start and stop add (1-2 m/s^2
 on a short drive: 6-12 deg of tilt, and a straight drive turns no gyroscope, so it passes for
@@ -90,7 +91,7 @@ class GravityFilter:
         self.rest_reset_deg = float(rest_reset_deg)
         self._rest = deque()               # recent samples that look like rest: (stamp_ns, force)
         self._force = None
-        self._carried = None               # gravity as the gyroscope alone carried it since the estimate last (re)started
+        self._carried = None               # gravity as the gyroscope alone carried it (see the module)
         self._since_start = 0              # samples since the estimate (re)started
         self._stamp_ns = None
         self._orientation = None          # IMU frame -> integration frame, None without gyroscope
