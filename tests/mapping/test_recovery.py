@@ -35,12 +35,18 @@ def gap_capture():
     return observations, truth
 
 
+def _global_pass_unguided(session: Session) -> None:
+    """An ablation: the global pass places views left out without matching them under the
+    gyroscope's yaw (its ``guided`` argument dropped)."""
+    left_out = session.mapper.recovery.left_out_edges
+    session.mapper.recovery.left_out_edges = lambda *args, **kwargs: left_out(*args[:6])
+
+
 def _run(observations, recovery: bool) -> Session:
     session = Session(MapperConfig())
     if not recovery:                                       # an ablation: the stage taken out, live and in
         session.mapper._recover = lambda: False            # the global pass (matching under the gyroscope)
-        left_out = session.mapper.recovery.left_out_edges
-        session.mapper.recovery.left_out_edges = lambda *args, **kwargs: left_out(*args[:6])
+        _global_pass_unguided(session)
     for obs in observations:
         session.step(obs)
     session.finish()
@@ -300,8 +306,7 @@ def test_the_global_pass_places_photos_the_gyroscope_links_by_two_objects_under_
     for guided in (False, True):
         session = Session(MapperConfig(), matcher=make_matcher('learned'))
         if not guided:                                     # an ablation: the global pass without the gyroscope
-            left_out = session.mapper.recovery.left_out_edges
-            session.mapper.recovery.left_out_edges = lambda *args, **kwargs: left_out(*args[:6])
+            _global_pass_unguided(session)
         for obs in observations:
             session.step(obs)
         session.finish()

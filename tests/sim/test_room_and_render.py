@@ -104,6 +104,7 @@ def test_the_imu_of_a_photo_collection_sees_the_turns_between_the_photos():
     up = np.einsum('nji,j->ni', traj.rotations, [0.0, 0.0, GRAVITY])
     np.testing.assert_allclose(imu.linear_acceleration[at_photos], up, atol=0.1)
 
+
 def ray_box_depth(rotation, position, intrinsics, u, v, box):
     """z-depth where the pixel's ray enters ``box``, by an independent slab test."""
     d_cam = np.array([(u - intrinsics.cx) / intrinsics.fx, (v - intrinsics.cy) / intrinsics.fy, 1.0])
