@@ -418,3 +418,43 @@ def test_an_edge_the_depth_points_measured_outweighs_a_wrong_one_from_objects():
     assert dropped == [(at, at + 1, 4)] and worst < 1e-6
     dropped, worst = solve(0.0)
     assert (at, at + 1, 4) not in dropped and worst > 0.1
+
+
+def test_a_lone_edge_the_gyroscope_and_the_depth_points_confirm_may_join_two_parts():
+    """Four rendered views through the depth detector as photos (no stream links them): two
+    parts of two, and one edge of three objects between the parts. Where the gyroscope's yaw
+    and the two views' depth points agree with it, pose averaging may join the parts by it
+    (``lone_edges`` does not mark it); moved 1 m (a look-alike of three objects, its yaw
+    right), or without the gyroscope between them (another integration epoch), it is a lone
+    edge, which joins no two parts (test_averaging)."""
+    import copy
+    from rfm_core.detection import make_detector
+    from rfm_core.observations import EdgeRecord
+    cap = Capture(CaptureConfig(seed=44, frames=40, fps=10.0, room_style='textured'))
+    frames = list(cap.frames())
+    det = make_detector('depth_clusters')
+    views = [0, 6, 18, 24]
+    obs = [det.detect(frames[i].detector_input()) for i in views]
+    assert all(len(o) >= 4 for o in obs)
+    aligned = [frames[i].aligned_from_map() for i in views]                # T_k_map
+
+    def edge(s, t, objects, shift=0.0):
+        pose = aligned[s] @ aligned[t].inverse()                           # T_s_t
+        pose = Pose4(pose.yaw, np.asarray(pose.t) + np.array([shift, 0.0, 0.0]))
+        return EdgeRecord(s, t, pose, np.array([[i, i] for i in range(objects)]), np.ones(objects), np.zeros((0, 5)))
+
+    def lone(join, epochs=(1, 1, 1, 1)):
+        m = Mapper()
+        for k, (o, i, epoch) in enumerate(zip(obs, views, epochs)):
+            o = copy.copy(o)
+            o.imu_rotation, o.imu_epoch = frames[i].rotation, epoch         # the gyroscope's, as the node attaches it
+            m.add_keyframe(k, o)
+        for e in (edge(0, 1, 4), edge(2, 3, 4), join):
+            assert m.add_edge(e)
+        marked = m.averager.lone_edges()
+        return [bool(marked[i]) for i, e in m._averaged.items() if e.pose == join.pose]
+
+    assert lone(edge(1, 2, 3)) == [False]
+    assert lone(edge(1, 2, 3, shift=1.0)) == [True]
+    assert lone(edge(1, 2, 3), epochs=(1, 1, 2, 2)) == [True]
+    assert lone(edge(1, 2, 4, shift=1.0)) == [False]          # four objects: no lone edge (the residuals check it)
