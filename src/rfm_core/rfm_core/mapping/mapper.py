@@ -120,7 +120,7 @@ class Mapper:
         self.streamed: set = set()           # keyframes that frames of a stream were tracked against
         self.gyro_drift = 0.0                # the gyroscope's yaw drift the edges measure (rad/s)
         self._gyro: dict = {}                # averager edge index -> (gyroscope's yaw, seconds) of its yaw-only edges
-        self._seen_through: dict = {}        # an edge's (source, target, pose) -> its views' points (overlapping, seen through)
+        self._seen_through: dict = {}        # (source, target, pose) of an edge -> (points overlapping, seen through)
         self._spans: dict = {}               # (source, target, their stamps) -> (gyroscope's yaw, seconds) or None
         self._reference_index = (None, None)  # (the loaded map's keyframes, their MapIndex): reference_index
 
@@ -245,9 +245,12 @@ class Mapper:
     def _lone(self, edge: EdgeRecord) -> bool:
         """Whether one edge is too weak to join two parts alone (:meth:`_lone_edges`): one
         that two independent measurements confirm is not (:meth:`_confirmed`)."""
+        return self._weak(edge) and not self._confirmed(edge)
+
+    def _weak(self, edge: EdgeRecord) -> bool:
+        """Whether an edge rests on few objects between views no stream links (:meth:`_lone_edges`)."""
         return (LONE_EDGE_MIN_OBJECTS <= len(edge.inliers) < self.config.averaging.lone_join_min_inliers
-                and not (edge.source in self.streamed and edge.target in self.streamed)
-                and not self._confirmed(edge))
+                and not (edge.source in self.streamed and edge.target in self.streamed))
 
     def _confirmed(self, edge: EdgeRecord) -> bool:
         """Whether the gyroscope's yaw between the edge's two views agrees with it (within
@@ -408,9 +411,9 @@ class Mapper:
         A keyframe that is the whole registered map with no edge to any other keyframe: its pose
         is the map's frame by definition, and a part of the view graph that grows without it
         takes the map frame over (a photo collection's first view, often). And a keyframe no
-        stream links (a photo) that is not yet averaged, or that the solution holds by one lone
-        edge only (:meth:`_lone_edges`; two that agree, or one stronger, hold it): three full
-        boxes of two photos give a wrong pose often enough that half the wrong poses published
+        stream links (a photo) that is not yet averaged, or that the solution holds by one weak
+        edge only (:meth:`_weak`, confirmed or not; two that agree, or one stronger, hold it):
+        three full boxes of two photos give a wrong pose often enough that half the wrong poses published
         on tuning photo collections rested on one such edge (docs/design-notes.md). Its pose
         goes out once a second edge agrees; the saved trajectory has it either way."""
         if track is None or self.config.posed:
@@ -423,15 +426,17 @@ class Mapper:
         return k not in self.streamed and not self._held_by_evidence(k)
 
     def _held_by_evidence(self, keyframe_id: int) -> bool:
-        """Whether the solution keeps an edge of a registered keyframe that is not lone, or
-        lone edges to two other registered keyframes (:meth:`withheld`)."""
+        """Whether the solution keeps an edge of a registered keyframe that is not weak, or
+        weak edges to two other registered keyframes (:meth:`withheld`: one weak edge the
+        gyroscope and the depth points confirm may join two parts, but a near miss, 0.2-0.4 m
+        off, passes both, and a photo it alone holds is not given out)."""
         ends = set()
         for j in self.averager.kept_edges_of(keyframe_id):
             edge = self._averaged.get(int(j))
             other = None if edge is None else edge.target if edge.source == keyframe_id else edge.source
             if other is None or self.averager.pose(other) is None:
                 continue
-            if not self._lone(edge):
+            if not self._weak(edge):
                 return True
             ends.add(other)
         return len(ends) >= 2
