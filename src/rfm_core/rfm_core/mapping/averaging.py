@@ -99,10 +99,6 @@ class AveragingConfig:
                                           'joined by it only where it rests on this many objects; else they need '
                                           'a second edge, which the residual checks hold against the first',
                                           lo=1, hi=100)
-    lone_join_max_seen_through: float = constant(
-        0.05, '... or where the gyroscope measured the yaw between the two views and it agrees with the edge '
-        '(max_yaw_residual_deg) and at most this share of the depth points each view moved into the other puts '
-        "in space the other saw through (the other's surfaces across its view: a look-alike)", lo=0.0, hi=1.0)
 
 
 @dataclass

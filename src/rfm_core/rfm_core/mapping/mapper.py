@@ -22,8 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.clouds import seen_through
-from rfm_core.geometry import Pose4, wrap_angle
+from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, gyro_drift
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
 from rfm_core.mapping.culling import CullingConfig, Merged, protected_keyframes, redundant_keyframes
@@ -52,8 +51,6 @@ MAX_PAIR_MEASUREMENTS = 16
 #: edges of fewer objects come only from a stream, its motion prior checking them (the matcher's
 #: ``keyframes.min_retrieved_inliers`` elsewhere): never lone (:meth:`Mapper._lone_edges`)
 LONE_EDGE_MIN_OBJECTS = 3
-#: views whose depth points overlap in fewer points confirm no edge between them (:meth:`Mapper._confirmed`)
-MIN_OVERLAP_POINTS = 50
 
 
 @dataclass(frozen=True)
@@ -120,7 +117,6 @@ class Mapper:
         self.streamed: set = set()           # keyframes that frames of a stream were tracked against
         self.gyro_drift = 0.0                # the gyroscope's yaw drift the edges measure (rad/s)
         self._gyro: dict = {}                # averager edge index -> (gyroscope's yaw, seconds) of its yaw-only edges
-        self._seen_through: dict = {}        # (source, target, pose) of an edge -> (points overlapping, seen through)
         self._spans: dict = {}               # (source, target, their stamps) -> (gyroscope's yaw, seconds) or None
         self._reference_index = (None, None)  # (the loaded map's keyframes, their MapIndex): reference_index
 
@@ -243,34 +239,9 @@ class Mapper:
         return out
 
     def _lone(self, edge: EdgeRecord) -> bool:
-        """Whether one edge is too weak to join two parts alone (:meth:`_lone_edges`): one
-        that two independent measurements confirm is not (:meth:`_confirmed`)."""
-        return self._weak(edge) and not self._confirmed(edge)
-
-    def _weak(self, edge: EdgeRecord) -> bool:
-        """Whether an edge rests on few objects between views no stream links (:meth:`_lone_edges`)."""
+        """Whether one edge is too weak to join two parts alone (:meth:`_lone_edges`)."""
         return (LONE_EDGE_MIN_OBJECTS <= len(edge.inliers) < self.config.averaging.lone_join_min_inliers
                 and not (edge.source in self.streamed and edge.target in self.streamed))
-
-    def _confirmed(self, edge: EdgeRecord) -> bool:
-        """Whether the gyroscope's yaw between the edge's two views agrees with it (within
-        ``averaging.max_yaw_residual_deg``, its drift taken out) and their depth points do
-        (``averaging.lone_join_max_seen_through``: :func:`~rfm_core.clouds.seen_through`,
-        both ways; views whose points do not overlap confirm nothing)."""
-        cfg = self.config.averaging
-        a, b = self.keyframes.get(edge.source), self.keyframes.get(edge.target)
-        span = self._span(edge.source, edge.target) if a is not None and b is not None else None
-        if span is None or abs(math.degrees(wrap_angle(span[0] + self.gyro_drift * span[1] - edge.pose.yaw))) \
-                > cfg.max_yaw_residual_deg:
-            return False
-        key = (edge.source, edge.target, edge.pose.yaw, *edge.pose.t)
-        if key not in self._seen_through:
-            t_a_b = edge.pose.matrix()
-            n1, v1 = seen_through(a.cloud, a.rotation_aligned_from_camera, b.cloud, t_a_b)
-            n2, v2 = seen_through(b.cloud, b.rotation_aligned_from_camera, a.cloud, np.linalg.inv(t_a_b))
-            self._seen_through[key] = (n1 + n2, v1 + v2)
-        points, through = self._seen_through[key]
-        return points >= MIN_OVERLAP_POINTS and through <= cfg.lone_join_max_seen_through * points
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
@@ -411,9 +382,9 @@ class Mapper:
         A keyframe that is the whole registered map with no edge to any other keyframe: its pose
         is the map's frame by definition, and a part of the view graph that grows without it
         takes the map frame over (a photo collection's first view, often). And a keyframe no
-        stream links (a photo) that is not yet averaged, or that the solution holds by one weak
-        edge only (:meth:`_weak`, confirmed or not; two that agree, or one stronger, hold it):
-        three full boxes of two photos give a wrong pose often enough that half the wrong poses published
+        stream links (a photo) that is not yet averaged, or that the solution holds by one lone
+        edge only (:meth:`_lone_edges`; two that agree, or one stronger, hold it): three full
+        boxes of two photos give a wrong pose often enough that half the wrong poses published
         on tuning photo collections rested on one such edge (docs/design-notes.md). Its pose
         goes out once a second edge agrees; the saved trajectory has it either way."""
         if track is None or self.config.posed:
@@ -426,17 +397,15 @@ class Mapper:
         return k not in self.streamed and not self._held_by_evidence(k)
 
     def _held_by_evidence(self, keyframe_id: int) -> bool:
-        """Whether the solution keeps an edge of a registered keyframe that is not weak, or
-        weak edges to two other registered keyframes (:meth:`withheld`: one weak edge the
-        gyroscope and the depth points confirm may join two parts, but a near miss, 0.2-0.4 m
-        off, passes both, and a photo it alone holds is not given out)."""
+        """Whether the solution keeps an edge of a registered keyframe that is not lone, or
+        lone edges to two other registered keyframes (:meth:`withheld`)."""
         ends = set()
         for j in self.averager.kept_edges_of(keyframe_id):
             edge = self._averaged.get(int(j))
             other = None if edge is None else edge.target if edge.source == keyframe_id else edge.source
             if other is None or self.averager.pose(other) is None:
                 continue
-            if not self._weak(edge):
+            if not self._lone(edge):
                 return True
             ends.add(other)
         return len(ends) >= 2
