@@ -13,6 +13,7 @@ from rfm_core.mapping.relocalization import MotionPrior, match_to_map
 from rfm_core.matching.config import MatchingConfig
 from rfm_core.session import Session
 from rfm_core.sim.capture import Capture, CaptureConfig
+from sim_frames import observed
 
 GAP_S = (5.0, 8.0)
 
@@ -60,18 +61,6 @@ def _in_cameras(t_a_b: np.ndarray, gravity_a, gravity_b) -> np.ndarray:
     out[:3, :3] = ra.T @ t_a_b[:3, :3] @ rb
     out[:3, 3] = ra.T @ t_a_b[:3, 3]
     return out
-
-
-def _observed(capture: Capture, detect, epoch=lambda i: 1):
-    """A capture's detections, each frame given the true rotation as its gyroscope's
-    orientation in integration epoch ``epoch(i)``, and the true poses by stamp."""
-    observations, truth = [], {}
-    for i, frame in enumerate(capture.frames()):
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, epoch(i)
-        observations.append(obs)
-        truth[obs.stamp_ns] = frame.pose_matrix
-    return observations, truth
 
 
 def test_frames_dropped_for_3_s_and_the_map_stays_one_component(gap_capture):
@@ -162,7 +151,7 @@ def second_session(tmp_path_factory):
     path = save_map(mapped.mapper, tmp_path_factory.mktemp('session') / 'room.rfm')
     world = map_to_truth(mapped.mapper.frame_poses(), {f.stamp_ns: f.pose_matrix for f in Capture(first).frames()})
     second = Capture(replace(first, capture='outward', frames=24, fps=2, trajectory_seed=1, start_s=3600.0))
-    observations, truth = _observed(second, detections_for('ground_truth:rgbd', noise_seed=4), lambda i: 2)
+    observations, truth = observed(second, detections_for('ground_truth:rgbd', noise_seed=4), lambda i: 2)
     return path, world, observations, truth
 
 
@@ -277,7 +266,7 @@ def test_photos_left_out_join_the_map_when_all_poses_are_solved_at_once():
 
     capture = Capture(CaptureConfig(seed=27, capture='sparse', frames=40, furniture='parts', room_style='textured'))
     # each photo its own gyroscope epoch
-    observations, truth = _observed(capture, detections_for('depth_clusters', noise_seed=2), lambda i: i + 1)
+    observations, truth = observed(capture, detections_for('depth_clusters', noise_seed=2), lambda i: i + 1)
     placed = {}
     for global_pass in (False, True):
         config = MapperConfig(matching=MatchingConfig(full_box_yaw_tolerance_deg=0.0))
@@ -301,7 +290,7 @@ def test_the_global_pass_places_photos_the_gyroscope_links_by_two_objects_under_
 
     capture = Capture(CaptureConfig(seed=29, capture='sparse', frames=40, furniture='parts', room_style='textured',
                                     sparse_gap_s=(1.5, 5.0)))
-    observations, truth = _observed(capture, detections_for('depth_clusters', noise_seed=2))
+    observations, truth = observed(capture, detections_for('depth_clusters', noise_seed=2))
     placed = {}
     for guided in (False, True):
         session = Session(MapperConfig(), matcher=make_matcher('learned'))

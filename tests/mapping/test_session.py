@@ -3,7 +3,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from sim_frames import detected_frames
+from sim_frames import detected_frames, observed
 
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.map_io import load_map, save_map
@@ -211,14 +211,8 @@ def round_walk():
     (detections, {stamp: true camera pose})."""
     from rfm_core.evaluation.pipeline import detections_for
     from rfm_core.sim.capture import Capture, CaptureConfig
-    detect = detections_for('ground_truth:rgbd', noise_seed=2)
-    frames, truth = [], {}
-    for frame in Capture(CaptureConfig(seed=7000, frames=250, fps=5, furniture='parts')).frames():
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
-        frames.append(obs)
-        truth[obs.stamp_ns] = frame.pose_matrix
-    return frames, truth
+    return observed(Capture(CaptureConfig(seed=7000, frames=250, fps=5, furniture='parts')),
+                    detections_for('ground_truth:rgbd', noise_seed=2))
 
 
 def test_revisits_measure_edges_and_the_walk_stops_adding_keyframes(round_walk):

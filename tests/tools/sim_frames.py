@@ -8,14 +8,22 @@ def detected_frames(seed: int = 40, frames: int = 50, fps: float = 5, noise_seed
     the gyroscope's orientation attached, as the detector node attaches it (and on a robot
     capture the camera's pose in its wheel odometry's frame, as the detector attaches it from
     /tf). ``config``: more CaptureConfig fields."""
-    detect = detections_for('ground_truth:rgbd', noise_seed)
     capture = Capture(CaptureConfig(seed=seed, frames=frames, fps=fps, **config))
     odometry = capture.camera_odometry() if capture.trajectory.path is not None else {}
-    out = []
-    for frame in capture.frames():
-        obs = detect(frame)
-        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1
-        if frame.stamp_ns in odometry:
-            obs.odometry, obs.odometry_epoch = odometry[frame.stamp_ns], 1
-        out.append(obs)
+    out, _ = observed(capture, detections_for('ground_truth:rgbd', noise_seed))
+    for obs in out:
+        if obs.stamp_ns in odometry:
+            obs.odometry, obs.odometry_epoch = odometry[obs.stamp_ns], 1
     return out
+
+
+def observed(capture: Capture, detect, epoch=lambda i: 1) -> tuple:
+    """(detections of every frame, {stamp: true camera pose}): each frame given the true
+    rotation as its gyroscope's orientation, in integration epoch ``epoch(i)`` (the i-th frame)."""
+    observations, truth = [], {}
+    for i, frame in enumerate(capture.frames()):
+        obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, epoch(i)
+        observations.append(obs)
+        truth[obs.stamp_ns] = frame.pose_matrix
+    return observations, truth
