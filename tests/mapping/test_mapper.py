@@ -418,3 +418,36 @@ def test_an_edge_the_depth_points_measured_outweighs_a_wrong_one_from_objects():
     assert dropped == [(at, at + 1, 4)] and worst < 1e-6
     dropped, worst = solve(0.0)
     assert (at, at + 1, 4) not in dropped and worst > 0.1
+
+
+def test_a_weak_edge_between_photos_the_depth_points_contradict_is_dropped():
+    """Two rendered views through the depth detector as photos (no stream links them). An
+    edge of three objects between them where they were taken is kept; moved 1 m, as a
+    look-alike of three objects places them (its yaw right), it puts the one view's surfaces
+    across space the other saw through, and the mapper drops it. An edge of four objects
+    moved so is kept (the residual checks of pose averaging hold it), and so is the weak one
+    where a stream links both views (its motion prior checked it)."""
+    from rfm_core.detection import make_detector
+    from rfm_core.observations import EdgeRecord, FrameTrack
+    cap = Capture(CaptureConfig(seed=44, frames=40, fps=10.0, room_style='textured'))
+    frames = list(cap.frames())
+    det = make_detector('depth_clusters')
+    obs = [det.detect(frames[i].detector_input()) for i in (6, 18)]
+    assert all(len(o) >= 4 for o in obs)
+    truth = frames[6].aligned_from_map() @ frames[18].aligned_from_map().inverse()        # T_0_1
+
+    def added(objects, shift=0.0, streamed=False):
+        m = Mapper()
+        for k, o in enumerate(obs):
+            m.add_keyframe(k, o)
+            if streamed:
+                m.add_frame(FrameTrack(o.stamp_ns + 1, o.frame_id, o.gravity_cam, k, o.stamp_ns,
+                                       Pose4(0.0, (0.0, 0.0, 0.0))))
+        pose = Pose4(truth.yaw, np.asarray(truth.t) + np.array([shift, 0.0, 0.0]))
+        return m.add_edge(EdgeRecord(0, 1, pose, np.array([[i, i] for i in range(objects)]), np.ones(objects),
+                                     np.zeros((0, 5))))
+
+    assert added(3)
+    assert not added(3, shift=1.0)
+    assert added(4, shift=1.0)
+    assert added(3, shift=1.0, streamed=True)

@@ -11,7 +11,7 @@ import numpy as np
 
 from rfm_core.geometry import gravity_aligned_rotation
 
-__all__ = ['depth_cloud', 'voxel_means', 'PointIndex', 'MAX_CLOUD_POINTS']
+__all__ = ['depth_cloud', 'voxel_means', 'PointIndex', 'MAX_CLOUD_POINTS', 'seen_through']
 
 #: at most this many points per frame (a message bound; a 12 cm voxel grid of a room holds ~1,500)
 MAX_CLOUD_POINTS = 20_000
@@ -89,3 +89,34 @@ class PointIndex:
 
     def __len__(self) -> int:
         return int(self.usable.sum())
+
+
+def seen_through(cloud_a: np.ndarray, rotation_a: np.ndarray, cloud_b: np.ndarray, t_a_b: np.ndarray,
+                 bin_rad: float = 0.03, margin_m: float = 0.15, margin_ratio: float = 0.05) -> tuple:
+    """(points, contradicted): of frame b's points moved into frame a by ``t_a_b`` (4x4; both
+    clouds gravity-aligned, ``rotation_a`` a's aligned-from-camera rotation), those that fall
+    on rays of a's camera where a measured a surface (``bin_rad`` wide), and of them those
+    in front of that surface by more than ``margin_m`` + ``margin_ratio`` of its distance:
+    in space camera a saw through. Two views placed right contradict little (depth noise,
+    thin objects); a look-alike placement puts one room's surfaces across the other's view."""
+    def rays(points):
+        p = np.asarray(points, np.float64) @ rotation_a           # aligned -> a's camera (R.T p)
+        p = p[p[:, 2] > 0.1]
+        return np.floor(p[:, :2] / p[:, 2:3] / bin_rad).astype(np.int64), p[:, 2]
+    if not len(cloud_a) or not len(cloud_b):
+        return 0, 0
+    key_a, z_a = rays(cloud_a)
+    moved = np.asarray(cloud_b, np.float64) @ t_a_b[:3, :3].T + t_a_b[:3, 3]
+    key_b, z_b = rays(moved)
+    if not len(key_a) or not len(key_b):
+        return 0, 0
+    code_a = key_a[:, 0] * 1_000_003 + key_a[:, 1]
+    code_b = key_b[:, 0] * 1_000_003 + key_b[:, 1]
+    order = np.lexsort((z_a, code_a))                             # per ray, nearest surface first
+    codes, first = np.unique(code_a[order], return_index=True)
+    nearest = z_a[order][first]
+    at = np.searchsorted(codes, code_b)
+    at[at >= len(codes)] = 0
+    hit = codes[at] == code_b
+    surface = nearest[at[hit]]
+    return int(hit.sum()), int(np.count_nonzero(z_b[hit] < surface - (margin_m + margin_ratio * surface)))

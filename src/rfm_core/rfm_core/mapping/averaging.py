@@ -99,6 +99,11 @@ class AveragingConfig:
                                           'joined by it only where it rests on this many objects; else they need '
                                           'a second edge, which the residual checks hold against the first',
                                           lo=1, hi=100)
+    max_seen_through: float = constant(
+        0.10, 'An edge of fewer objects than lone_join_min_inliers between views no stream links is dropped where '
+        "more than this share of the depth points each view, moved into the other by it, puts in space the other "
+        "saw through: the other's surfaces across its view, a look-alike (over tuning photos right edges 0.05-0.08 "
+        'at p95, grossly wrong ones 0.10-0.61)', lo=0.0, hi=1.0)
 
 
 @dataclass

@@ -22,6 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from rfm_core.clouds import seen_through
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, gyro_drift
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
@@ -51,6 +52,8 @@ MAX_PAIR_MEASUREMENTS = 16
 #: edges of fewer objects come only from a stream, its motion prior checking them (the matcher's
 #: ``keyframes.min_retrieved_inliers`` elsewhere): never lone (:meth:`Mapper._lone_edges`)
 LONE_EDGE_MIN_OBJECTS = 3
+#: views whose depth points overlap in fewer points contradict no edge between them (:meth:`Mapper._seen_through`)
+MIN_OVERLAP_POINTS = 50
 
 
 @dataclass(frozen=True)
@@ -186,7 +189,8 @@ class Mapper:
 
     def add_edge(self, edge: EdgeRecord) -> bool:
         """Add a verified edge; False when ignored (localization mode, unknown keyframe,
-        a loop, a pair measured ``MAX_PAIR_MEASUREMENTS`` times already, or malformed). A
+        a loop, a pair measured ``MAX_PAIR_MEASUREMENTS`` times already, a weak edge between
+        photos that their depth points contradict (:meth:`_seen_through`), or malformed). A
         pair measured before (a frame revisiting it) adds a repeat measurement: all of them
         vote in pose averaging."""
         if self.mode != 'mapping':
@@ -200,6 +204,8 @@ class Mapper:
         edge = self._resolved(edge)
         key = (edge.source, edge.target)
         if edge.source == edge.target or len(self._pairs.get(key, ())) >= MAX_PAIR_MEASUREMENTS:
+            return False
+        if self._seen_through(edge):
             return False
         if key in self.edges and any(e.pose == edge.pose for e in self._pairs[key]):    # the same message again
             return False
@@ -242,6 +248,24 @@ class Mapper:
         """Whether one edge is too weak to join two parts alone (:meth:`_lone_edges`)."""
         return (LONE_EDGE_MIN_OBJECTS <= len(edge.inliers) < self.config.averaging.lone_join_min_inliers
                 and not (edge.source in self.streamed and edge.target in self.streamed))
+
+    def _seen_through(self, edge: EdgeRecord) -> bool:
+        """Whether the depth points contradict a weak edge between views no stream links
+        (fewer than ``averaging.lone_join_min_inliers`` objects): of each view's points moved
+        into the other by it (:func:`~rfm_core.clouds.seen_through`, both ways), more than
+        ``averaging.max_seen_through`` lie in space the other saw through. Views overlapping
+        in fewer than :data:`MIN_OVERLAP_POINTS` points contradict nothing."""
+        cfg = self.config.averaging
+        if not 0 < len(edge.inliers) < cfg.lone_join_min_inliers or \
+                (edge.source in self.streamed and edge.target in self.streamed):
+            return False
+        a, b = self.keyframes.get(edge.source), self.keyframes.get(edge.target)
+        if a is None or b is None:
+            return False
+        t_a_b = edge.pose.matrix()
+        n1, v1 = seen_through(a.cloud, a.rotation_aligned_from_camera, b.cloud, t_a_b)
+        n2, v2 = seen_through(b.cloud, b.rotation_aligned_from_camera, a.cloud, np.linalg.inv(t_a_b))
+        return n1 + n2 >= MIN_OVERLAP_POINTS and v1 + v2 > cfg.max_seen_through * (n1 + n2)
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
