@@ -54,17 +54,6 @@ MAX_PAIR_MEASUREMENTS = 16
 LONE_EDGE_MIN_OBJECTS = 3
 #: views whose depth points overlap in fewer points contradict no edge between them (:meth:`Mapper._seen_through`)
 MIN_OVERLAP_POINTS = 50
-#: a view placed on two objects is checked against the depth points of this many registered keyframes nearest it
-NEAREST_VIEWS = 30
-
-
-def _contradiction(a: FrameObservations, b: FrameObservations, t_a_b: np.ndarray) -> tuple:
-    """(points, seen through) of two views' depth points, each moved into the other by
-    ``t_a_b`` (4x4, between their gravity-aligned frames): :func:`~rfm_core.clouds.seen_through`
-    both ways, summed; views that overlap in fewer than :data:`MIN_OVERLAP_POINTS` give (0, 0)."""
-    n1, v1 = seen_through(a.cloud, a.rotation_aligned_from_camera, b.cloud, t_a_b)
-    n2, v2 = seen_through(b.cloud, b.rotation_aligned_from_camera, a.cloud, np.linalg.inv(t_a_b))
-    return (n1 + n2, v1 + v2) if n1 + n2 >= MIN_OVERLAP_POINTS else (0, 0)
 
 
 @dataclass(frozen=True)
@@ -273,8 +262,10 @@ class Mapper:
         a, b = self.keyframes.get(edge.source), self.keyframes.get(edge.target)
         if a is None or b is None:
             return False
-        points, through = _contradiction(a, b, edge.pose.matrix())
-        return points >= MIN_OVERLAP_POINTS and through > cfg.max_seen_through * points
+        t_a_b = edge.pose.matrix()
+        n1, v1 = seen_through(a.cloud, a.rotation_aligned_from_camera, b.cloud, t_a_b)
+        n2, v2 = seen_through(b.cloud, b.rotation_aligned_from_camera, a.cloud, np.linalg.inv(t_a_b))
+        return n1 + n2 >= MIN_OVERLAP_POINTS and v1 + v2 > cfg.max_seen_through * (n1 + n2)
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
@@ -551,27 +542,7 @@ class Mapper:
             return False
         return self._join(self.recovery.left_out_edges(
             self.keyframes, poses, self.edges, self.relocalize, self.config.relocalization, self.averager.frame_changes,
-            (self.map_index, self._gyro_prior, self.config.matching), self._placed_on_points))
-
-    def _placed_on_points(self, obs: FrameObservations) -> Relocalization | None:
-        """A view's placement in the map that two of its objects suffice for (all of its
-        detections, at least two, explained) where the map's depth points confirm it: of the
-        points it and the :data:`NEAREST_VIEWS` registered keyframes nearest it move into each
-        other, at most ``averaging.max_seen_through`` lie in space the other saw through,
-        over at least :data:`MIN_OVERLAP_POINTS`; else None."""
-        cfg = self.config
-        found = relocalize(obs, self.map_index(), self.matcher, replace(cfg.relocalization, min_explained=2),
-                           cfg.matching, cfg.averaging)
-        if found is None:
-            return None
-        poses = self.poses
-        centre = found.pose.inverse().t
-        nearest = sorted(poses, key=lambda k: np.linalg.norm(poses[k].inverse().t - centre))[:NEAREST_VIEWS]
-        points = through = 0
-        for k in nearest:
-            n, v = _contradiction(self.keyframes[k], obs, (poses[k] @ found.pose.inverse()).matrix())
-            points, through = points + n, through + v
-        return found if points >= MIN_OVERLAP_POINTS and through <= cfg.averaging.max_seen_through * points else None
+            (self.map_index, self._gyro_prior, self.config.matching)))
 
     def _cull(self) -> bool:
         """Keyframe culling (:mod:`rfm_core.mapping.culling`): each redundant keyframe of a

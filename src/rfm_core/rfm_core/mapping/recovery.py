@@ -53,11 +53,7 @@ part's edges are rare. Placements made before the map changed its frame confirm 
 keyframe no placement joins that the gyroscope links to the map (one integration epoch) is
 matched again under the gyroscope's yaw, as tracking recovery matches it, where two objects
 verified suffice: the map has grown since recovery tried it, and now holds the place the view
-was taken to compete with a look-alike. A keyframe that no edge links at all (a photo that
-matched no other view) is placed too where two of its objects suffice (all of its detections
-explained) and the depth points confirm the pose: of the points it and the registered
-keyframes nearest it move into each other, at most ``averaging.max_seen_through`` lie in
-space the other saw through. A part's views are not placed so: one placement moves a part.
+was taken to compete with a look-alike.
 Each keyframe is tried again whenever the registered map has doubled since
 (docs/design-notes.md).
 """
@@ -172,8 +168,7 @@ class TrackingRecovery:
 
     def left_out_edges(self, keyframes: dict, poses: dict, edges: dict,
                        relocalize: Callable[[FrameObservations], Relocalization | None],
-                       config: RelocalizationConfig, epoch: int = 0, guided=None,
-                       on_points: Callable[[FrameObservations], Relocalization | None] | None = None) -> list:
+                       config: RelocalizationConfig, epoch: int = 0, guided=None) -> list:
         """The global pass's edges (see the module): each keyframe of ``keyframes`` outside
         ``poses`` (the registered ones' {id: Pose4}) with enough detections, not tried since
         the map last doubled, placed by ``relocalize``; the unambiguous placements' edges, and
@@ -181,11 +176,8 @@ class TrackingRecovery:
         {(source, target): EdgeRecord}). ``epoch`` counts the map's changes of frame: a
         placement made in another frame confirms nothing. ``guided``: (index, gyro_prior,
         matching), as :meth:`edges` takes them: a keyframe the gyroscope links to the map is
-        also matched under its yaw, as tracking recovery matches it. ``on_points``: a
-        placement too weak for that (two objects, one keyframe's) that the map's depth points
-        confirm, or None."""
+        also matched under its yaw, as tracking recovery matches it."""
         found, due = [], []
-        linked = {k for pair in edges for k in pair}
         for k, obs in keyframes.items():
             if (k in poses or not self.recoverable(obs, config)
                     or len(poses) < 2 * self.left_out.get(k, len(poses) / 2)):
@@ -199,11 +191,6 @@ class TrackingRecovery:
                     found.append(_edge_from(placed, k, poses))
                     self.confirmed.add(k)
                     continue
-            placed = on_points(obs) if on_points is not None and k not in linked else None
-            if placed is not None:
-                found.append(_edge_from(placed, k, poses))
-                self.confirmed.add(k)
-                continue
             if guided is not None:
                 due.append(k)
         if due:
