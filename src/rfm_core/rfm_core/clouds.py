@@ -11,7 +11,7 @@ import numpy as np
 
 from rfm_core.geometry import gravity_aligned_rotation
 
-__all__ = ['depth_cloud', 'voxel_means', 'PointIndex', 'MAX_CLOUD_POINTS', 'seen_through']
+__all__ = ['depth_cloud', 'voxel_means', 'PointIndex', 'MAX_CLOUD_POINTS', 'seen_through', 'seen_through_both']
 
 #: at most this many points per frame (a message bound; a 12 cm voxel grid of a room holds ~1,500)
 MAX_CLOUD_POINTS = 20_000
@@ -120,3 +120,12 @@ def seen_through(cloud_a: np.ndarray, rotation_a: np.ndarray, cloud_b: np.ndarra
     hit = codes[at] == code_b
     surface = nearest[at[hit]]
     return int(hit.sum()), int(np.count_nonzero(z_b[hit] < surface - (margin_m + margin_ratio * surface)))
+
+
+def seen_through_both(cloud_a: np.ndarray, rotation_a: np.ndarray, cloud_b: np.ndarray, rotation_b: np.ndarray,
+                      t_a_b: np.ndarray) -> tuple:
+    """:func:`seen_through` both ways, summed: (points, contradicted) of b's points in a's
+    view and a's in b's (``t_a_b`` 4x4 between the two gravity-aligned frames)."""
+    n1, v1 = seen_through(cloud_a, rotation_a, cloud_b, t_a_b)
+    n2, v2 = seen_through(cloud_b, rotation_b, cloud_a, np.linalg.inv(t_a_b))
+    return n1 + n2, v1 + v2

@@ -22,7 +22,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from rfm_core.clouds import seen_through
+from rfm_core.clouds import seen_through_both
 from rfm_core.geometry import Pose4
 from rfm_core.mapping.averaging import AveragingConfig, IncrementalAverager, gyro_drift
 from rfm_core.mapping.bundle import BundleConfig, refine_tracks
@@ -205,9 +205,9 @@ class Mapper:
         key = (edge.source, edge.target)
         if edge.source == edge.target or len(self._pairs.get(key, ())) >= MAX_PAIR_MEASUREMENTS:
             return False
-        if self._seen_through(edge):
-            return False
         if key in self.edges and any(e.pose == edge.pose for e in self._pairs[key]):    # the same message again
+            return False
+        if self._seen_through(edge):
             return False
         self._record(edge)
         self._changed()
@@ -252,7 +252,7 @@ class Mapper:
     def _seen_through(self, edge: EdgeRecord) -> bool:
         """Whether the depth points contradict a weak edge between views no stream links
         (fewer than ``averaging.lone_join_min_inliers`` objects): of each view's points moved
-        into the other by it (:func:`~rfm_core.clouds.seen_through`, both ways), more than
+        into the other by it (:func:`~rfm_core.clouds.seen_through_both`), more than
         ``averaging.max_seen_through`` lie in space the other saw through. Views overlapping
         in fewer than :data:`MIN_OVERLAP_POINTS` points contradict nothing."""
         cfg = self.config.averaging
@@ -262,10 +262,9 @@ class Mapper:
         a, b = self.keyframes.get(edge.source), self.keyframes.get(edge.target)
         if a is None or b is None:
             return False
-        t_a_b = edge.pose.matrix()
-        n1, v1 = seen_through(a.cloud, a.rotation_aligned_from_camera, b.cloud, t_a_b)
-        n2, v2 = seen_through(b.cloud, b.rotation_aligned_from_camera, a.cloud, np.linalg.inv(t_a_b))
-        return n1 + n2 >= MIN_OVERLAP_POINTS and v1 + v2 > cfg.max_seen_through * (n1 + n2)
+        points, through = seen_through_both(a.cloud, a.rotation_aligned_from_camera, b.cloud,
+                                            b.rotation_aligned_from_camera, edge.pose.matrix())
+        return points >= MIN_OVERLAP_POINTS and through > cfg.max_seen_through * points
 
     def _size(self, keyframe_id: int) -> int | None:
         """Detections of a keyframe of the map or of one culled from it (None: unknown)."""
