@@ -56,6 +56,11 @@ def test_nodes_start_join_the_graph_and_stop_on_sigint():
                     if any(t == READY_TOPIC[name] for t, _ in topics):
                         ready.add(name)
         assert ready == wanted, f'nodes not up: {wanted - ready}'
+        # a node that seems hung tells where, and goes on: SIGUSR1 writes its threads' stacks
+        mapper = procs[-1]
+        mapper.send_signal(signal.SIGUSR1)
+        time.sleep(1.0)
+        assert mapper.poll() is None
     finally:
         observer.destroy_node()
         rclpy.try_shutdown()
@@ -64,6 +69,7 @@ def test_nodes_start_join_the_graph_and_stop_on_sigint():
         outputs = [stop(p) for p in procs]
     for p, out in zip(procs, outputs):
         assert p.returncode == 0, out
+    assert 'most recent call first' in outputs[-1] and 'spin_once' in outputs[-1], outputs[-1][-2000:]
 
 
 def test_a_signal_while_a_node_is_built_stops_it_once_built_and_sigterm_stops_a_spinning_one():

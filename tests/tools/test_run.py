@@ -128,12 +128,32 @@ def test_the_nodes_die_with_rfm_run_however_it_dies(short_bag, tmp_path):
     assert len(children) >= 4, children
     os.kill(proc.pid, signal.SIGKILL)
     proc.wait()
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + 15                  # as long as rfm run gives its nodes to stop
     while time.monotonic() < deadline and any(map(_alive, children)):
         time.sleep(0.1)
     alive = [pid for pid in children if _alive(pid)]
-    assert not alive, [_described(pid) for pid in alive] + [
-        f'{log.name}: {log.read_text()[-400:]}' for log in sorted((tmp_path / 'out').glob('*.log'))]
+    assert not alive, _hung(alive, tmp_path / 'out')
+
+
+def _hung(pids: list, log_dir: Path) -> list:
+    """For a failure message: the processes that outlived their time, each after it wrote
+    its threads' stacks (SIGUSR1) to its log, and the logs' ends; then they are killed."""
+    import os
+    import signal
+    import time
+    described = [_described(pid) for pid in pids]
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGUSR1)
+        except OSError:
+            pass
+    time.sleep(1.0)
+    for pid in pids:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except OSError:
+            pass
+    return described + [f'{log.name}: {log.read_text()[-3000:]}' for log in sorted(log_dir.glob('*.log'))]
 
 
 def _described(pid: int) -> str:
@@ -288,13 +308,39 @@ def test_rfm_run_stopped_by_sigterm_writes_its_outputs_and_stops_its_nodes(tmp_p
         assert len(nodes) >= 3, nodes
         time.sleep(2.0)                           # the graph is up (rfm run waits for all three)
         proc.send_signal(signal.SIGTERM)
-        text, _ = proc.communicate(timeout=60)
+        try:
+            text, _ = proc.communicate(timeout=60)
+        except subprocess.TimeoutExpired:
+            pytest.fail('\n'.join(['rfm run did not stop within 60 s of SIGTERM',
+                                    *_hung([p for p in nodes if _alive(p)], out)]))
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 0, text[-3000:]
     assert (out / 'map.rfm').is_file() and (out / 'report.md').is_file(), text[-3000:]
     assert not [p for p in nodes if Path(f'/proc/{p}').exists()], 'node processes left running'
+
+
+def test_rfm_run_gives_its_nodes_one_deadline_to_stop():
+    """Nodes that ignore SIGINT are killed once rfm run's one grace period is over, not one
+    grace period after another (three hung nodes would hold rfm run three times as long)."""
+    import sys
+    import time
+    from rfm_bringup.run import _ProcessGraph
+    graph = object.__new__(_ProcessGraph)
+    graph.logs = []
+    graph.procs = [subprocess.Popen([sys.executable, '-c', 'import signal, time; signal.signal(signal.SIGINT, '
+                                     'signal.SIG_IGN); print(flush=True); time.sleep(60)'], stdout=subprocess.PIPE)
+                   for _ in range(3)]
+    for p in graph.procs:
+        p.stdout.readline()                            # its SIGINT handler is in place
+    start = time.monotonic()
+    graph._stop_nodes(grace_s=1.0)
+    took = time.monotonic() - start
+    for p in graph.procs:
+        p.stdout.close()
+    assert all(p.poll() is not None for p in graph.procs)
+    assert 1.0 <= took < 2.5, took
 
 
 def test_rfm_run_says_what_a_bag_lacks(short_bag, user_bag, tmp_path):

@@ -341,6 +341,7 @@ class _ProcessGraph:
         from diagnostic_msgs.msg import DiagnosticArray  # noqa: PLC0415
         from rclpy.node import Node  # noqa: PLC0415
         from rfm_msgs.msg import MapperStatus  # noqa: PLC0415
+        from rfm_msgs.srv import SaveMap  # noqa: PLC0415
 
         self.procs = []
         self.logs = []
@@ -355,6 +356,9 @@ class _ProcessGraph:
         self.diagnostics = {}                      # status name -> {key: value} (the latest)
         self.node.create_subscription(MapperStatus, 'rfm/status', self._on_status, 10)
         self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diagnostics, 10)
+        # made now, so that discovery has matched the service's both ways long before the map is
+        # saved (a request sent by a client made a moment earlier can lose its response)
+        self.save_client = self.node.create_client(SaveMap, 'rfm/save_map')
         from rclpy.executors import SingleThreadedExecutor  # noqa: PLC0415
         self.executor = SingleThreadedExecutor()
         self.executor.add_node(self.node)
@@ -377,16 +381,19 @@ class _ProcessGraph:
             self.procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
                                                preexec_fn=die_with_parent()))
 
-    def _stop_nodes(self) -> None:
-        """SIGINT (each node saves what it must), then SIGKILL after 15 s."""
+    def _stop_nodes(self, grace_s: float = 15.0) -> None:
+        """SIGINT (each node saves what it must), then SIGKILL to those still running after
+        ``grace_s`` (one deadline for all of them)."""
         for p in self.procs:
             if p.poll() is None:
                 p.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + grace_s
         for p in self.procs:
             try:
-                p.wait(timeout=15)
+                p.wait(timeout=max(0.0, deadline - time.monotonic()))
             except subprocess.TimeoutExpired:
                 p.kill()
+                p.wait()
         for log in self.logs:
             log.close()
 
@@ -413,7 +420,8 @@ class _ProcessGraph:
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             names = set(self.node.get_node_names())
-            if {'detector', 'matcher', 'mapper'} <= names and self.status is not None:
+            if {'detector', 'matcher', 'mapper'} <= names and self.status is not None \
+                    and self.save_client.service_is_ready():
                 return
             for p in self.procs:
                 if p.poll() is not None:
@@ -452,17 +460,27 @@ class _ProcessGraph:
                                                                                 self.procs)}
         return {k: v for k, v in mb.items() if v is not None}
 
-    def save(self, path) -> bool:
+    def save(self, path, timeout_s: float = 60.0, resend_s: float = 20.0) -> bool:
+        """The mapper saves its map to ``path``. Saving is idempotent (the file is replaced
+        atomically), so a request unanswered after ``resend_s`` is sent again (DDS can lose a
+        response); the first success counts."""
         from rfm_msgs.srv import SaveMap  # noqa: PLC0415
-        client = self.node.create_client(SaveMap, 'rfm/save_map')
-        if not client.wait_for_service(timeout_sec=20):
+        if not self.save_client.wait_for_service(timeout_sec=20):
             return False
         # absolute: the mapper takes a relative path inside its map_dir
-        future = client.call_async(SaveMap.Request(path=str(Path(path).resolve())))
-        deadline = time.monotonic() + 60
-        while not future.done() and time.monotonic() < deadline:
+        request = SaveMap.Request(path=str(Path(path).resolve()))
+        start = time.monotonic()
+        futures, sent = [], -resend_s
+        while time.monotonic() - start < timeout_s:
+            if any(f.done() and f.result() is not None and f.result().success for f in futures):
+                return True
+            if futures and all(f.done() for f in futures):
+                return False                           # answered, and not saved
+            if time.monotonic() - sent >= resend_s:
+                futures.append(self.save_client.call_async(request))
+                sent = time.monotonic()
             time.sleep(0.05)
-        return future.done() and future.result().success
+        return False
 
     def stop(self):
         self._stop_nodes()

@@ -6,10 +6,15 @@ is, so a signal that lands while the node is being built fails the build on a sh
 context (exit 1), and one that lands as the node starts to spin, on a loaded machine,
 could leave the process hung. Here the signal only sets a flag, which the spin loop reads
 between callbacks (every ``poll_s`` at most); a second one interrupts at once. No ROS
-import: the caller passes its ``rclpy`` (with ``rclpy.executors`` imported)."""
+import: the caller passes its ``rclpy`` (with ``rclpy.executors`` imported).
+
+A node that seems hung tells where: ``kill -USR1 PID`` writes every thread's Python stack to
+its standard error (the node's log under ``rfm run``), also while a thread is blocked in C."""
 from __future__ import annotations
 
+import faulthandler
 import signal
+import sys
 import threading
 from typing import Callable
 
@@ -28,6 +33,8 @@ def run_node(rclpy, make_node: Callable, name: str, args=None, close: Callable |
         signal.signal(signum, signal.default_int_handler)          # a second one interrupts at once
 
     previous = {sig: signal.signal(sig, on_signal) for sig in (signal.SIGINT, signal.SIGTERM)}
+    if hasattr(signal, 'SIGUSR1'):
+        faulthandler.register(signal.SIGUSR1, file=sys.stderr, all_threads=True)
     rclpy.init(args=args, signal_handler_options=rclpy.signals.SignalHandlerOptions.NO)
     node = None
     try:
@@ -48,3 +55,5 @@ def run_node(rclpy, make_node: Callable, name: str, args=None, close: Callable |
         rclpy.try_shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+        if hasattr(signal, 'SIGUSR1'):
+            faulthandler.unregister(signal.SIGUSR1)
