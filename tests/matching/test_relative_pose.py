@@ -332,23 +332,3 @@ def test_separate_views_are_related_by_the_layout_of_their_boxes_and_an_ambiguou
     a2, _ = _separate_views(other, t_a, t_b)
     found = estimate_by_consensus(a2, b)
     assert found is None or len(found.inliers) < 3
-
-
-def test_separate_views_whose_layouts_fit_alike_are_told_apart_by_how_their_objects_look():
-    """Four like boxes in a square fit each other under four poses: without embeddings no pose
-    outweighs the others and none is given; with each object's own embedding (the same object
-    looks alike from both views) the right pose outweighs the turned ones and is given."""
-    from dataclasses import replace as dc_replace  # noqa: PLC0415
-
-    from rfm_core.matching.relative_pose import estimate_by_consensus  # noqa: PLC0415
-
-    square = np.array([[x, y, 0.4, 0.5, 0.5, 0.8, 0.0] for x, y in ((0, 0), (2, 0), (2, 2), (0, 2))])
-    t_a, t_b = Pose4(0.4, (-1.0, -0.5, -1.4)), Pose4(2.3, (1.5, -3.0, -1.4))
-    a, b = _separate_views(square, t_a, t_b)
-    assert estimate_by_consensus(a, b) is None
-    looks = np.random.default_rng(3).normal(size=(4, 16)).astype(np.float32)
-    noise = np.random.default_rng(4).normal(scale=0.1, size=(4, 16)).astype(np.float32)
-    a, b = dc_replace(a, embeddings=looks), dc_replace(b, embeddings=looks + noise)
-    rel = estimate_by_consensus(a, b)                                    # T_b_a
-    assert rel is not None and len(rel.inliers) == 4
-    assert ((t_b @ t_a.inverse()).inverse() @ rel.pose).within(0.02, 0.5)

@@ -46,10 +46,6 @@ __all__ = ['RelativePose', 'YawPrior', 'estimate_relative_pose', 'estimate_on_fu
 CONSENSUS_DISTINCT_M = 0.25
 #: ... or their yaws (deg)
 CONSENSUS_DISTINCT_DEG = 5.0
-#: the layout's pose wins where its evidence outweighs every distinct pose's by this many objects
-CONSENSUS_MARGIN = 1.0
-#: at most this many distinct proposals of the layout are verified (the most hits first)
-CONSENSUS_MAX_TRIED = 12
 
 
 @dataclass
@@ -189,18 +185,15 @@ def estimate_on_full_boxes(obs_a, obs_b, matcher, config: MatchingConfig | None 
 
 
 def estimate_by_consensus(obs_a, obs_b, config: MatchingConfig | None = None) -> RelativePose | None:
-    """T_b_a of two separate views matched on the geometry of their full boxes: each pair of
-    boxes of compatible size proposes a pose (T_b_a's yaw from the two boxes' yaws up to
-    quarter turns, the translation from their centres); the poses that land three or more of
-    a's boxes on b's (:func:`box_hits`), most first, give matches that are verified as
-    :func:`estimate_relative_pose` verifies them. Each distinct verified pose is weighed by
-    its evidence (:func:`_evidence`: the verified objects, each by how alike the two
-    detections look); the weightiest wins where it outweighs every other distinct pose by
-    ``CONSENSUS_MARGIN`` objects, and is then checked and turned by the fitted boxes as
-    :func:`estimate_on_full_boxes` is. None where either frame has no full boxes or fewer
-    than three. Where a learned matcher, trained on pairs of one walk, matches too few
-    objects of two views far apart, the boxes' layout still does; which of two layouts that
-    fit alike is right, the objects' looks tell (docs/design-notes.md)."""
+    """T_b_a of two separate views matched on the geometry of their full boxes alone: each
+    pair of boxes of compatible size proposes a pose (T_b_a's yaw from the two boxes' yaws up
+    to quarter turns, the translation from their centres); the pose that lands the most of
+    a's boxes on b's (:func:`box_hits`), three at least and more than any distinct pose, gives
+    the matches, verified as :func:`estimate_relative_pose` verifies them and then checked and
+    turned by the fitted boxes as :func:`estimate_on_full_boxes` is. None where either frame
+    has no full boxes or fewer than three. Where a learned matcher, trained on pairs of one
+    walk, matches too few objects of two views far apart, the boxes' layout still does: on
+    tuning photo pairs (docs/design-notes.md)."""
     cfg = config or MatchingConfig()
     if not (has_full_boxes(obs_a) and has_full_boxes(obs_b)) or min(len(obs_a), len(obs_b)) < 3:
         return None
@@ -212,57 +205,26 @@ def estimate_by_consensus(obs_a, obs_b, config: MatchingConfig | None = None) ->
     yaws, trans = pair_hypotheses(a, b, ii, jj)
     hits = box_hits(a, b, compatible, yaws, trans)                                 # (H, N, M)
     count = hits.any(2).sum(1)
-    tried, found = [], []                                    # proposals verified; (evidence, verified pose)
-    for h in np.argsort(-count, kind='stable'):
-        if count[h] < 3 or len(tried) >= CONSENSUS_MAX_TRIED:
-            break
-        proposal = Pose4(float(yaws[h]), trans[h])
-        if any(_same_pose(p, proposal) for p in tried):
-            continue
-        tried.append(proposal)
-        moved = proposal.transform_points(a[:, :3])
-        pairs = {}
-        for n in np.flatnonzero(hits[h].any(1)):
-            cols = np.flatnonzero(hits[h, n])
-            m = int(cols[np.argmin(np.linalg.norm(moved[n, :2] - b[cols, :2], axis=1))])
-            pairs.setdefault(m, int(n))                       # one to one
-        matches = ObjectMatches(np.array(list(pairs.values()), int), np.array(list(pairs), int), np.ones(len(pairs)))
-        rel = estimate_relative_pose(a, b, matches, cfg)
-        if rel is None or len(rel.inliers) < 3:
-            continue
-        weight = _evidence(rel, obs_a, obs_b)
-        same = next((k for k, (_, r) in enumerate(found) if _same_pose(r.pose, rel.pose)), None)
-        if same is None:
-            found.append((weight, rel))
-        elif weight > found[same][0]:
-            found[same] = (weight, rel)
-    if not found:
+    order = np.argsort(-count, kind='stable')
+    best = int(order[0])
+    pose = Pose4(float(yaws[best]), trans[best])
+    distinct = [count[h] for h in order[1:] if count[h] >= 3
+                and not (Pose4(float(yaws[h]), trans[h]).inverse() @ pose).within(CONSENSUS_DISTINCT_M,
+                                                                                  CONSENSUS_DISTINCT_DEG)]
+    if count[best] < 3 or (distinct and max(distinct) >= count[best]):
         return None
-    found.sort(key=lambda f: -f[0])
-    if len(found) > 1 and found[0][0] - found[1][0] < CONSENSUS_MARGIN:
+    moved = pose.transform_points(a[:, :3])
+    pairs = {}
+    for n in np.flatnonzero(hits[best].any(1)):
+        cols = np.flatnonzero(hits[best, n])
+        m = int(cols[np.argmin(np.linalg.norm(moved[n, :2] - b[cols, :2], axis=1))])
+        pairs.setdefault(m, int(n))                           # one to one
+    matches = ObjectMatches(np.array(list(pairs.values()), int), np.array(list(pairs), int), np.ones(len(pairs)))
+    rel = estimate_relative_pose(a, b, matches, cfg)
+    if rel is None:
         return None
-    rel = found[0][1]
     rel.corner_inliers = []                                  # (corners of the full boxes, not of ``boxes``)
     return _turned_to_surfaces(rel, obs_a, obs_b, cfg)
-
-
-def _same_pose(p: Pose4, q: Pose4) -> bool:
-    """Whether two poses are one (within ``CONSENSUS_DISTINCT_M`` and ``CONSENSUS_DISTINCT_DEG``)."""
-    return (q.inverse() @ p).within(CONSENSUS_DISTINCT_M, CONSENSUS_DISTINCT_DEG)
-
-
-def _evidence(rel: RelativePose, obs_a, obs_b) -> float:
-    """The verified objects of ``rel`` ((a, b) index pairs), each weighed by the cosine
-    similarity of the two detections' embeddings (0 to 1; 1 each without embeddings)."""
-    inl = np.asarray(rel.inliers, int).reshape(-1, 2)
-    ea = np.asarray(obs_a.embeddings, np.float64)
-    eb = np.asarray(obs_b.embeddings, np.float64)
-    if ea.ndim != 2 or eb.ndim != 2 or ea.shape[1] == 0 or ea.shape[1] != eb.shape[1] or len(ea) != len(obs_a) \
-            or len(eb) != len(obs_b):
-        return float(len(inl))
-    ea, eb = ea[inl[:, 0]], eb[inl[:, 1]]
-    cos = np.sum(ea * eb, 1) / np.maximum(np.linalg.norm(ea, axis=1) * np.linalg.norm(eb, axis=1), 1e-12)
-    return float(np.sum(np.clip(cos, 0.0, 1.0)))
 
 
 def pair_hypotheses(a: np.ndarray, b: np.ndarray, ii: np.ndarray, jj: np.ndarray, yaws=None) -> tuple:
