@@ -175,3 +175,46 @@ def test_a_camera_without_tf_gets_the_map_as_its_parent_and_its_own_broadcast_ne
     core.transform('map', 'camera_optical', first.stamp_ns, first.matrix, False)      # its own, heard back
     core.transform('camera_link', 'camera_optical', 0, np.eye(4), True)                # the mount, later still
     assert core.attach(CameraPose(3 * 10**9, 'camera_optical', np.eye(4))).child == 'camera_link'
+
+
+def _camera_poses(core, observations) -> list:
+    """The camera poses the mapper hands out for ``observations`` fed through a view graph as
+    the matcher feeds them, each as it goes out."""
+    graph = ViewGraphBuilder(core.mapper.config.matching)
+    out = []
+    for obs in observations:
+        keyframe, edges, track = graph.add(obs)
+        if keyframe is not None:
+            core.keyframe(keyframe.keyframe_id, keyframe.observations, edges=len(edges))
+        for e in edges:
+            core.edge(EdgeRecord.from_edge(e))
+        out.append(core.tracked_frame(track))
+        tick = core.tick()
+        out += [*tick.earlier, tick.camera]
+    return [c for c in out if c is not None]
+
+
+def test_separate_views_get_no_tf_of_their_own_and_a_stream_does(observations):
+    """tf2 interpolates between two broadcasts: between two photos that would put the camera
+    where no measurement did, at every photo the map did not place. A photo collection's poses
+    go out on rfm/camera_pose and not on /tf (said once); a handheld stream's go out on both,
+    and a robot's odometry carries the camera between separate views, so its map -> odom does."""
+    from rfm_core.session import CameraPose
+    photos = detected_frames(seed=41, frames=14, capture='sparse')
+    for frames, stream in ((observations[:20], True), (photos, False)):
+        core = MapperCore(with_values(MapperNodeConfig(), {'idle_full_solve_s': 0.0}), clock=_Clock())
+        core.transform('camera_link', frames[0].frame_id, 0, np.eye(4), True)          # the camera's mount
+        cameras = _camera_poses(core, frames)
+        assert len(cameras) >= 5 and all(c.stream == stream for c in cameras[1:])
+        attached = [core.attach(c) for c in cameras]
+        if stream:
+            assert all(a is not None and a.child == 'camera_link' for a in attached[1:])
+        else:
+            assert attached == [None] * len(cameras)
+            said = [line for line in core.tick().log if 'separate views' in line]
+            assert len(said) == 1 and 'rfm/camera_pose' in said[0]
+    core = MapperCore(MapperNodeConfig(), clock=_Clock())
+    core.transform('odom', 'base_link', 0, np.eye(4), False)
+    core.transform('odom', 'base_link', 2 * 10**9, np.eye(4), False)
+    core.transform('base_link', 'camera_optical', 0, np.eye(4), True)
+    assert core.attach(CameraPose(10**9, 'camera_optical', np.eye(4), stream=False)).child == 'odom'

@@ -10,7 +10,8 @@ import pytest
 
 pytest.importorskip('rclpy')
 
-from rfm_core.evaluation.report import evaluate_run, read_ground_truth  # noqa: E402
+from rfm_core.evaluation.report import (evaluate_run, published_camera_poses, read_ground_truth,  # noqa: E402
+                                        tf_camera_poses)
 from rfm_core.mapping.map_io import load_map  # noqa: E402
 from rfm_core.mapping.mapper import Mapper  # noqa: E402
 from rfm_core.sim.capture import CaptureConfig  # noqa: E402
@@ -473,6 +474,9 @@ def test_camera_sized_messages_all_reach_the_detector(tmp_path):
     assert summary['frames'] + summary['dropped'] == 12 and summary['frames'] >= 8, summary
     reasons = summary['dropped_by_reason']
     assert sum(reasons.values()) == summary['dropped'] and reasons['unsynchronised'] == 0, summary
+    # photos: their poses go out on rfm/camera_pose, and the map is not on /tf between them
+    stamps = list(read_ground_truth(bag).camera_poses)
+    assert published_camera_poses(out)[0] and tf_camera_poses(out, bag, stamps) == {}
 
 
 @pytest.mark.slow

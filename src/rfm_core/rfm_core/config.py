@@ -118,10 +118,10 @@ class MatcherNodeConfig:
 @dataclass(frozen=True)
 class MapperNodeConfig:
     map_frame: str = setting('map', 'Frame of the map (gravity-aligned, z up)', read_only=True)
-    publish_tf: bool = setting(True, "Broadcast the map on /tf as the parent of the camera frame's tree: map -> "
-                               'odom_frame on a robot whose odometry is on /tf (REP 105), else map -> the root of '
-                               "the camera frame's tree (camera_link of a static mount; the camera frame itself "
-                               'without TF)', read_only=True)
+    publish_tf: bool = setting(True, "Broadcast the map on /tf above the camera frame's tree: map -> odom_frame "
+                               'on a robot whose odometry is on /tf (REP 105), else map -> the root of that tree '
+                               '(camera_link of a static mount; the camera frame itself without TF) at frames of '
+                               'a stream, not at photos (tf2 would interpolate between them)', read_only=True)
     odom_frame: str = setting('odom', 'The odometry frame: where it is above the camera frame on /tf, the map '
                               'attaches there', read_only=True)
     transform_tolerance_s: float = setting(0.1, 'map -> odom is re-published every tf_publish_period_s, stamped '

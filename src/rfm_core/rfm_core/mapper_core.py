@@ -173,6 +173,7 @@ class MapperCore:
         self.held_stamp_ns = 0                # the image stamp it was computed at
         self._tf_stamps = deque(maxlen=64)    # the stamps the map's attachment went out with lately
         self._attached_to = None              # the frame the map last attached to (logged when it changes)
+        self._said_separate = False           # said once: separate views get no TF
         self._bare_since = None               # clock time of the first camera pose whose frame had no /tf
         lookup = {'topic': self.external_poses, 'tf': self._lookup_tf}.get(config.pose_source)
         mapper = replace(config.mapper, posed=bool(config.pose_source))
@@ -271,7 +272,11 @@ class MapperCore:
     def attach(self, camera: CameraPose | None) -> Attachment | None:
         """Where the map attaches to the TF tree for this camera pose
         (:func:`rfm_core.transforms.map_attachment`); None: nothing to broadcast (said once
-        per change). A moving attachment (map -> odom) is held for re-publishing."""
+        per change). A moving attachment (map -> odom) is held for re-publishing. A separate
+        view (``camera.stream`` false: a photo) gets no broadcast of its own unless a robot's
+        odometry carries the camera to it: a tf2 lookup between two broadcasts interpolates,
+        and between two photos it would give the camera a pose no measurement supports, at
+        every photo the map did not place (docs/design-notes.md)."""
         if camera is None or not self.config.publish_tf or self.config.pose_source:
             return None
         found = map_attachment(self.tf, camera.matrix, camera.frame_id, camera.stamp_ns, self.config.map_frame,
@@ -290,6 +295,14 @@ class MapperCore:
             if self._attached_to != found.split(' at ')[0]:
                 self._attached_to = found.split(' at ')[0]
                 self.warn(f'TF: {found}')
+            return None
+        if not (found.held or camera.stream):          # a separate view, no odometry between it and the last
+            if not self._said_separate:
+                self._said_separate = True
+                self._log.append(f'TF: {camera.frame_id} comes in separate views (photos: frames further apart '
+                                 "than the matcher's motion.max_frame_gap_s, no odometry between them); map -> "
+                                 f'{found.child} goes out for frames of a stream only, as tf2 would interpolate the '
+                                 'camera between two views it was carried between. rfm/camera_pose has every pose')
             return None
         if found.child != self._attached_to:
             self._attached_to = found.child

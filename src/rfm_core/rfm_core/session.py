@@ -68,6 +68,9 @@ class CameraPose(NamedTuple):
     frame_id: str
     matrix: np.ndarray              #: 4x4 camera-to-map
     covariance: np.ndarray | None = None   #: (6, 6) x, y, z, rotations about x, y, z (Mapper.frame_covariance)
+    #: the frame continues a stream (the matcher's ``continuous``: the camera moved smoothly from the
+    #: frame before); False: a separate view, such as a photo (no TF of its own: MapperCore.attach)
+    stream: bool = True
 
 
 class ExternalPoses:
@@ -320,7 +323,8 @@ class MapSession:
         track = self._latest_track
         if track is not None:
             cam = self.mapper.frame_pose(track)
-            pose = CameraPose(track.stamp_ns, track.frame_id, cam) if cam is not None else None
+            pose = (CameraPose(track.stamp_ns, track.frame_id, cam, stream=track.continuous) if cam is not None
+                    else None)
         else:
             poses = self.mapper.camera_poses()
             last = max(poses, default=None)
@@ -346,7 +350,8 @@ class MapSession:
                 continue
             cam = self.mapper.frame_pose(track)
             if cam is not None and not self.mapper.withheld(track):
-                out.append(CameraPose(track.stamp_ns, track.frame_id, cam, self.mapper.frame_covariance(track)))
+                out.append(CameraPose(track.stamp_ns, track.frame_id, cam, self.mapper.frame_covariance(track),
+                                      track.continuous))
         if out and newest is None:
             self._last_camera = out[-1]
         return out
