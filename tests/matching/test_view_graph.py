@@ -417,3 +417,41 @@ def test_a_separate_view_is_related_by_full_boxes_its_visible_surfaces_agree_wit
     turned = _photo_edges(stream, [v for _, v in cut])
     unchecked = _photo_edges(stream, [v for _, v in cut], MatchingConfig(full_box_yaw_tolerance_deg=45.0))
     assert wrong(turned) <= 0.1 * len(turned) and wrong(unchecked) >= 10, (wrong(turned), wrong(unchecked))
+
+
+def test_a_frame_that_sees_one_wall_is_tracked_on_it_the_motion_holding_what_the_wall_leaves_free():
+    """A wall alone fixes the distance to it and the yaw: along it and up, the frame keeps the
+    motion's prediction (``matching.point_track_max_free``), within
+    ``keyframes.max_motion_edge_s`` of the last frame placed in full. The camera walks towards
+    the wall, turning: each frame is placed to a centimetre and a tenth of a degree. Allowing
+    one free direction only, none is placed (a handheld camera close to a wall for a second)."""
+    from rfm_core.geometry import Pose4
+    from rfm_core.observations import CameraIntrinsics, FrameObservations
+
+    rng = np.random.default_rng(4)
+    grid = np.arange(-2.0, 2.0, 0.04)
+    wall = np.c_[np.full(grid.size ** 2, 3.0), np.stack(np.meshgrid(grid, grid - 0.5), -1).reshape(-1, 2)]
+    intrinsics = CameraIntrinsics(200.0, 200.0, 160.0, 120.0, 320, 240)
+
+    def frame(i, pose, boxes=np.zeros((0, 7))):
+        seen = pose.inverse().transform_points(wall)
+        seen = (seen + rng.normal(0, 0.003, seen.shape))[rng.permutation(len(seen))[: len(seen) * 3 // 4]]
+        obs = FrameObservations(10**9 + i * 10**8, 'camera', intrinsics, np.array([0.0, 1.0, 0.0]), boxes=boxes,
+                                scores=np.ones(len(boxes)), embeddings=rng.normal(size=(len(boxes), 8)),
+                                cloud=seen.astype(np.float32))
+        obs.imu_rotation = pose.matrix()[:3, :3] @ obs.rotation_aligned_from_camera      # the gyroscope's turns
+        obs.imu_epoch = 1
+        return obs
+
+    truths = [Pose4(np.radians(0.5 * i), (0.03 * i, 0.0, 0.0)) for i in range(6)]
+    boxes = np.array([[2.5, -1.0, -0.5, 0.5, 0.5, 0.5, 0.0], [2.5, 0.0, -0.5, 0.4, 0.6, 0.5, 0.0],
+                      [2.5, 1.0, -0.5, 0.6, 0.4, 0.5, 0.0]])
+    stream = [frame(0, truths[0], boxes)] + [frame(i, truths[i]) for i in range(1, 6)]
+    for max_free, placed in ((2, 5), (1, 0)):
+        graph = ViewGraphBuilder(replace(MatchingConfig(), point_track_max_free=max_free))
+        tracks = [graph.add(obs).track for obs in stream]
+        assert tracks[0] is not None and tracks[0].is_keyframe
+        found = [(t, truth) for t, truth in zip(tracks[1:], truths[1:]) if t is not None]
+        assert len(found) == placed and graph.stats.point_tracked == placed
+        for track, truth in found:
+            assert np.linalg.norm(track.pose.t - truth.t) < 0.01 and np.degrees(track.pose.angle_to(truth)) < 0.1

@@ -73,6 +73,9 @@ class MatchingConfig:
     point_track_min_overlap: float = constant(0.25, 'A frame tracked on its depth points needs this share of them '
                                               "on the keyframe's surfaces (a share of what those surfaces can "
                                               "hold: lower for noisy depth)", lo=0.0, hi=1.0)
+    point_track_max_free: int = constant(2, '... and may leave at most this many directions free (a wall alone: '
+                                         'along it and up); they keep the motion prediction, and only within '
+                                         'keyframes.max_motion_edge_s of the last frame placed in full', lo=0, hi=6)
 
     @property
     def along_rays(self) -> bool:

@@ -395,7 +395,7 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
     aligned both in 4-DoF and in 6-DoF (the frames' gravity may differ by a degree or two;
     where the points pin the tilt poorly, its fit can slide instead), the alignment that puts
     more points on the source's surfaces kept of those with at least ``point_track_min_overlap``
-    of the target's points on them (and of those, the ones that leave no direction free, if
+    of the target's points on them (and of those, the one that leaves fewer directions free, if
     either does: a 6-DoF fit can leave a direction free that the 4-DoF one fixes), returned as
     a :class:`~rfm_core.matching.points.PointAlignment`; None if neither. The caller checks the
     directions left free and the motion. (The refined overlap is not compared with the
@@ -419,7 +419,7 @@ def track_on_points(predicted: Pose4, source, target, config: MatchingConfig | N
             continue
         a = replace(a, overlap=min(a.overlap / surface, 1.0), overlap_before=min(a.overlap_before / surface, 1.0))
         if a.overlap >= cfg.point_track_min_overlap and (
-                found is None or (a.free == 0, a.overlap) > (found.free == 0, found.overlap)):
+                found is None or (-a.free, a.overlap) > (-found.free, found.overlap)):
             found = a
     return found
 

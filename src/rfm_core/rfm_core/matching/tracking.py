@@ -113,8 +113,9 @@ class Tracking:
 class PointTracking:
     """A frame of a stream that objects did not localize, tracked on its depth points:
     aligned to the reference keyframe's from the predicted pose, where the motion is
-    plausible; None otherwise. A direction the points leave free (at most one) keeps the
-    prediction, and only within ``max_motion_edge_s`` of the last frame placed in full. Where
+    plausible; None otherwise. The directions the points leave free (at most
+    ``matching.point_track_max_free``: a wall alone fixes only the distance to it and the yaw)
+    keep the prediction, and only within ``max_motion_edge_s`` of the last frame placed in full. Where
     the points place nothing, a robot's odometry carries the frame on from the last one
     (:meth:`~rfm_core.matching.motion.StreamMotion.carried`). The frame becomes no
     keyframe; a bridge from it to a later frame weighs its pose as a motion edge (no object
@@ -137,7 +138,7 @@ class PointTracking:
         g.stats.tracking_s += time.perf_counter() - start
         full = found is not None and found.free == 0
         late = obs.stamp_ns - prev.last_verified_ns > g.config.keyframes.max_motion_edge_s * 1e9
-        if (found is None or found.free > 1 or not full and late and odometry is None
+        if (found is None or found.free > g.matching.point_track_max_free or not full and late and odometry is None
                 or not (g.motion.reachable(prev.pose.inverse() @ found.pose, prev.stamp_ns, obs.stamp_ns)
                         and g.motion.sensors_agree(found.pose, ref.observations, obs))):
             if odometry is None:
