@@ -127,6 +127,7 @@ def relocalize_capture(mapper: Mapper, map_to_world: Pose4, capture: Capture, de
     stream = StreamLocalizer(mapper)
     for frame in capture.frames():
         obs = detect(frame)
+        obs.imu_rotation, obs.imu_epoch = frame.rotation, 1      # the gyroscope's, as in run_capture
         truth[frame.index] = frame.pose_matrix
         index_of[obs.stamp_ns] = frame.index
         gt = frame.ground_truth
